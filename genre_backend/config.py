@@ -1,0 +1,155 @@
+"""Typed configuration: every resolution, width and threshold of the project.
+
+Two presets share one code path:
+
+* ``paper``   -- the numbers of the original GenRe (256² images, 128² spherical
+  maps padded to 160², 128³ voxels).
+* ``default`` -- the CPU preset this project trains and ships (128² images,
+  64² spherical maps padded to 80², 64³ voxels).
+
+Modules never hard-code a resolution: they take a :class:`GenreConfig` (or one
+of its parts) and read it from there.  Configs round-trip through plain JSON
+(:meth:`GenreConfig.to_dict` / :meth:`GenreConfig.from_dict`) so that they can
+be stored beside weights without pickle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "CameraConfig",
+    "GeometryConfig",
+    "GenreConfig",
+    "PRESETS",
+    "get_preset",
+]
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The pinhole camera every view is rendered and reconstructed with.
+
+    The defaults are the original's: a 50 mm lens on a square 30.594 mm
+    sensor (horizontal field of view ≈ 34.0°), 2.2 units from the object
+    centre.  Objects are normalised to a bounding-box diagonal of 1.
+    """
+
+    lens_mm: float = 50.0
+    sensor_mm: float = 30.594
+    distance: float = 2.2
+    # Elevation range (degrees) of random training views; azimuth is uniform.
+    elevation_min_deg: float = -10.0
+    elevation_max_deg: float = 45.0
+
+    @property
+    def fov_deg(self) -> float:
+        """Full horizontal (= vertical, square sensor) field of view in degrees."""
+        return math.degrees(2.0 * math.atan(0.5 * self.sensor_mm / self.lens_mm))
+
+    def focal_px(self, image_size: int) -> float:
+        """Focal length in pixels for a square image of ``image_size`` pixels."""
+        return self.lens_mm / self.sensor_mm * image_size
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    """Resolutions and tolerances of the deterministic geometry between the nets."""
+
+    image_size: int = 128
+    sph_size: int = 64  # spherical maps are sph_size × sph_size (polar × azimuth)
+    sph_pad: int = 8  # periodic padding on each side before the inpainting net
+    voxel_size: int = 64  # voxels over the cube [-0.5, 0.5]^3
+    # Spherical map → points: values ≥ sph_nohit_min count as "no hit"; the map is
+    # resampled sph_supersample times finer first so that the points leave no
+    # holes in the voxel grid (measured: 1.0–1.3 → 0.65 voxel Chamfer on a sphere).
+    sph_nohit_min: float = 0.9999
+    sph_supersample: int = 2
+    # Depth → surface triangulation: a triangle of neighbouring pixels is kept only
+    # if its longest 3D edge is at most this many times the pixel footprint at its
+    # depth (depth/focal); 10 keeps surfaces up to ~84° from facing the camera and
+    # drops the jumps between an object's parts or to the background.
+    depth_edge_max_ratio: float = 10.0
+    # Ground-truth surface shell: surface voxels dilated this many times (26-neighbourhood).
+    shell_dilation: int = 1
+    # Isosurface thresholds swept in evaluation (inclusive range, step).
+    threshold_min: float = 0.30
+    threshold_max: float = 0.70
+    threshold_step: float = 0.05
+    default_threshold: float = 0.5
+    chamfer_points: int = 1024
+
+    @property
+    def voxel_pitch(self) -> float:
+        """Edge length of one voxel in world units (the cube has edge 1)."""
+        return 1.0 / self.voxel_size
+
+    @property
+    def sph_padded_size(self) -> int:
+        return self.sph_size + 2 * self.sph_pad
+
+    def thresholds(self) -> list[float]:
+        """The isosurface thresholds to sweep, rounded to the step's precision."""
+        n = int(round((self.threshold_max - self.threshold_min) / self.threshold_step))
+        return [round(self.threshold_min + i * self.threshold_step, 6) for i in range(n + 1)]
+
+
+@dataclass(frozen=True)
+class GenreConfig:
+    """The whole configuration of one model: preset name, camera and geometry.
+
+    Later stages (networks, training) add their own sections here.
+    """
+
+    preset: str = "default"
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "GenreConfig":
+        """Build a config from :meth:`to_dict` output, rejecting unknown keys."""
+        return _from_dict(cls, data, "config")
+
+
+def _from_dict(cls: type, data: Any, where: str):
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected an object, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(fields)
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {sorted(unknown)}")
+    kwargs = {}
+    for name, value in data.items():
+        ftype = fields[name].type
+        sub = _DATACLASS_TYPES.get(ftype if isinstance(ftype, str) else getattr(ftype, "__name__", ""))
+        kwargs[name] = _from_dict(sub, value, f"{where}.{name}") if sub else value
+    return cls(**kwargs)
+
+
+_DATACLASS_TYPES: dict[str, type] = {
+    "CameraConfig": CameraConfig,
+    "GeometryConfig": GeometryConfig,
+}
+
+
+PRESETS: dict[str, GenreConfig] = {
+    "default": GenreConfig(preset="default", geometry=GeometryConfig()),
+    "paper": GenreConfig(
+        preset="paper",
+        geometry=GeometryConfig(image_size=256, sph_size=128, sph_pad=16, voxel_size=128),
+    ),
+}
+
+
+def get_preset(name: str) -> GenreConfig:
+    """Return the named preset (``"default"`` or ``"paper"``)."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None

@@ -1,0 +1,76 @@
+"""Up-front input checks shared by the geometry core.
+
+Every public geometry function validates its inputs with these helpers and
+raises :class:`ValueError` with a message that names the argument, the shape
+it expected and what it got.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def check_tensor(
+    name: str,
+    x,
+    shape: Sequence[int | str | None],
+    *,
+    floating: bool = True,
+    finite: bool = True,
+) -> torch.Tensor:
+    """Validate ``x`` against a shape pattern and return it.
+
+    ``shape`` entries are ints (must match), ``None`` (any size) or strings
+    (a named size that must agree across all its occurrences in this call).
+    A leading ``"..."`` entry accepts any number of leading dimensions.
+    """
+    if not isinstance(x, torch.Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    pattern = list(shape)
+    dims = list(x.shape)
+    if pattern and pattern[0] == "...":
+        pattern = pattern[1:]
+        if len(dims) < len(pattern):
+            raise ValueError(f"{name}: expected at least {len(pattern)} dims {_fmt(shape)}, got shape {tuple(dims)}")
+        dims = dims[len(dims) - len(pattern):]
+    elif len(dims) != len(pattern):
+        raise ValueError(f"{name}: expected shape {_fmt(shape)}, got {tuple(x.shape)}")
+    named: dict[str, int] = {}
+    for want, got in zip(pattern, dims):
+        if want is None:
+            continue
+        if isinstance(want, str):
+            if named.setdefault(want, got) != got:
+                raise ValueError(f"{name}: dimension {want} must be consistent, got shape {tuple(x.shape)}")
+        elif want != got:
+            raise ValueError(f"{name}: expected shape {_fmt(shape)}, got {tuple(x.shape)}")
+    if floating and x.dtype not in FLOAT_DTYPES:
+        raise ValueError(f"{name}: expected float32 or float64, got {x.dtype}")
+    if finite and x.dtype.is_floating_point and not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    return x
+
+
+def check_mask(name: str, mask, like: torch.Tensor) -> torch.Tensor:
+    """Validate a boolean mask with exactly the shape of ``like``."""
+    if not isinstance(mask, torch.Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor, got {type(mask).__name__}")
+    if mask.dtype != torch.bool:
+        raise ValueError(f"{name}: expected a bool tensor, got {mask.dtype}")
+    if mask.shape != like.shape:
+        raise ValueError(f"{name}: expected shape {tuple(like.shape)}, got {tuple(mask.shape)}")
+    return mask
+
+
+def check_positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"{name}: expected a positive int, got {value!r}")
+    return value
+
+
+def _fmt(shape: Sequence[int | str | None]) -> str:
+    return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# Set up the project on a fresh Debian 12 machine: system libraries for bpy,
+# a virtual environment in .venv, and the project with its pinned dependencies.
+# Idempotent and quick when nothing changed (a stamp records what was installed).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+# 1. Python 3.11 (bpy 5.0.1 exists for CPython 3.11 only)
+PY="${PYTHON:-}"
+if [ -z "$PY" ]; then
+  for cand in python3.11 python3; do
+    if command -v "$cand" >/dev/null 2>&1 && "$cand" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+      PY="$cand"; break
+    fi
+  done
+fi
+if [ -z "$PY" ]; then
+  echo "setup: Python 3.11 is required (bpy 5.0.1 is built for CPython 3.11 only)." >&2
+  echo "setup: on Debian 12: apt-get install python3 python3-venv (3.11 is Debian 12's python3)" >&2
+  exit 1
+fi
+
+# 2. The X and GL client libraries that 'import bpy' loads even with no screen
+APT_PKGS=(libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libsm6 libice6 libxext6 libgl1 libegl1)
+missing=()
+for pkg in "${APT_PKGS[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "setup: installing Debian packages: ${missing[*]}"
+    DEBIAN_FRONTEND=noninteractive apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
+  else
+    echo "setup: bpy needs these Debian packages; run as root:" >&2
+    echo "  apt-get install ${missing[*]}" >&2
+    exit 1
+  fi
+fi
+
+# 3. The virtual environment and the project (editable) with its pinned dependencies
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating .venv with $PY"
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.genre-setup
+want=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+  echo "setup: installing the project and its dependencies into .venv (first time: a few minutes, bpy is ~370 MB)"
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[dev]' 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
+  .venv/bin/python -c "import torch, bpy, numpy, skimage, trimesh, safetensors" \
+    || { echo "setup: the installed environment does not import; see the pip output above" >&2; exit 1; }
+  echo "$want" > "$stamp"
+fi

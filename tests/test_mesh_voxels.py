@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from genre_backend.mesh_voxels import grid_index_to_view, mesh_to_shell, mesh_to_surface_voxels, voxels_to_mesh
+from genre_backend.voxels import voxel_centres
+
+
+def _centre_radii(n):
+    c = voxel_centres(n, dtype=torch.float64)
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    return torch.sqrt(x**2 + y**2 + z**2)
+
+
+@pytest.mark.parametrize("n", [32, 64])
+def test_surface_voxels_of_a_sphere(n):
+    r = 0.37
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=r)
+    vox = mesh_to_surface_voxels(torch.tensor(mesh.vertices), torch.tensor(mesh.faces), n)
+    dist = (_centre_radii(n) - r).abs() * n  # distance of each voxel centre to the sphere, in voxels
+    assert vox[dist < 0.2].all()  # every voxel the surface clearly passes through is marked
+    assert not vox[dist > 3**0.5 / 2 + 0.01].any()  # and none it cannot touch
+
+
+def test_open_mesh_shell():
+    # a single square plate z = 0.11 (open, not watertight)
+    v = torch.tensor([[-0.29, -0.29, 0.11], [0.29, -0.29, 0.11], [0.29, 0.29, 0.11], [-0.29, 0.29, 0.11]], dtype=torch.float64)
+    f = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    n = 20  # pitch 0.05: the plane z = 0.11 lies inside voxel layer iz = 12
+    surf = mesh_to_surface_voxels(v, f, n)
+    assert surf[:, :, 12].sum() == 12 * 12  # x, y from -0.29 to 0.29 cover voxels 4..15
+    assert surf.sum() == 12 * 12
+    shell = mesh_to_shell(v, f, n, 1)
+    assert shell.sum() == 14 * 14 * 3  # one dilation in the 26-neighbourhood
+    assert torch.equal(mesh_to_shell(v, f, n, 0), surf)
+
+
+def test_marching_cubes_places_vertices_in_the_view_frame():
+    n = 16
+    grid = np.zeros((n, n, n), np.float32)
+    grid[3:9, 5:7, 10:14] = 1.0  # a box of voxels
+    verts, faces = voxels_to_mesh(grid, 0.5)
+    lo, hi = verts.min(0), verts.max(0)
+    # the 0.5 level lies half-way between a full voxel centre and an empty one: at the voxel faces
+    expect_lo = grid_index_to_view(np.array([3, 5, 10]) - 0.5, n)
+    expect_hi = grid_index_to_view(np.array([8, 6, 13]) + 0.5, n)
+    assert np.allclose(lo, expect_lo, atol=1e-6) and np.allclose(hi, expect_hi, atol=1e-6)
+    # closed, and normals point outward (positive signed volume)
+    mesh = trimesh.Trimesh(verts, faces, process=True)
+    assert mesh.is_watertight
+    assert mesh.volume == pytest.approx(np.prod(expect_hi - expect_lo), rel=0.2)  # corners are cut
+    assert mesh.volume > 0
+
+
+def test_marching_cubes_closes_surfaces_at_the_border_and_handles_empty():
+    grid = torch.ones(8, 8, 8)
+    verts, faces = voxels_to_mesh(grid, 0.5)
+    assert trimesh.Trimesh(verts, faces).is_watertight
+    assert np.allclose(verts.min(0), -0.5, atol=1e-6) and np.allclose(verts.max(0), 0.5, atol=1e-6)
+    v, f = voxels_to_mesh(torch.zeros(8, 8, 8), 0.5)
+    assert v.shape == (0, 3) and f.shape == (0, 3)
+
+
+def test_sphere_round_trip_through_shell_and_marching_cubes():
+    n, r = 48, 0.35
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=r)
+    shell = mesh_to_shell(torch.tensor(mesh.vertices), torch.tensor(mesh.faces), n, 1).float()
+    verts, faces = voxels_to_mesh(shell, 0.5)
+    radii = np.linalg.norm(verts, axis=1)
+    # a shell straddling the surface gives an outer and an inner sheet around it: every vertex
+    # lies within the dilated shell's reach (√3/2 + √3 + 1/2 voxels) and the sheets balance
+    assert np.abs(radii - r).max() * n < 3.1
+    assert (radii > r + 0.5 / n).any() and (radii < r - 0.5 / n).any()
+    sheets = trimesh.Trimesh(verts, faces).split(only_watertight=False)
+    assert len(sheets) == 2
+    mean_radii = sorted(np.linalg.norm(m.vertices, axis=1).mean() for m in sheets)
+    assert abs(0.5 * sum(mean_radii) - r) * n < 0.5
+
+
+def test_rejects_bad_inputs():
+    with pytest.raises(ValueError, match="faces"):
+        mesh_to_surface_voxels(torch.zeros(3, 3), torch.zeros(1, 4, dtype=torch.int64), 8)
+    with pytest.raises(ValueError, match="threshold"):
+        voxels_to_mesh(np.zeros((4, 4, 4), np.float32), 1.5)
+    with pytest.raises(ValueError, match="cubic"):
+        voxels_to_mesh(np.zeros((4, 4, 5), np.float32), 0.5)
+    with pytest.raises(ValueError, match="shell_dilation"):
+        mesh_to_shell(torch.zeros(3, 3), torch.tensor([[0, 1, 2]]), 8, -1)

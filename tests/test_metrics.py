@@ -1,0 +1,88 @@
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from genre_backend.config import get_preset
+from genre_backend.metrics import (
+    chamfer_distance,
+    chamfer_distance_reference,
+    mesh_chamfer,
+    normalize_points,
+    sample_surface,
+    sweep_thresholds,
+)
+from genre_backend.mesh_voxels import mesh_to_shell
+
+
+def _sphere_points(n, r, seed):
+    p = np.random.default_rng(seed).normal(size=(n, 3))
+    return torch.tensor(p / np.linalg.norm(p, axis=1, keepdims=True) * r, dtype=torch.float32)
+
+
+@pytest.mark.parametrize("method", ["kdtree", "brute"])
+def test_identical_clouds_give_zero(method):
+    p = _sphere_points(1024, 0.5, 0)
+    assert chamfer_distance(p, p, method=method).item() == 0.0
+
+
+@pytest.mark.parametrize("a, b", [(0.3, 0.5), (0.45, 0.4)])
+def test_concentric_spheres_give_twice_the_gap(a, b):
+    pa, pb = _sphere_points(20000, a, 1), _sphere_points(20000, b, 2)
+    cd = chamfer_distance(pa, pb).item()
+    assert cd == pytest.approx(2 * abs(a - b), rel=0.05)
+    assert chamfer_distance(pb, pa).item() == pytest.approx(cd, rel=1e-6)
+
+
+@pytest.mark.parametrize("method", ["kdtree", "brute"])
+def test_matches_the_loop_reference_and_batches(method):
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.rand(3, 700, 3, generator=gen), torch.rand(3, 500, 3, generator=gen)
+    fast = chamfer_distance(a, b, chunk=128, method=method)
+    for i in range(3):
+        assert fast[i].item() == pytest.approx(chamfer_distance_reference(a[i].numpy(), b[i].numpy()), rel=1e-5)
+
+
+def test_brute_force_is_differentiable():
+    a = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], requires_grad=True)
+    b = torch.tensor([[0.0, 0.5, 0.0]])
+    cd = chamfer_distance(a, b)  # auto picks the differentiable path
+    cd.backward()
+    # d/da0 of (|a0-b| + |a1-b|)/2 + min(...) : a0 is the nearest to b, so it gets both terms
+    assert a.grad[0, 1].item() == pytest.approx(-0.5 - 1.0)
+
+
+def test_sampling_is_uniform_by_area_and_deterministic():
+    box = trimesh.creation.box(extents=(1.0, 0.2, 0.2))
+    p = sample_surface(box.vertices, box.faces, 20000, seed=5)
+    assert torch.equal(p, sample_surface(box.vertices, box.faces, 20000, seed=5))
+    # the two 0.2×0.2 end caps hold 0.08 of the 0.88 area
+    caps = (p[:, 0].abs() > 0.5 - 1e-6).float().mean().item()
+    assert caps == pytest.approx(0.08 / 0.88, abs=0.01)
+    with pytest.raises(ValueError, match="area"):
+        sample_surface(np.zeros((3, 3)), np.array([[0, 1, 2]]), 10)
+
+
+def test_normalisation_removes_translation_and_scale():
+    box = trimesh.creation.box(extents=(0.4, 0.2, 0.1))
+    moved = box.copy()
+    moved.apply_scale(3.0)
+    moved.apply_translation((0.3, -0.1, 0.2))
+    p = normalize_points(sample_surface(moved.vertices, moved.faces, 2000))
+    assert (p.max(0).values - p.min(0).values).max().item() == pytest.approx(1.0)
+    assert mesh_chamfer((box.vertices, box.faces), (moved.vertices, moved.faces), 2048) < 0.1
+    assert mesh_chamfer((box.vertices, box.faces), (moved.vertices, moved.faces), 2048, normalize=False) > 0.3
+
+
+def test_threshold_sweep_covers_the_configured_range():
+    g = get_preset("default").geometry
+    assert g.thresholds() == [0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7]
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.35)
+    shell = mesh_to_shell(torch.tensor(sphere.vertices), torch.tensor(sphere.faces), 32, 1).float()
+    prob = shell * 0.8 + 0.1  # 0.9 on the shell, 0.1 elsewhere
+    result = sweep_thresholds(prob, (sphere.vertices, sphere.faces), g.thresholds(), 1024, normalize=False)
+    assert list(result) == g.thresholds()
+    # a binary shell's two sheets tighten toward the shell's voxel centres as the threshold rises
+    assert all(0.0 < v < 0.2 for v in result.values())
+    assert result[0.7] < result[0.5] < result[0.3]
+    assert sweep_thresholds(torch.zeros(8, 8, 8), (sphere.vertices, sphere.faces), [0.5]) == {0.5: float("inf")}

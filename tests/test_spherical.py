@@ -1,0 +1,171 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from genre_backend import spherical as sph
+from genre_backend.config import CameraConfig, get_preset
+from genre_backend.mesh_voxels import voxels_to_mesh
+from genre_backend.metrics import sample_surface
+from genre_backend.analytic import sphere_depth, sphere_silhouette_radius_px
+
+CAM = CameraConfig()
+
+
+def test_direction_convention():
+    d = sph.sph_directions(8, 16, dtype=torch.float64)
+    assert torch.allclose(torch.linalg.vector_norm(d, dim=-1), torch.ones(8, 16, dtype=torch.float64))
+    eq = 3  # row just above the equator
+    assert d[eq, 0, 2] < -0.9  # column 0: away from the camera (seam behind the object)
+    assert d[eq, 8, 2] > 0.9  # column W/2: toward the camera
+    assert d[eq, 4, 0] < -0.9  # column W/4: left
+    assert d[0, 5, 1] > 0.9  # row 0: up
+    pix = sph.directions_to_pixels(d, 8, 16)
+    rows, cols = torch.meshgrid(torch.arange(8.0), torch.arange(16.0), indexing="ij")
+    assert torch.allclose(pix[..., 0], rows.double(), atol=1e-9)
+    assert torch.allclose(pix[..., 1], cols.double(), atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_raycast_matches_reference_on_random_triangles(seed):
+    gen = torch.Generator().manual_seed(seed)
+    tri = ((torch.rand(60, 3, 3, generator=gen, dtype=torch.float64) - 0.5) * 1.4)
+    tri[:20] = tri[:20] * 0.1 + tri[:20, :1] * 0.9  # some small triangles
+    batch = torch.randint(0, 2, (60,), generator=gen)
+    fast = sph.raycast_triangles(tri, batch, 2, 12, 20, chunk_pairs=500)
+    for b in range(2):
+        ref = sph.raycast_triangles_reference(tri[batch == b].numpy(), 12, 20)
+        assert np.abs(fast[b].numpy() - ref).max() < 1e-9
+        assert (ref < 1).sum() > 10
+
+
+def test_full_map_of_a_sphere_mesh_is_one_minus_r():
+    r = 0.4
+    mesh = trimesh.creation.icosphere(subdivisions=6, radius=r)
+    s = sph.mesh_to_sph(torch.tensor(mesh.vertices), torch.tensor(mesh.faces), 64)
+    assert s.shape == (64, 64)
+    assert (s - (1 - r)).abs().max().item() < 1e-4
+
+
+def test_full_map_of_an_open_mesh():
+    # an open hemisphere (z > 0 half of a sphere): rays toward +z hit, rays toward -z do not
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=0.3)
+    keep = mesh.triangles_center[:, 2] > 0
+    mesh.update_faces(keep)
+    s = sph.mesh_to_sph(torch.tensor(mesh.vertices), torch.tensor(mesh.faces), 32)
+    d = sph.sph_directions(32, dtype=torch.float64)
+    assert (s[d[..., 2] > 0.2] < 0.72).all()
+    assert (s[d[..., 2] < -0.2] == 1.0).all()
+
+
+@pytest.mark.parametrize("preset", ["default", "paper"])
+def test_partial_map_of_a_sphere(preset):
+    g = get_preset(preset).geometry
+    r = 0.4
+    depth = sphere_depth(CAM, g.image_size, r).float()
+    s = sph.depth_to_sph(depth, CAM, g.sph_size, g.depth_edge_max_ratio)[0]
+    d = sph.sph_directions(g.sph_size, dtype=torch.float64)
+    # the surface point of each direction, and how far inside the silhouette it projects
+    f = CAM.focal_px(g.image_size)
+    p = d * r
+    rho = f * torch.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2) / (CAM.distance - p[..., 2])
+    inside_px = sphere_silhouette_radius_px(CAM, g.image_size, r) - rho
+    visible = d[..., 2] > r / CAM.distance  # the cap seen from the camera
+    sure = visible & (inside_px > 2.0)  # well sampled by the depth pixels
+    assert sure.sum() > 0.1 * g.sph_size**2
+    assert (s[sure] - (1 - r)).abs().max().item() < 5e-4  # flat facets between pixels: sagitta only
+    assert (s[~visible] == 1.0).all()
+    # the visible cap is centred in the map
+    hit = (s < 1).double()
+    rows, cols = torch.meshgrid(torch.arange(g.sph_size.__float__()), torch.arange(g.sph_size.__float__()), indexing="ij")
+    assert (hit * rows.double()).sum() / hit.sum() == pytest.approx((g.sph_size - 1) / 2, abs=0.01)
+    assert (hit * cols.double()).sum() / hit.sum() == pytest.approx(g.sph_size / 2, abs=0.01)
+
+
+def test_partial_map_is_differentiable_in_depth():
+    depth = sphere_depth(CAM, 32, 0.4).requires_grad_(True)
+    s = sph.depth_to_sph(depth, CAM, 16, 10.0)
+    hit = s < 1
+    assert hit.any()
+    s[hit].sum().backward()
+    assert depth.grad.abs().sum() > 0
+    # moving the whole surface away from the camera by δ moves hits inward: s grows for the front cap
+    eps = 1e-4
+    s2 = sph.depth_to_sph((depth + eps).detach(), CAM, 16, 10.0)
+    front = hit & (sph.sph_directions(16, dtype=torch.float64)[..., 2] > 0.95)[None]
+    assert ((s2 - s.detach())[front] > 0).all()
+
+
+@pytest.mark.parametrize("preset", ["default", "paper"])
+def test_sphere_map_to_voxels_to_mesh(preset):
+    g = get_preset(preset).geometry
+    r = 0.4
+    full = torch.full((1, g.sph_size, g.sph_size), 1 - r)
+    vox = sph.sph_to_voxels(full, g.voxel_size, g.sph_nohit_min, g.sph_supersample)
+    verts, faces = voxels_to_mesh(vox[0, 0], g.default_threshold)
+    # Chamfer against the exact sphere with dense sampling (so sampling noise stays far below a voxel)
+    pts = sample_surface(verts, faces, 200_000).double().numpy()
+    pred_to_true = np.abs(np.linalg.norm(pts, axis=1) - r).mean()
+    from scipy.spatial import cKDTree
+
+    true = np.random.default_rng(0).normal(size=(50_000, 3))
+    true = true / np.linalg.norm(true, axis=1, keepdims=True) * r
+    true_to_pred = cKDTree(pts).query(true)[0].mean()
+    assert (pred_to_true + true_to_pred) * g.voxel_size < 1.5
+
+
+def test_no_hit_pixels_are_masked_out():
+    s = torch.ones(1, 8, 8)
+    s[0, 2:4, 3:5] = 0.6
+    pts, mask = sph.sph_to_points(s)
+    assert mask.sum() == 4
+    assert torch.allclose(torch.linalg.vector_norm(pts[mask], dim=-1), torch.full((4,), 0.4))
+    vox = sph.sph_to_voxels(s, 16)
+    assert vox[0, 0, 8, 8, 8] == 0  # nothing piled up at the centre voxel
+    # supersampled: only fine pixels between hit pixels survive, all at the hit radius
+    pts, mask = sph.sph_to_points(s, supersample=2)
+    assert 0 < mask.sum() < 16
+    assert torch.allclose(torch.linalg.vector_norm(pts[mask], dim=-1), torch.full((int(mask.sum()),), 0.4))
+
+
+def test_resample_matches_bilinear_reference():
+    gen = torch.Generator().manual_seed(3)
+    s = torch.rand(1, 6, 10, generator=gen, dtype=torch.float64)
+    fine = sph.resample_sph(s, 2)
+    assert fine.shape == (1, 12, 20)
+    h, w = 6, 10
+    for i in range(12):
+        for j in range(20):
+            r = min(max((i + 0.5) / 2 - 0.5, 0.0), h - 1.0)
+            c = j / 2
+            r0, c0 = int(math.floor(r)), int(math.floor(c))
+            r1, c1 = min(r0 + 1, h - 1), (c0 + 1) % w
+            a, b = r - r0, c - c0
+            v = (1 - a) * ((1 - b) * s[0, r0, c0] + b * s[0, r0, c1]) + a * ((1 - b) * s[0, r1, c0] + b * s[0, r1, c1])
+            assert fine[0, i, j].item() == pytest.approx(v.item(), abs=1e-12)
+
+
+def test_padding_wraps_azimuth_and_replicates_poles():
+    x = torch.arange(2 * 3 * 4 * 6, dtype=torch.float32).reshape(2, 3, 4, 6)
+    p = sph.pad_sph(x, 2)
+    assert p.shape == (2, 3, 8, 10)
+    assert torch.equal(p[..., 2:6, :2], x[..., :, -2:])  # left pad = last columns
+    assert torch.equal(p[..., 2:6, -2:], x[..., :, :2])  # right pad = first columns
+    assert torch.equal(p[..., 0, 2:8], x[..., 0, :])  # top pad replicates row 0
+    assert torch.equal(p[..., 7, 2:8], x[..., -1, :])
+    assert torch.equal(sph.crop_sph(p, 2), x)
+    with pytest.raises(ValueError, match="pad"):
+        sph.pad_sph(x, -1)
+
+
+def test_rejects_bad_inputs():
+    with pytest.raises(ValueError, match="triangles"):
+        sph.raycast_triangles(torch.zeros(4, 3), torch.zeros(4, dtype=torch.int64), 1, 8)
+    with pytest.raises(ValueError, match="batch_index"):
+        sph.raycast_triangles(torch.zeros(4, 3, 3), torch.zeros(4, dtype=torch.int64) + 3, 1, 8)
+    with pytest.raises(ValueError, match="faces"):
+        sph.mesh_to_sph(torch.zeros(3, 3), torch.tensor([[0, 1, 5]]), 8)
+    with pytest.raises(ValueError, match="NaN"):
+        sph.sph_to_points(torch.full((1, 4, 4), float("nan")))
