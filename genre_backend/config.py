@@ -5,7 +5,7 @@ Two presets share one code path:
 * ``paper``   -- the numbers of the original GenRe (256² images, 128² spherical
   maps padded to 160², 128³ voxels).
 * ``default`` -- the CPU preset this project trains and ships (128² images,
-  64² spherical maps padded to 80², 64³ voxels).
+  64² spherical maps padded to 96², 64³ voxels, narrow networks).
 
 Modules never hard-code a resolution: they take a :class:`GenreConfig` (or one
 of its parts) and read it from there.  Configs round-trip through plain JSON
@@ -23,6 +23,7 @@ from typing import Any
 __all__ = [
     "CameraConfig",
     "GeometryConfig",
+    "NetworkConfig",
     "GenreConfig",
     "PRESETS",
     "get_preset",
@@ -61,7 +62,7 @@ class GeometryConfig:
 
     image_size: int = 128
     sph_size: int = 64  # spherical maps are sph_size × sph_size (polar × azimuth)
-    sph_pad: int = 8  # periodic padding on each side before the inpainting net
+    sph_pad: int = 16  # periodic padding on each side before the inpainting net (padded side: a multiple of 32)
     voxel_size: int = 64  # voxels over the cube [-0.5, 0.5]^3
     # Spherical map → points: values ≥ sph_nohit_min count as "no hit"; the map is
     # resampled sph_supersample times finer first so that the points leave no
@@ -98,15 +99,33 @@ class GeometryConfig:
 
 
 @dataclass(frozen=True)
-class GenreConfig:
-    """The whole configuration of one model: preset name, camera and geometry.
+class NetworkConfig:
+    """Widths of the three networks (see :mod:`genre_backend.uresnet` and :mod:`genre_backend.refiner`).
 
-    Later stages (networks, training) add their own sections here.
+    The ``paper`` preset reproduces the original's sizes: depth net 29.9 M
+    parameters (original 30.8 M), inpainting net 15.7 M (15.9 M), refiner
+    52.5 M (53.5 M).
     """
+
+    # U-ResNet-18 widths of the four ResNet stages, for the depth and inpainting nets
+    depth_widths: tuple[int, int, int, int] = (16, 32, 64, 128)
+    depth_decoder_blocks: int = 1  # basic blocks after each decoder fusion (one decoder per head)
+    inpaint_widths: tuple[int, int, int, int] = (16, 32, 64, 128)
+    inpaint_decoder_blocks: int = 0
+    refiner_nf: int = 8  # refiner base width; level k has nf·2^k channels
+    refiner_fc: int = 256  # width of the refiner's fully-connected bottleneck
+    # the depth net predicts planar depth as distance + output / depth_output_scale
+    depth_output_scale: float = 10.0
+
+
+@dataclass(frozen=True)
+class GenreConfig:
+    """The whole configuration of one model: preset name, camera, geometry and networks."""
 
     preset: str = "default"
     camera: CameraConfig = field(default_factory=CameraConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -127,14 +146,23 @@ def _from_dict(cls: type, data: Any, where: str):
     kwargs = {}
     for name, value in data.items():
         ftype = fields[name].type
-        sub = _DATACLASS_TYPES.get(ftype if isinstance(ftype, str) else getattr(ftype, "__name__", ""))
-        kwargs[name] = _from_dict(sub, value, f"{where}.{name}") if sub else value
-    return cls(**kwargs)
+        ftype = ftype if isinstance(ftype, str) else getattr(ftype, "__name__", "")
+        sub = _DATACLASS_TYPES.get(ftype)
+        if sub:
+            value = _from_dict(sub, value, f"{where}.{name}")
+        elif ftype.startswith("tuple") and isinstance(value, list):
+            value = tuple(value)  # JSON has no tuples
+        kwargs[name] = value
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:
+        raise ValueError(f"{where}: {exc}") from None
 
 
 _DATACLASS_TYPES: dict[str, type] = {
     "CameraConfig": CameraConfig,
     "GeometryConfig": GeometryConfig,
+    "NetworkConfig": NetworkConfig,
 }
 
 
@@ -143,6 +171,14 @@ PRESETS: dict[str, GenreConfig] = {
     "paper": GenreConfig(
         preset="paper",
         geometry=GeometryConfig(image_size=256, sph_size=128, sph_pad=16, voxel_size=128),
+        network=NetworkConfig(
+            depth_widths=(64, 128, 256, 512),
+            depth_decoder_blocks=3,
+            inpaint_widths=(64, 128, 256, 512),
+            inpaint_decoder_blocks=0,
+            refiner_nf=20,
+            refiner_fc=640,
+        ),
     ),
 }
 
