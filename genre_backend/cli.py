@@ -16,7 +16,7 @@ from . import __version__
 # name -> (module, one-line summary)
 COMMANDS: dict[str, tuple[str | None, str]] = {
     "data": ("training.data_cli", "fetch, build, render and inspect the training corpus"),
-    "train": (None, "train the networks stage by stage"),
+    "train": ("training.train", "train the networks stage by stage"),
     "eval": (None, "evaluate a trained model over a split"),
     "reconstruct": (None, "turn photos into meshes"),
     "serve": (None, "run the JSON-over-stdio reconstruction server"),

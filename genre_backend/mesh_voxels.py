@@ -20,7 +20,16 @@ import torch.nn.functional as F
 
 from .validation import check_positive_int, check_tensor
 
-__all__ = ["mesh_to_surface_voxels", "mesh_to_shell", "voxels_to_mesh", "grid_index_to_view"]
+__all__ = [
+    "surface_lattice",
+    "points_to_occupancy",
+    "dilate",
+    "mesh_to_surface_voxels",
+    "mesh_to_shell",
+    "lattice_to_shell",
+    "voxels_to_mesh",
+    "grid_index_to_view",
+]
 
 
 def _check_mesh(vertices: torch.Tensor, faces: torch.Tensor) -> None:
@@ -39,41 +48,69 @@ def _lattice(n: int, dtype, device) -> torch.Tensor:
     return (torch.stack([n - i - j, i, j], dim=-1).to(dtype) / n).to(device)
 
 
-def mesh_to_surface_voxels(vertices: torch.Tensor, faces: torch.Tensor, resolution: int) -> torch.Tensor:
-    """Voxels (N, N, N) bool that the surface of a view-frame mesh passes through.
+def surface_lattice(vertices: torch.Tensor, faces: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Points (P, 3) on a mesh's surface, spaced at most half a voxel of an N-voxel grid apart.
 
     vertices: (V, 3) float; faces: (F, 3) int.  Each triangle is sampled on a
-    lattice whose spacing is at most half a voxel, so every voxel whose centre
-    lies within 0.2 voxel of the surface is marked, and no voxel farther than
-    √3/2 voxel from it is.  Parts outside the cube are ignored.
+    barycentric lattice with ``ceil(2·N·longest edge)`` subdivisions per edge.
+    The spacing does not change under rotation, so a shape's lattice can be
+    computed once and posed for every view.
     """
     _check_mesh(vertices, faces)
     check_positive_int("resolution", resolution)
-    n = resolution
-    grid = torch.zeros(n**3, dtype=torch.bool, device=vertices.device)
     if faces.shape[0] == 0:
-        return grid.view(n, n, n)
+        return vertices.new_zeros((0, 3), dtype=torch.float64)
     tris = vertices[faces.long()].to(torch.float64)
     longest = torch.linalg.vector_norm(tris - tris.roll(1, dims=1), dim=-1).max(dim=1).values
-    subdiv = torch.ceil(longest * n * 2.0).clamp(min=1).long()
+    subdiv = torch.ceil(longest * resolution * 2.0).clamp(min=1).long()
+    parts = []
     for k in torch.unique(subdiv).tolist():
         sel = tris[subdiv == k]
-        pts = torch.einsum("kc,tcd->tkd", _lattice(k, tris.dtype, tris.device), sel).reshape(-1, 3)
-        idx = torch.floor((pts + 0.5) * n).long()
-        ok = ((idx >= 0) & (idx < n)).all(dim=-1)
-        idx = idx[ok]
-        grid[(idx[:, 0] * n + idx[:, 1]) * n + idx[:, 2]] = True
+        parts.append(torch.einsum("kc,tcd->tkd", _lattice(k, tris.dtype, tris.device), sel).reshape(-1, 3))
+    return torch.cat(parts)
+
+
+def points_to_occupancy(points: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Voxels (N, N, N) bool containing at least one of the points (P, 3); outside points are ignored."""
+    check_tensor("points", points, (None, 3))
+    n = resolution
+    idx = torch.floor((points + 0.5) * n).long()
+    idx = idx[((idx >= 0) & (idx < n)).all(dim=-1)]
+    grid = torch.zeros(n**3, dtype=torch.bool, device=points.device)
+    grid[(idx[:, 0] * n + idx[:, 1]) * n + idx[:, 2]] = True
     return grid.view(n, n, n)
+
+
+def dilate(grid: torch.Tensor, times: int) -> torch.Tensor:
+    """Binary dilation (N, N, N) bool in the 26-neighbourhood, ``times`` times."""
+    if isinstance(times, bool) or not isinstance(times, int) or times < 0:
+        raise ValueError(f"shell_dilation: expected a non-negative int, got {times!r}")
+    x = grid.float()[None, None]
+    for _ in range(times):
+        x = F.max_pool3d(x, kernel_size=3, stride=1, padding=1)
+    return x[0, 0] > 0.5
+
+
+def mesh_to_surface_voxels(vertices: torch.Tensor, faces: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Voxels (N, N, N) bool that the surface of a view-frame mesh passes through.
+
+    vertices: (V, 3) float; faces: (F, 3) int.  Built from
+    :func:`surface_lattice`, so every voxel whose centre lies within 0.2 voxel
+    of the surface is marked, and no voxel farther than √3/2 voxel from it is.
+    Parts outside the cube are ignored.
+    """
+    return points_to_occupancy(surface_lattice(vertices, faces, resolution), resolution)
 
 
 def mesh_to_shell(vertices: torch.Tensor, faces: torch.Tensor, resolution: int, shell_dilation: int) -> torch.Tensor:
     """Ground-truth surface shell (N, N, N) bool: surface voxels dilated ``shell_dilation`` times."""
-    if isinstance(shell_dilation, bool) or not isinstance(shell_dilation, int) or shell_dilation < 0:
-        raise ValueError(f"shell_dilation: expected a non-negative int, got {shell_dilation!r}")
-    surface = mesh_to_surface_voxels(vertices, faces, resolution).float()[None, None]
-    for _ in range(shell_dilation):
-        surface = F.max_pool3d(surface, kernel_size=3, stride=1, padding=1)
-    return surface[0, 0] > 0.5
+    dilate(torch.zeros(1, 1, 1, dtype=torch.bool), shell_dilation)  # validate before the expensive part
+    return dilate(mesh_to_surface_voxels(vertices, faces, resolution), shell_dilation)
+
+
+def lattice_to_shell(points: torch.Tensor, resolution: int, shell_dilation: int) -> torch.Tensor:
+    """Surface shell (N, N, N) bool from posed :func:`surface_lattice` points."""
+    return dilate(points_to_occupancy(points, resolution), shell_dilation)
 
 
 def grid_index_to_view(index, resolution: int):

@@ -1,0 +1,128 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from genre_backend.model import GenRe, load_model
+from tiny_data import TINY, make_tiny_views
+from training.train import StageModule, TrainConfig, train, weights_digest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny_views(tmp_path_factory):
+    return make_tiny_views(tmp_path_factory.mktemp("tiny"))
+
+
+def _cfg(stage, views, out, **kw):
+    base = dict(stage=stage, data=str(views), out=str(out), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=5)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_every_stage_overfits_four_samples(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    s = train(_cfg("depth", tiny_views, run, steps=60, lr=3e-3), TINY)
+    assert s["train_views"] == 4
+    assert s["first_loss"] / s["last_loss"] >= 10
+    prev = run / "depth" / "final.safetensors"
+    for stage, steps, lr in (("inpaint", 80, 1e-3), ("refine", 120, 3e-3)):
+        s = train(_cfg(stage, tiny_views, run, steps=steps, lr=lr, init=str(prev)))
+        assert s["first_loss"] / s["last_loss"] >= 10, (stage, s)
+        prev = run / stage / "final.safetensors"
+    # joint fine-tuning from fresh weights, so that there is a loss to bring down
+    s = train(_cfg("joint", tiny_views, tmp_path / "joint", steps=100, lr=3e-3), TINY)
+    assert s["first_loss"] / s["last_loss"] >= 10
+    # each stage leaves its files
+    for name in ("best.safetensors", "final.safetensors", "log.csv", "loss.png", "config.json", "summary.json"):
+        assert (run / "refine" / name).is_file(), name
+    assert load_model(run / "refine" / "best.safetensors").config == TINY
+
+
+def test_frozen_nets_stay_frozen(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("depth", tiny_views, run, steps=3), TINY)
+    before = load_model(run / "depth" / "final.safetensors")
+    train(_cfg("refine", tiny_views, run, steps=3, init=str(run / "depth" / "final.safetensors")))
+    after = load_model(run / "refine" / "final.safetensors")
+    assert weights_digest(before.depth_net) == weights_digest(after.depth_net)  # weights and BN statistics
+    assert weights_digest(before.refiner) != weights_digest(after.refiner)
+
+
+def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
+    from training.dataset import ViewDataset, find_views
+
+    data = ViewDataset(find_views(tiny_views), TINY)
+    batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
+    model = GenRe(TINY)
+    module = StageModule(model, "joint", 10.0).train()
+    out = model(batch["rgb"], mask=batch["mask"])
+    loss3d, _ = module.shell_loss(out["logits"], batch)
+    loss3d.backward()
+    grad = sum(p.grad.abs().sum() for p in model.depth_net.parameters() if p.grad is not None)
+    assert grad > 0
+    # and through the spherical path alone (depth → partial map → inpainting → full map)
+    model.zero_grad()
+    out = model(batch["rgb"], mask=batch["mask"])
+    out["full_sph"].sum().backward()
+    assert sum(p.grad.abs().sum() for p in model.depth_net.parameters() if p.grad is not None) > 0
+
+
+def _train_cmd(views, out, config_json, steps, extra=()):
+    return [sys.executable, "-m", "training.train", "depth", "--data", str(views), "--out", str(out), "--model-config", str(config_json),
+            "--steps", str(steps), "--batch-size", "2", "--val-fraction", "0", "--no-progress", "--log-every", "1", *extra]
+
+
+def _state(path):
+    return load_model(path).state_dict()
+
+
+def test_kill_and_resume_gives_the_same_weights(tiny_views, tmp_path):
+    cfg_json = tmp_path / "tiny.json"
+    cfg_json.write_text(json.dumps(TINY.to_dict()))
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    # reference: 20 steps in one go
+    subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 20), check=True, cwd=REPO, env=env, capture_output=True)
+    # interrupted: checkpoint every step, SIGKILL once step 10 is on disk, then run the same command again
+    cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 20, ["--checkpoint-every", "1"])
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    state = tmp_path / "b" / "depth" / "checkpoint" / "state.json"
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        try:
+            if json.loads(state.read_text())["step"] >= 10:
+                break
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_at = json.loads(state.read_text())["step"]
+    assert 10 <= killed_at < 20
+    done = subprocess.run(cmd, check=True, cwd=REPO, env=env, capture_output=True, text=True)
+    summary = json.loads(done.stdout[done.stdout.index("{"):])
+    assert summary["resumed_from"] == killed_at
+    a, b = _state(tmp_path / "a" / "depth" / "final.safetensors"), _state(tmp_path / "b" / "depth" / "final.safetensors")
+    for k in a:
+        assert torch.allclose(a[k].float(), b[k].float(), atol=1e-6, rtol=1e-5), k
+
+
+def test_ddp_with_two_cpu_processes(tiny_views, tmp_path):
+    cfg_json = tmp_path / "tiny.json"
+    cfg_json.write_text(json.dumps(TINY.to_dict()))
+    torchrun = Path(sys.executable).with_name("torchrun")
+    cmd = [str(torchrun), "--standalone", "--nproc_per_node=2", *_train_cmd(tiny_views, tmp_path / "ddp", cfg_json, 4)[1:]]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    subprocess.run(cmd, check=True, cwd=REPO, env=env, capture_output=True, timeout=300)
+    summary = json.loads((tmp_path / "ddp" / "depth" / "summary.json").read_text())
+    assert summary["world_size"] == 2
+    assert len(set(summary["rank_param_digests"])) == 1  # all-reduced gradients keep parameters equal
+    assert len(set(summary["rank_digests"])) == 1
+    assert summary["rank_digests"][0] == weights_digest(load_model(tmp_path / "ddp" / "depth" / "final.safetensors"))

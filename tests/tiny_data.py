@@ -1,0 +1,51 @@
+"""Tiny real training data made in the tests: meshes rendered with Blender, with targets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from genre_backend.config import GenreConfig, GeometryConfig, NetworkConfig
+
+TINY = GenreConfig(
+    preset="tiny",
+    geometry=GeometryConfig(image_size=64, sph_size=32, sph_pad=16, voxel_size=32),
+    network=NetworkConfig(depth_widths=(8, 16, 32, 64), depth_decoder_blocks=0, inpaint_widths=(8, 16, 32, 64), refiner_nf=4, refiner_fc=32),
+)
+
+
+def _normalised(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    lo, hi = mesh.bounds
+    mesh.apply_translation(-(lo + hi) / 2)
+    mesh.apply_scale(1.0 / np.linalg.norm(hi - lo))
+    return mesh
+
+
+def make_tiny_views(root: Path, config: GenreConfig = TINY, views_per_shape: int = 2) -> Path:
+    """Render a box and a table-like shape (views_per_shape views each) and build their targets under root/views."""
+    from training.render import BlenderRenderer, ShapeEntry, render_shape
+    from training.targets import build_targets
+
+    meshes = root / "meshes"
+    meshes.mkdir(parents=True, exist_ok=True)
+    box = _normalised(trimesh.creation.box(extents=(0.6, 0.3, 0.4)))
+    top = trimesh.creation.box(extents=(0.8, 0.5, 0.06))
+    top.apply_translation((0, 0, 0.3))
+    legs = [trimesh.creation.box(extents=(0.06, 0.06, 0.6)) for _ in range(4)]
+    for leg, (x, y) in zip(legs, [(-0.35, -0.2), (0.35, -0.2), (-0.35, 0.2), (0.35, 0.2)]):
+        leg.apply_translation((x, y, 0.0))
+    table = _normalised(trimesh.util.concatenate([top, *legs]))
+    shapes = []
+    for name, mesh in (("box", box), ("table", table)):
+        path = meshes / f"{name}.ply"
+        mesh.export(path)
+        shapes.append(ShapeEntry(name, path))
+    renderer = BlenderRenderer(config, scratch_dir=root / "scratch")
+    views = root / "views"
+    for i, shape in enumerate(shapes):
+        poses = [(30.0 + 100.0 * k + 45.0 * i, 15.0 + 10.0 * k) for k in range(views_per_shape)]
+        render_shape(renderer, shape, poses, views, seed=0)
+    build_targets(views, config, progress=False)
+    return views
