@@ -4,6 +4,8 @@
     genre data build  [--data-dir D] [--sources S ...] [--shapenet DIR] [--folder DIR] [--jobs N]
     genre data stats  [--data-dir D]
     genre data render ...   (see training/render.py)
+    genre data targets ...  (see training/targets.py)
+    genre data show ...     (see training/show.py)
 """
 
 from __future__ import annotations
@@ -126,24 +128,21 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                    help="worker processes (default: CPUs, at most 8)")
 
     sub.add_parser("stats", parents=[common], help="counts per class, split, source, licence; skips; rules")
-    sub.add_parser("render", add_help=False, help="render the corpus (training.render)")
+    sub.add_parser("render", add_help=False, help="render views of the corpus (training/render.py)")
+    sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/targets.py)")
+    sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/show.py)")
     return parser
 
 
 def main(argv: list[str] | None = None, prog: str = "genre data") -> int:
     """Entry point of ``genre data``; returns a process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] == "render":
+    delegated = {"render": "training.render", "targets": "training.targets", "show": "training.show"}
+    if argv and argv[0] in delegated:
         import importlib
 
-        try:
-            render = importlib.import_module("training.render")
-        except ModuleNotFoundError as exc:
-            if exc.name != "training.render":
-                raise
-            print(f"{prog} render: the renderer (training/render.py) is not installed", file=sys.stderr)
-            return 2
-        return int(render.main(argv[1:], prog=f"{prog} render") or 0)
+        module = importlib.import_module(delegated[argv[0]])
+        return int(module.main(argv[1:], prog=f"{prog} {argv[0]}") or 0)
     args = _parser(prog).parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")

@@ -1,0 +1,120 @@
+"""Rendered views and their ground truth agree with the meshes they came from."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy import ndimage
+
+from genre_backend import frame
+from genre_backend.spherical import raycast_triangles_reference, sph_directions
+from tiny_data import TINY, make_tiny_views
+from training.dataset import ViewDataset, find_views
+from training.targets import build_targets, load_targets
+
+PITCH = 1.0 / TINY.geometry.voxel_size
+
+
+@pytest.fixture(scope="module")
+def tiny_views(tmp_path_factory):
+    return make_tiny_views(tmp_path_factory.mktemp("tiny"))
+
+
+def _posed_mesh(shape_dir: Path, view: int) -> trimesh.Trimesh:
+    meta = json.loads((shape_dir / f"view_{view:03d}.json").read_text())
+    mesh = trimesh.load(meta["mesh"], force="mesh", process=False)
+    rot = torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)
+    verts = frame.object_to_view(torch.tensor(mesh.vertices)[None], rot[None])[0].numpy()
+    return trimesh.Trimesh(verts, mesh.faces, process=False)
+
+
+def check_view(shape_dir: Path, view: int, config) -> None:
+    """The checks of one rendered view against its posed mesh."""
+    mesh = _posed_mesh(shape_dir, view)
+    with np.load(shape_dir / f"view_{view:03d}.npz") as z:
+        depth, alpha = z["depth"], z["mask"]
+    valid = depth > 0
+    # depth back-projects onto the surface (mean distance < 0.5% of the bounding-box diagonal, 1)
+    pts = frame.depth_to_points(torch.from_numpy(depth)[None].double(), config.camera)[0].numpy()[valid]
+    dist = np.abs(trimesh.proximity.signed_distance(mesh, pts)) if mesh.is_watertight else trimesh.proximity.closest_point(mesh, pts)[1]
+    assert dist.mean() < 0.005, dist.mean()
+    # the alpha mask and the depth's support differ only at silhouette edges (partly covered pixels)
+    solid = alpha > 0.5
+    edge = ndimage.binary_dilation((alpha > 0.01) & (alpha < 0.99))
+    assert not ((solid != valid) & ~edge).any()
+    assert (solid == valid).mean() > 0.97
+    t = load_targets(shape_dir, view, config.geometry.voxel_size)
+    # full map: every hit lies on the mesh, and where there is no hit the reference ray caster agrees
+    h = config.geometry.sph_size
+    dirs = sph_directions(h, dtype=torch.float64).numpy()
+    full = t["full_sph"]
+    hits = full < 1
+    assert hits.sum() > 0.05 * h * h
+    on = trimesh.proximity.closest_point(mesh, ((1 - full[hits])[:, None] * dirs[hits]))[1]
+    assert on.max() < 1e-4
+    rows = slice(h // 2 - 2, h // 2 + 2)
+    ref = raycast_triangles_reference(mesh.triangles, h, h)[rows]
+    assert np.abs(ref - full[rows]).max() < 1e-4
+    # shell voxels: they hold the surface, and none is far from it
+    n = config.geometry.voxel_size
+    centres = (np.argwhere(t["shell"]) + 0.5) / n - 0.5
+    far = trimesh.proximity.closest_point(mesh, centres)[1]
+    assert far.max() < (3**0.5 / 2 + 3**0.5 * config.geometry.shell_dilation) / n + 1e-6
+    surface = trimesh.sample.sample_surface(mesh, 2000, seed=0)[0]
+    idx = np.floor((surface + 0.5) * n).astype(int)
+    inside = ((idx >= 0) & (idx < n)).all(1)
+    assert t["shell"][tuple(idx[inside].T)].all()
+
+
+def test_tiny_views_agree_with_their_meshes(tiny_views):
+    refs = find_views(tiny_views)
+    assert len(refs) == 4
+    for ref in refs:
+        check_view(ref.shape_dir, ref.view, TINY)
+    sample = ViewDataset(refs, TINY)[0]
+    assert sample["rgb"].shape == (3, 64, 64) and sample["shell"].shape == (32, 32, 32)
+    assert (tiny_views / "box" / "surface_points.npz").is_file()
+
+
+def test_targets_resume_and_skip(tiny_views):
+    counts = build_targets(tiny_views, TINY, progress=False)
+    assert counts["written"] == 0 and counts["skipped_complete"] == 4
+
+
+def test_sphere_full_map_is_one_minus_r(tmp_path):
+    from training.render import BlenderRenderer, ShapeEntry, render_shape
+
+    r = 0.35
+    path = tmp_path / "sphere.ply"
+    trimesh.creation.icosphere(subdivisions=5, radius=r).export(path)
+    render_shape(BlenderRenderer(TINY, scratch_dir=tmp_path / "s"), ShapeEntry("sphere", path), [(10.0, 20.0)], tmp_path / "views", seed=0)
+    build_targets(tmp_path / "views", TINY, progress=False)
+    t = load_targets(tmp_path / "views" / "sphere", 0, TINY.geometry.voxel_size)
+    assert np.abs(t["full_sph"] - (1 - r)).max() < 5e-4  # the icosphere's facets are within 2e-4 of the sphere
+    visible = t["partial_sph"] < 1
+    assert visible.sum() > 0.2 * visible.size
+    assert np.abs(t["partial_sph"][visible] - (1 - r)).max() < 5e-3
+
+
+def test_a_real_sweet_home_3d_model(tmp_path):
+    """One real catalogue chair, fetched from Debian's archive (120 MB, cached under data/)."""
+    from training import corpus
+    from training.render import BlenderRenderer, ShapeEntry, render_shape
+    from training.sources import sweethome3d
+
+    root = corpus.data_dir()
+    status = corpus.fetch(["sweethome3d-furniture"], root)
+    if status["sweethome3d-furniture"].startswith("failed"):
+        pytest.skip(f"sweethome3d-furniture could not be fetched: {status['sweethome3d-furniture']}")
+    records = [r for r in sweethome3d.enumerate_shapes(root / "cache" / "unpacked") if corpus.classify(r.name, r.category, r.class_hint) == "chair"]
+    assert records
+    (tmp_path / "shapes").mkdir()
+    result = corpus.process_record(records[0], root, tmp_path / "shapes")
+    entry = result["entry"]
+    render_shape(BlenderRenderer(TINY, scratch_dir=tmp_path / "s"), ShapeEntry(entry.id, tmp_path / "shapes" / Path(entry.mesh).name), [(35.0, 25.0), (200.0, 10.0)], tmp_path / "views", seed=1)
+    build_targets(tmp_path / "views", TINY, progress=False)
+    for view in (0, 1):
+        check_view(tmp_path / "views" / entry.id, view, TINY)
