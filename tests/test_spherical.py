@@ -28,13 +28,17 @@ def test_direction_convention():
     assert torch.allclose(pix[..., 1], cols.double(), atol=1e-9)
 
 
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_raycast_matches_reference_on_random_triangles(seed):
+def test_raycast_matches_reference_on_random_triangles(seed, device):
     gen = torch.Generator().manual_seed(seed)
     tri = ((torch.rand(60, 3, 3, generator=gen, dtype=torch.float64) - 0.5) * 1.4)
     tri[:20] = tri[:20] * 0.1 + tri[:20, :1] * 0.9  # some small triangles
     batch = torch.randint(0, 2, (60,), generator=gen)
-    fast = sph.raycast_triangles(tri, batch, 2, 12, 20, chunk_pairs=500)
+    fast = sph.raycast_triangles(tri.to(device), batch.to(device), 2, 12, 20, chunk_pairs=500).cpu()
     for b in range(2):
         ref = sph.raycast_triangles_reference(tri[batch == b].numpy(), 12, 20)
         assert np.abs(fast[b].numpy() - ref).max() < 1e-9

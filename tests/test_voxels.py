@@ -24,11 +24,12 @@ def test_mean_distance_rule_by_hand():
     assert (grid > 0).sum().item() == 1
 
 
-def test_matches_reference_on_random_points():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"))])
+def test_matches_reference_on_random_points(device):
     gen = torch.Generator().manual_seed(0)
     pts = (torch.rand(2, 300, 3, generator=gen) - 0.5) * 1.2  # some fall outside the cube
     mask = torch.rand(2, 300, generator=gen) > 0.3
-    fast = points_to_voxels(pts, 6, mask)
+    fast = points_to_voxels(pts.to(device), 6, mask.to(device)).cpu()
     ref = points_to_voxels_reference(pts, 6, mask)
     assert torch.allclose(fast, ref, atol=1e-6)
     hit = fast > 0
