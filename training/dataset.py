@@ -46,15 +46,15 @@ class ViewRef:
         return self.shape_dir.name
 
 
-def find_views(root: Path, shape_ids: set[str] | None = None) -> list[ViewRef]:
-    """Every view under ``root`` with a complete render and targets, sorted; optionally only some shapes."""
+def find_views(root: Path, shape_ids: set[str] | None = None, targets: bool = True) -> list[ViewRef]:
+    """Every view under ``root`` with a complete render (and targets, if asked), sorted; optionally only some shapes."""
     refs = []
     for shape_dir in sorted(p for p in Path(root).iterdir() if p.is_dir()):
         if shape_ids is not None and shape_dir.name not in shape_ids:
             continue
         for meta in sorted(shape_dir.glob("view_[0-9][0-9][0-9].json")):
             k = int(meta.stem.split("_")[1])
-            if targets_path(shape_dir, k).is_file() and (shape_dir / f"view_{k:03d}.npz").is_file():
+            if (not targets or targets_path(shape_dir, k).is_file()) and (shape_dir / f"view_{k:03d}.npz").is_file():
                 refs.append(ViewRef(shape_dir, k))
     return refs
 
@@ -90,12 +90,13 @@ def augment_rgb(rgb: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
 class ViewDataset(torch.utils.data.Dataset):
     """Samples of a list of views; ``sample(i, seed)`` applies seeded augmentation when ``augment``."""
 
-    def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False):
+    def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
         self.refs = list(refs)
         self.config = config
         self.augment = augment
+        self.targets = targets  # False: only rgb, depth and mask (all the depth stage needs)
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -117,14 +118,16 @@ class ViewDataset(torch.utils.data.Dataset):
         with np.load(base.with_suffix(".npz")) as z:
             depth = torch.from_numpy(z["depth"].astype(np.float32))
             mask = torch.from_numpy(z["mask"] > 0.5)
-        t = load_targets(ref.shape_dir, ref.view, self.config.geometry.voxel_size)
         if self.augment and seed is not None:
             rgb = augment_rgb(rgb, torch.Generator().manual_seed(seed))
-        return {
+        sample = {
             "rgb": rgb,
             "depth": torch.where(mask, depth, torch.zeros_like(depth)),  # 0 where either says background
             "mask": mask,
-            "full_sph": torch.from_numpy(t["full_sph"]),
-            "partial_sph": torch.from_numpy(t["partial_sph"]),
-            "shell": torch.from_numpy(t["shell"]).float(),
         }
+        if self.targets:
+            t = load_targets(ref.shape_dir, ref.view, self.config.geometry.voxel_size)
+            sample["full_sph"] = torch.from_numpy(t["full_sph"])
+            sample["partial_sph"] = torch.from_numpy(t["partial_sph"])
+            sample["shell"] = torch.from_numpy(t["shell"]).float()
+        return sample

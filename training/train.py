@@ -12,6 +12,15 @@ Stages (``method.md``):
 ``joint``    everything, through the differentiable projections: the refiner's
              loss + the spherical MSE.  lr 1e-5.
 
+Baseline stages (:mod:`training.baselines`; their weights are baseline files,
+``genre-baseline/1``, never GenRe's format):
+
+``completion``  the 3D Completion baseline: the depth net (frozen, from
+             ``--init``) → depth voxels → a completion net of the refiner's
+             architecture and size; the refiner's loss.  lr 1e-4.
+``onestep``  GenRe-1step's RGB → full spherical map U-ResNet (the depth net's
+             widths); MSE against the true full map over the padded map.  lr 1e-3.
+
 Each stage writes ``OUT/STAGE/``: ``best.safetensors`` (lowest validation
 loss) and ``final.safetensors`` (weights + config, no pickle), ``config.json``
 (the resolved training config), ``log.csv``, ``tb/`` (TensorBoard),
@@ -53,8 +62,9 @@ from .dataset import ViewDataset, find_views, split_views
 
 __all__ = ["STAGES", "TrainConfig", "StageModule", "train", "weights_digest", "main"]
 
-STAGES = ("depth", "inpaint", "refine", "joint")
-DEFAULT_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5}
+STAGES = ("depth", "inpaint", "refine", "joint", "completion", "onestep")
+BASELINE_STAGES = ("completion", "onestep")
+DEFAULT_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5, "completion": 1e-4, "onestep": 1e-3}
 
 
 @dataclass
@@ -102,13 +112,34 @@ class StageModule(nn.Module):
     def __init__(self, model: GenRe, stage: str, surface_weight: float):
         super().__init__()
         self.model, self.stage, self.surface_weight = model, stage, surface_weight
-        trainable = {"depth": [model.depth_net], "inpaint": [model.inpaint_net], "refine": [model.refiner], "joint": [model]}[stage]
+        self.baseline = None
+        if stage in BASELINE_STAGES:
+            from .baselines import CompletionBaseline, OneStepNet
+
+            self.baseline = (CompletionBaseline if stage == "completion" else OneStepNet)(model.config)
+            if stage == "completion":  # the depth net it completes from: GenRe's (from --init), frozen
+                self.baseline.depth_net.load_state_dict(model.depth_net.state_dict())
+        trainable = {"depth": [model.depth_net], "inpaint": [model.inpaint_net], "refine": [model.refiner], "joint": [model],
+                     "completion": [], "onestep": []}[stage]
         for p in model.parameters():
             p.requires_grad_(False)
         for part in trainable:
             for p in part.parameters():
                 p.requires_grad_(True)
         self.frozen = [m for m in (model.depth_net, model.inpaint_net, model.refiner) if not any(p.requires_grad for p in m.parameters())]
+        if stage == "completion":
+            for p in self.baseline.depth_net.parameters():
+                p.requires_grad_(False)
+            self.frozen.append(self.baseline.depth_net)
+
+    def save_weights(self, path: Path, extra: dict) -> None:
+        """The stage's weights file: GenRe's format, or the baseline's for a baseline stage."""
+        if self.baseline is None:
+            save_model(self.model, path, extra)
+        else:
+            from .baselines import save_baseline
+
+            save_baseline(self.baseline, path, extra)
 
     def train(self, mode: bool = True):
         super().train(mode)
@@ -141,6 +172,16 @@ class StageModule(nn.Module):
         m = self.model
         if self.stage == "depth":
             return self.depth_loss(m.depth_net(batch["rgb"]), batch)
+        if self.stage == "onestep":
+            pad = m.config.geometry.sph_pad
+            loss = self.sph_loss(pad_sph(self.baseline(batch["rgb"])[:, None], pad), batch)
+            return loss, {"sph_mse": loss}
+        if self.stage == "completion":
+            b = self.baseline
+            with torch.no_grad():
+                depth = m.masked_depth(b.depth_net(batch["rgb"])["depth"], batch["mask"])
+                vox_depth = b.depth_voxels(depth)
+            return self.shell_loss(b.complete(vox_depth), batch)
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
             depth = m.masked_depth(m.depth_net(batch["rgb"])["depth"], batch["mask"])
             partial = m.partial_sph(depth)
@@ -199,6 +240,8 @@ def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
     from safetensors.torch import save_file
 
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in module.model.state_dict().items()}
+    if module.baseline is not None:
+        tensors.update({f"baseline.{k}": v.detach().cpu().contiguous() for k, v in module.baseline.state_dict().items()})
     opt_state = opt.state_dict()
     scalars = {}
     for idx, st in opt_state["state"].items():
@@ -240,6 +283,8 @@ def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
     meta = json.loads((ck / "state.json").read_text())
     tensors = load_file(str(ck / "state.safetensors"))
     module.model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    if module.baseline is not None:
+        module.baseline.load_state_dict({k[9:]: v for k, v in tensors.items() if k.startswith("baseline.")})
     state: dict[int, dict] = {}
     for k, v in tensors.items():
         if k.startswith("opt."):
@@ -317,10 +362,11 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     shape_ids = None
     if tcfg.shapes:
         shape_ids = {line.strip() for line in Path(tcfg.shapes).read_text().splitlines() if line.strip()}
-    refs = find_views(Path(tcfg.data), shape_ids)
+    need_targets = tcfg.stage != "depth"  # the depth stage needs only the renders
+    refs = find_views(Path(tcfg.data), shape_ids, targets=need_targets)
     train_refs, val_refs = split_views(refs, tcfg.val_fraction)
-    train_set = ViewDataset(train_refs, config, augment=tcfg.augment and tcfg.stage == "depth")
-    val_set = ViewDataset(val_refs, config) if val_refs else None
+    train_set = ViewDataset(train_refs, config, augment=tcfg.augment and tcfg.stage == "depth", targets=need_targets)
+    val_set = ViewDataset(val_refs, config, targets=need_targets) if val_refs else None
 
     net = module
     if world > 1:
@@ -400,7 +446,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
                 writer.add_scalar(f"{tcfg.stage}/val_loss", v, done)
                 if v < best:
                     best = v
-                    save_model(model, stage_dir / "best.safetensors", {"stage": tcfg.stage, "step": done, "val_loss": v})
+                    module.save_weights(stage_dir / "best.safetensors", {"stage": tcfg.stage, "step": done, "val_loss": v})
             due = time.monotonic() - last_ckpt > 60 * tcfg.checkpoint_minutes
             if due or (tcfg.checkpoint_every and done % tcfg.checkpoint_every == 0) or done == tcfg.steps:
                 _save_checkpoint(stage_dir, module, opt, done, best, tcfg)
@@ -409,7 +455,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     bar.close()
     summary = {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": start, "world_size": world}
     if rank == 0:
-        save_model(model, stage_dir / "final.safetensors", {"stage": tcfg.stage, "step": tcfg.steps})
+        module.save_weights(stage_dir / "final.safetensors", {"stage": tcfg.stage, "step": tcfg.steps})
         if val_set is None:  # no held-out shapes: the final weights are the best we know
             shutil.copyfile(stage_dir / "final.safetensors", stage_dir / "best.safetensors")
             shutil.copyfile(stage_dir / "final.json", stage_dir / "best.json")
@@ -433,13 +479,14 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
 
         # parameters agree by construction (all-reduced gradients); batch-norm running
         # statistics are per process, so every rank takes rank 0's (the saved ones)
+        net_saved = model if module.baseline is None else module.baseline
         param_digests = [None] * world
-        dist.all_gather_object(param_digests, weights_digest(model, buffers=False))
+        dist.all_gather_object(param_digests, weights_digest(net_saved, buffers=False))
         summary["rank_param_digests"] = param_digests
-        for buf in model.buffers():
+        for buf in net_saved.buffers():
             dist.broadcast(buf, 0)
         digests = [None] * world
-        dist.all_gather_object(digests, weights_digest(model))
+        dist.all_gather_object(digests, weights_digest(net_saved))
         summary["rank_digests"] = digests
         if rank == 0:
             (stage_dir / "summary.json").write_text(json.dumps(summary, indent=2))
