@@ -17,9 +17,9 @@ from . import __version__
 COMMANDS: dict[str, tuple[str | None, str]] = {
     "data": ("training.data_cli", "fetch, build, render and inspect the training corpus"),
     "train": ("training.train", "train the networks stage by stage"),
-    "eval": (None, "evaluate a trained model over a split"),
-    "reconstruct": (None, "turn photos into meshes"),
-    "serve": (None, "run the JSON-over-stdio reconstruction server"),
+    "eval": ("training.evaluate", "evaluate a trained model over a split"),
+    "reconstruct": ("genre_backend.reconstruct_cli", "turn photos into meshes"),
+    "serve": ("genre_backend.server", "run the JSON-over-stdio reconstruction server"),
     "bench": ("genre_backend.bench", "print speed figures (geometry, inference)"),
 }
 

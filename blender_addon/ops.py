@@ -1,0 +1,378 @@
+"""Operators: Reconstruct (modal, timer-driven), Cancel, Check backend, and the image file browser.
+
+The per-tick work is in plain functions (:func:`start_job`, :func:`advance`,
+:func:`start_check`, :func:`advance_check`) that take explicit arguments; the
+modal operators only call them from their TIMER events, and ``execute()``
+(scripts, background mode, where timers never fire) calls them in a loop.
+"""
+
+import os
+import time
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, StringProperty
+
+from .backend import BackendError, BackendManager, Request, build_command
+from .jobs import Job, JobLimits, UserError, prepare_job, work_root
+from .props import ADDON_PACKAGE, get_preferences
+
+TICK_SECONDS = 0.1
+
+# The one backend process of this Blender session, and what is running on it.
+manager = BackendManager()
+
+
+class _Active:
+    job = None  # the running Job
+    check = None  # the running Check backend Request
+
+
+active = _Active()
+
+
+# ---------------------------------------------------------------- plain per-tick functions
+def backend_argv(prefs) -> list[str]:
+    """``genre serve``'s command line from the preferences (None: the defaults); :class:`BackendError` when unusable."""
+    if prefs is None:
+        return build_command("")
+    return build_command(prefs.backend_command and bpy.path.abspath(prefs.backend_command),
+                         prefs.weights and bpy.path.abspath(prefs.weights), prefs.device)
+
+
+def job_limits(prefs) -> JobLimits:
+    if prefs is None:
+        return JobLimits()
+    return JobLimits(startup_timeout=prefs.startup_timeout, timeout=prefs.job_timeout)
+
+
+def start_job(settings, prefs, status, *, backend: BackendManager | None = None) -> Job:
+    """Check the settings, make the job's folder and the request; raises :class:`UserError` / :class:`BackendError`."""
+    if active.job is not None and not active.job.finished:
+        raise UserError("a reconstruction is already running")
+    argv = backend_argv(prefs)
+    spec = prepare_job(settings, work_root(ADDON_PACKAGE))
+    job = Job(spec, backend or manager, argv, job_limits(prefs))
+    job.tick()  # start the backend (or send the request) now, not one timer interval later
+    active.job = job
+    status.running = True
+    status.progress = 0.0
+    status.stage = job.stage_label
+    status.message = ""
+    status.message_is_error = False
+    return job
+
+
+def advance(job: Job, scene, status, cursor_location, now: float | None = None):
+    """One tick: read the backend's news, update ``status``; when the job ends, add the result and clean up.
+
+    Returns None while the job runs, else ``(level, message)`` with level
+    ``'INFO'`` (mesh added), ``'WARNING'`` (cancelled) or ``'ERROR'``.
+    """
+    try:
+        job.tick(now)
+        status.progress = job.fraction
+        status.stage = job.stage_label
+        if not job.finished:
+            return None
+        if job.state == "done":
+            try:
+                job.apply(scene, cursor_location)
+                outcome = ("INFO", job.result_line())
+            except UserError as exc:
+                outcome = ("ERROR", f"GenRe: {exc}")
+        elif job.state == "cancelled":
+            outcome = ("WARNING", "GenRe: reconstruction cancelled")
+        else:
+            outcome = ("ERROR", f"GenRe: {job.error}")
+    except BaseException as exc:  # never leave the panel stuck in "running"
+        job.cancel()
+        outcome = ("ERROR", f"GenRe: unexpected error: {type(exc).__name__}: {exc}")
+    finish_job(job, status, outcome)
+    return outcome
+
+
+def finish_job(job: Job, status, outcome) -> None:
+    job.cleanup()
+    if active.job is job:
+        active.job = None
+    status.running = False
+    status.progress = 1.0 if outcome[0] == "INFO" else 0.0
+    status.stage = ""
+    status.message = outcome[1].removeprefix("GenRe: ")
+    status.message_is_error = outcome[0] == "ERROR"
+
+
+def abandon_job(job: Job, status) -> None:
+    """The operator was stopped by Blender (file load, window closed): ask the backend to stop, drop the job."""
+    job.cancel()
+    try:
+        job.tick()
+    except Exception:
+        pass
+    finish_job(job, status, ("WARNING", "GenRe: reconstruction cancelled"))
+
+
+def start_check(prefs, status, *, backend: BackendManager | None = None) -> Request:
+    argv = backend_argv(prefs)
+    limits = job_limits(prefs)
+    req = (backend or manager).request(argv, "version", startup_timeout=limits.startup_timeout, timeout=30.0)
+    active.check = req
+    status.checking = True
+    status.backend_info = ""
+    return req
+
+
+def advance_check(req: Request, status, now: float | None = None):
+    """One tick of Check backend; returns None while waiting, else ``(level, message)`` (also shown in the preferences)."""
+    try:
+        req.tick(now)
+    except Exception as exc:  # never leave the preferences stuck in "checking"
+        req.cancel()
+        req.state, req.error = "failed", f"unexpected error: {type(exc).__name__}: {exc}"
+    if not req.finished:
+        return None
+    if req.state == "done":
+        ev = req.result or {}
+        outcome = ("INFO", f"GenRe backend {ev.get('version', '?')} (protocol {ev.get('protocol', '?')}), "
+                           f"preset {ev.get('preset', '?')}, device {ev.get('device', '?')}, weights {ev.get('weights', '?')}")
+    elif req.state == "cancelled":
+        outcome = ("WARNING", "backend check cancelled")
+    else:
+        outcome = ("ERROR", f"backend check failed: {req.error}")
+    if active.check is req:
+        active.check = None
+    status.checking = False
+    status.backend_info = outcome[1]
+    status.backend_ok = outcome[0] == "INFO"
+    return outcome
+
+
+def _redraw(context) -> None:
+    wm = context.window_manager
+    for window in wm.windows:
+        for area in window.screen.areas:
+            if area.type in ("VIEW_3D", "PREFERENCES"):
+                area.tag_redraw()
+
+
+# ---------------------------------------------------------------- operators
+class _TimerModal:
+    """Shared timer plumbing of the two modal operators."""
+
+    _timer = None
+
+    def _add_timer(self, context):
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(TICK_SECONDS, window=context.window)
+        wm.modal_handler_add(self)
+
+    def _remove_timer(self, context):
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            self._timer = None
+
+
+class GENRE_OT_reconstruct(_TimerModal, bpy.types.Operator):
+    """Reconstruct a 3D mesh from the chosen photo with GenRe"""
+
+    bl_idname = "genre.reconstruct"
+    bl_label = "Reconstruct"
+    bl_options = {"UNDO"}
+
+    _job = None
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and (active.job is None or active.job.finished)
+
+    def _start(self, context):
+        status = context.window_manager.genre_status
+        try:
+            return start_job(context.scene.genre, get_preferences(context), status)
+        except (UserError, BackendError) as exc:
+            status.message = str(exc)
+            status.message_is_error = True
+            self.report({"ERROR"}, f"GenRe: {exc}")
+            return None
+
+    def _step(self, context):
+        return advance(self._job, context.scene, context.window_manager.genre_status, context.scene.cursor.location.copy())
+
+    def _end(self, outcome):
+        self.report({outcome[0]}, outcome[1])
+        return {"FINISHED"} if outcome[0] == "INFO" else {"CANCELLED"}
+
+    def invoke(self, context, event):
+        self._job = self._start(context)
+        if self._job is None:
+            return {"CANCELLED"}
+        self._add_timer(context)
+        _redraw(context)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "ESC" and event.value == "PRESS":
+            self._job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":  # any window timer; an extra tick does no harm
+            return {"PASS_THROUGH"}
+        status = context.window_manager.genre_status
+        before = (status.stage, round(status.progress, 3))
+        outcome = self._step(context)  # never raises: advance() turns every exception into an outcome
+        if outcome is not None or before != (status.stage, round(status.progress, 3)):
+            _redraw(context)  # only when the panel changes: redraws are costly with software OpenGL
+        if outcome is None:
+            return {"RUNNING_MODAL"}
+        self._remove_timer(context)
+        return self._end(outcome)
+
+    def cancel(self, context):
+        # Blender ends the operator (new file, window closed): stop the job, leave nothing behind.
+        self._remove_timer(context)
+        if self._job is not None and not self._job.finished:
+            abandon_job(self._job, context.window_manager.genre_status)
+
+    def execute(self, context):
+        # Scripts and background mode (no timer events there): the same steps, waiting in place.
+        self._job = self._start(context)
+        if self._job is None:
+            return {"CANCELLED"}
+        while True:
+            outcome = self._step(context)
+            if outcome is not None:
+                return self._end(outcome)
+            time.sleep(0.05)
+
+
+class GENRE_OT_cancel(bpy.types.Operator):
+    """Stop the running reconstruction (the backend stops at its next stage)"""
+
+    bl_idname = "genre.cancel"
+    bl_label = "Cancel"
+
+    @classmethod
+    def poll(cls, context):
+        return active.job is not None and not active.job.finished
+
+    def execute(self, context):
+        active.job.cancel()
+        context.window_manager.genre_status.stage = "Cancelling"
+        return {"FINISHED"}
+
+
+class GENRE_OT_check_backend(_TimerModal, bpy.types.Operator):
+    """Start the backend if needed and show its version, preset and device, or why it failed"""
+
+    bl_idname = "genre.check_backend"
+    bl_label = "Check Backend"
+
+    _req = None
+
+    @classmethod
+    def poll(cls, context):
+        return active.check is None or active.check.finished
+
+    def _start(self, context):
+        status = context.window_manager.genre_status
+        try:
+            return start_check(get_preferences(context), status)
+        except BackendError as exc:
+            status.checking = False
+            status.backend_info = f"backend check failed: {exc}"
+            status.backend_ok = False
+            self.report({"ERROR"}, f"GenRe: {status.backend_info}")
+            return None
+
+    def invoke(self, context, event):
+        self._req = self._start(context)
+        if self._req is None:
+            return {"CANCELLED"}
+        self._add_timer(context)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        outcome = advance_check(self._req, context.window_manager.genre_status)
+        _redraw(context)
+        if outcome is None:
+            return {"RUNNING_MODAL"}
+        self._remove_timer(context)
+        self.report({outcome[0]}, f"GenRe: {outcome[1]}")
+        return {"FINISHED"} if outcome[0] == "INFO" else {"CANCELLED"}
+
+    def cancel(self, context):
+        self._remove_timer(context)
+        if self._req is not None and not self._req.finished:
+            self._req.cancel()
+            advance_check(self._req, context.window_manager.genre_status)
+
+    def execute(self, context):
+        self._req = self._start(context)
+        if self._req is None:
+            return {"CANCELLED"}
+        while True:
+            outcome = advance_check(self._req, context.window_manager.genre_status)
+            if outcome is not None:
+                self.report({outcome[0]}, f"GenRe: {outcome[1]}")
+                return {"FINISHED"} if outcome[0] == "INFO" else {"CANCELLED"}
+            time.sleep(0.05)
+
+
+class GENRE_OT_choose_file(bpy.types.Operator):
+    """Choose an image file in the file browser"""
+
+    bl_idname = "genre.choose_file"
+    bl_label = "Choose Image"
+    bl_options = {"INTERNAL"}
+
+    target: EnumProperty(items=(("PHOTO", "Photo", ""), ("MASK", "Mask", "")), default="PHOTO", options={"HIDDEN"})
+    filepath: StringProperty(subtype="FILE_PATH")
+    # What the file browser shows: images and folders only.
+    filter_image: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
+    filter_folder: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
+
+    def invoke(self, context, event):
+        settings = context.scene.genre
+        current = settings.photo_path if self.target == "PHOTO" else settings.mask_path
+        if current:
+            self.filepath = bpy.path.abspath(current)
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        if not os.path.isfile(self.filepath):
+            self.report({"ERROR"}, f"GenRe: not a file: {self.filepath}")
+            return {"CANCELLED"}
+        settings = context.scene.genre
+        if self.target == "PHOTO":
+            settings.photo_path = self.filepath
+            settings.source = "FILE"
+        else:
+            settings.mask_path = self.filepath
+        return {"FINISHED"}
+
+
+CLASSES = (GENRE_OT_reconstruct, GENRE_OT_cancel, GENRE_OT_check_backend, GENRE_OT_choose_file)
+
+
+def shutdown_backend() -> None:
+    """Stop the running job (if any) and the backend process (add-on disabled, Blender quitting)."""
+    job = active.job
+    if job is not None:
+        job.cancel()
+        job.cleanup()
+        active.job = None
+    active.check = None
+    manager.discard()
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    shutdown_backend()
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,129 @@
+"""The add-on's properties: per-scene settings, the window manager's run status, and the preferences."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+# The add-on's module name: "genre" as a legacy add-on, "bl_ext.<repo>.genre" as an extension.
+ADDON_PACKAGE = __package__
+
+
+class GENRE_PG_settings(bpy.types.PropertyGroup):
+    """What to reconstruct and how (``scene.genre``)."""
+
+    source: EnumProperty(
+        name="Source",
+        description="Where the photo comes from",
+        items=(
+            ("FILE", "File", "A photo file on disk"),
+            ("IMAGE", "Image", "An image already loaded in Blender"),
+        ),
+        default="FILE",
+    )
+    # No FILE_PATH subtype: its built-in browser shows every file; the panel's button opens one filtered to images.
+    photo_path: StringProperty(name="Photo", description="The photo of one object to reconstruct")
+    image: PointerProperty(name="Image", description="An image loaded in Blender to reconstruct from", type=bpy.types.Image)
+    mask_path: StringProperty(
+        name="Mask",
+        description="Optional black-and-white mask of the object, the photo's size (else the photo's alpha, else the network's own silhouette)",
+    )
+    use_threshold: BoolProperty(name="Custom Threshold", description="Override the weights' isosurface threshold", default=False)
+    threshold: FloatProperty(
+        name="Threshold", description="Isosurface threshold of the voxel grid: lower gives a fuller shape",
+        default=0.5, min=0.01, max=0.99, step=1, precision=2,
+    )
+    smoothing: IntProperty(
+        name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
+    )
+    target_faces: IntProperty(
+        name="Target Faces", description="Decimate to about this many faces (a Decimate modifier; 0 keeps every face)",
+        default=0, min=0, soft_max=200000,
+    )
+    add_camera: BoolProperty(
+        name="Add Matching Camera",
+        description="Add a camera that sees the mesh as the photo saw the object, with the photo as its background",
+        default=True,
+    )
+
+
+class GENRE_PG_status(bpy.types.PropertyGroup):
+    """What the add-on is doing now (``window_manager.genre_status``; not saved in files)."""
+
+    running: BoolProperty(name="Running", default=False)
+    progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
+    stage: StringProperty(name="Stage", default="")
+    message: StringProperty(name="Result", default="")
+    message_is_error: BoolProperty(default=False)
+    checking: BoolProperty(name="Checking Backend", default=False)
+    backend_info: StringProperty(name="Backend", default="")
+    backend_ok: BoolProperty(default=False)
+
+
+class GENRE_AP_preferences(bpy.types.AddonPreferences):
+    bl_idname = ADDON_PACKAGE
+
+    backend_command: StringProperty(
+        name="Backend Command",
+        description="A Python interpreter with the GenRe backend installed (run as 'python -m genre_backend.cli serve') "
+                    "or the 'genre' program; empty: 'genre' on the PATH",
+        subtype="FILE_PATH",
+    )
+    weights: StringProperty(name="Weights", description="The weights file (.safetensors); empty: the backend's default", subtype="FILE_PATH")
+    device: EnumProperty(
+        name="Device",
+        items=(
+            ("auto", "Automatic", "Let the backend choose"),
+            ("cpu", "CPU", "Run on the CPU"),
+            ("cuda", "CUDA", "Run on an NVIDIA GPU"),
+        ),
+        default="auto",
+    )
+    startup_timeout: FloatProperty(
+        name="Start-up Time-out", description="Seconds the backend may take to load its model", default=120.0, min=1.0, unit="TIME_ABSOLUTE",
+    )
+    job_timeout: FloatProperty(
+        name="Reconstruction Time-out", description="Seconds one reconstruction may take", default=600.0, min=0.001, unit="TIME_ABSOLUTE",
+    )
+
+    def draw(self, context):
+        layout = self.layout
+        layout.prop(self, "backend_command")
+        layout.prop(self, "weights")
+        row = layout.row()
+        row.prop(self, "device")
+        row = layout.row()
+        row.prop(self, "startup_timeout")
+        row.prop(self, "job_timeout")
+        status = context.window_manager.genre_status
+        row = layout.row()
+        row.enabled = not status.checking
+        row.operator("genre.check_backend", icon="PLUGIN")
+        if status.checking:
+            layout.label(text="Checking the backend…", icon="TIME")
+        elif status.backend_info:
+            layout.label(text=status.backend_info, icon="CHECKMARK" if status.backend_ok else "ERROR")
+
+
+def get_preferences(context=None):
+    """The add-on's preferences, or None when the add-on is registered without being enabled (tests from source)."""
+    context = context or bpy.context
+    addon = context.preferences.addons.get(ADDON_PACKAGE)
+    return addon.preferences if addon is not None else None
+
+
+CLASSES = (GENRE_PG_settings, GENRE_PG_status, GENRE_AP_preferences)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.genre = PointerProperty(type=GENRE_PG_settings)
+    bpy.types.WindowManager.genre_status = PointerProperty(type=GENRE_PG_status)
+
+
+def unregister():
+    del bpy.types.WindowManager.genre_status
+    del bpy.types.Scene.genre
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

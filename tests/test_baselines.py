@@ -1,0 +1,90 @@
+"""The baselines of Table 1: their training stages, weights files and the nearest-shape index."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from genre_backend import frame
+from genre_backend.model import WeightsError, load_model
+from tiny_data import TINY, make_tiny_views
+from training.baselines import CompletionBaseline, NearestIndex, OneStepNet, build_nearest_index, load_baseline, save_baseline
+from training.dataset import ViewDataset, find_views
+from training.train import TrainConfig, train
+
+
+@pytest.fixture(scope="module")
+def tiny_views(tmp_path_factory):
+    return make_tiny_views(tmp_path_factory.mktemp("tiny"))
+
+
+def _cfg(stage, views, out, **kw):
+    base = dict(stage=stage, data=str(views), out=str(out), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=5)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_baseline_stages_overfit_four_samples(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("depth", tiny_views, run, steps=10, lr=3e-3), TINY)
+    depth_weights = run / "depth" / "final.safetensors"
+    s = train(_cfg("completion", tiny_views, run, steps=100, lr=3e-3, init=str(depth_weights)))
+    assert s["train_views"] == 4
+    assert s["first_loss"] / s["last_loss"] >= 10, s
+    s = train(_cfg("onestep", tiny_views, run, steps=60, lr=3e-3), TINY)
+    assert s["first_loss"] / s["last_loss"] >= 10, s
+    # their own weights files; GenRe's format is untouched and refuses them
+    comp = load_baseline(run / "completion" / "best.safetensors", "completion")
+    assert isinstance(comp, CompletionBaseline) and comp.config == TINY
+    assert isinstance(load_baseline(run / "onestep" / "final.safetensors"), OneStepNet)
+    with pytest.raises(WeightsError):
+        load_model(run / "completion" / "best.safetensors")
+    with pytest.raises(WeightsError):
+        load_baseline(run / "onestep" / "final.safetensors", "completion")
+    with pytest.raises(WeightsError):
+        load_baseline(depth_weights)
+    # the completion net's depth net is the frozen one it started from
+    genre = load_model(depth_weights)
+    for k, v in genre.depth_net.state_dict().items():
+        assert torch.equal(v, comp.depth_net.state_dict()[k]), k
+    assert json.loads((run / "completion" / "best.json").read_text())["kind"] == "completion"
+
+
+def test_baseline_stage_resumes_from_its_checkpoint(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("onestep", tiny_views, run, steps=2, checkpoint_every=1), TINY)
+    s = train(_cfg("onestep", tiny_views, run, steps=4), TINY)
+    assert s["resumed_from"] == 2
+
+
+def test_save_load_round_trip_gives_the_same_outputs(tmp_path):
+    torch.manual_seed(0)
+    net = OneStepNet(TINY).eval()
+    rgb = torch.rand(2, 3, 64, 64)
+    save_baseline(net, tmp_path / "w.safetensors")
+    again = load_baseline(tmp_path / "w.safetensors", "onestep")
+    with torch.no_grad():
+        assert torch.equal(net(rgb), again(rgb))
+    assert net(rgb).shape == (2, TINY.geometry.sph_size, TINY.geometry.sph_size)
+    with pytest.raises(WeightsError, match="not found"):
+        load_baseline(tmp_path / "missing.safetensors")
+
+
+def test_nearest_index_retrieves_the_view_and_poses_its_shape(tiny_views, tmp_path):
+    index = build_nearest_index(tiny_views, TINY)
+    assert len(index.views) == 4
+    index.save(tmp_path / "nn.safetensors", TINY)
+    index = NearestIndex.load(tmp_path / "nn.safetensors")
+    refs = find_views(tiny_views)
+    data = ViewDataset(refs, TINY)
+    for i, ref in enumerate(refs):
+        s = data[i]
+        j = index.query(s["depth"][None])[0]
+        assert (index.shape_id(j), index.views[j]) == (ref.shape_id, ref.view)
+        # the retrieved shape posed as it appears in the retrieved view: its view-frame points
+        meta = json.loads((ref.shape_dir / f"view_{ref.view:03d}.json").read_text())
+        with np.load(ref.shape_dir / "surface_points.npz") as z:
+            obj = torch.from_numpy(z["points"]).double()
+        expect = frame.object_to_view(obj[None], torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)[None])[0]
+        assert torch.allclose(index.view_points(j).double(), expect, atol=1e-6)

@@ -1,0 +1,178 @@
+"""`genre eval` on a tiny split made here: real renders, nets trained for a few steps."""
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from genre_backend import frame
+from genre_backend.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
+from tiny_data import TINY, make_tiny_views
+from training.evaluate import FLOOR, ROWS, EvalView, Target, Truth, aggregate, choose_thresholds, cloud_metrics, main, mesh_metrics
+from training.train import TrainConfig, train
+
+
+# ---- F-score -----------------------------------------------------------------------------
+@pytest.mark.parametrize("method", ["kdtree", "brute"])
+def test_fscore_matches_its_reference_and_is_one_on_identical_clouds(method):
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.rand(300, 3, generator=gen), torch.rand(200, 3, generator=gen)
+    for t in (0.02, 0.05, 0.1):
+        assert float(fscore(a, b, t, method=method)) == pytest.approx(fscore_reference(a.numpy(), b.numpy(), t), abs=1e-6)
+    assert float(fscore(a, a, 0.01, method=method)) == 1.0
+    batched = fscore(torch.stack([a, a + 10]), torch.stack([b[:150], b[:150]]), 0.05, method=method)
+    assert float(batched[1]) == 0.0 and batched.shape == (2,)
+
+
+def test_the_evaluation_metrics_are_the_library_ones():
+    gen = torch.Generator().manual_seed(1)
+    a, b = torch.rand(1024, 3, generator=gen), torch.rand(1024, 3, generator=gen) * torch.tensor([1.0, 0.5, 0.8])
+    A, B = torch.rand(3000, 3, generator=gen), torch.rand(2500, 3, generator=gen) * torch.tensor([1.0, 0.5, 0.8])
+    m = cloud_metrics(a, A, b, B)
+    na, nb, nA, nB = (normalize_points(x) for x in (a, b, A, B))
+    assert m["cd1k"] == pytest.approx(float(chamfer_distance(na, nb)), rel=1e-5)
+    assert m["cd10k"] == pytest.approx(float(chamfer_distance(nA, nB)), rel=1e-5)
+    assert m["f1"] == pytest.approx(float(fscore(nA, nB, 0.01)), abs=1e-6)
+    assert m["f2"] == pytest.approx(float(fscore(nA, nB, 0.02)), abs=1e-6)
+
+
+# ---- the metric on known shapes ------------------------------------------------------------
+def _lattice(n=11):
+    g = torch.linspace(-0.5, 0.5, n)
+    return torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_a_shifted_shape_gives_the_expected_cd():
+    pts = _lattice()  # spacing 0.1
+    d = 0.015  # between the two F-score thresholds (0.01, 0.02)
+    moved = pts + torch.tensor([d, 0.0, 0.0])
+    # before normalisation: every point's nearest neighbour is its own shifted copy → CD = 2d
+    assert float(chamfer_distance(pts, moved)) == pytest.approx(2 * d, rel=1e-5)
+    # normalisation (own bounding box) removes a pure shift
+    assert float(chamfer_distance(normalize_points(pts), normalize_points(moved))) == pytest.approx(0.0, abs=1e-6)
+    # a deformation survives it: move the interior points only (the bounding box stays) → CD = 2 d k / N
+    interior = (pts.abs() < 0.45).all(dim=1)
+    bent = pts.clone()
+    bent[interior, 0] += d
+    expect = 2 * d * int(interior.sum()) / len(pts)
+    m = cloud_metrics(bent, bent, pts, pts)
+    assert m["cd1k"] == pytest.approx(expect, rel=1e-4)
+    assert m["f1"] == pytest.approx(1 - int(interior.sum()) / len(pts), abs=1e-6)  # moved points are 0.015 away: out at 1 %, in at 2 %
+    assert m["f2"] == 1.0
+
+
+# ---- the tiny split and a few-step run -----------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("evaltiny")
+    views = make_tiny_views(root)
+    # a seen class and an unseen one: the box plays a seen-test chair, the table an unseen table
+    manifest = {"shapes": [{"id": "box", "class": "chair", "split": "test"}, {"id": "table", "class": "table", "split": "unseen"}]}
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    run = root / "run"
+
+    def cfg(stage, steps, **kw):
+        return TrainConfig(stage=stage, data=str(views), out=str(run), steps=steps, batch_size=2, val_fraction=0.0, augment=False, progress=False, **kw)
+
+    train(cfg("depth", 3), TINY)
+    train(cfg("inpaint", 2, init=str(run / "depth" / "final.safetensors")))
+    train(cfg("refine", 2, init=str(run / "inpaint" / "final.safetensors")))
+    train(cfg("completion", 2, init=str(run / "depth" / "final.safetensors")))
+    train(cfg("onestep", 2), TINY)
+    return root, views, run
+
+
+def _args(root, views, run, out, *extra):
+    return ["--data", str(views), "--run", str(run), "--train-views", str(views), "--manifest", str(root / "manifest.json"),
+            "--out", str(out), "--no-progress", *extra]
+
+
+def _read(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
+    _, views, _ = tiny
+    meta = json.loads((views / "table" / "view_000.json").read_text())
+    view = EvalView(views / "table", 0, "table", ("unseen",), meta)
+    gt, again = Truth().posed(view)
+    same = cloud_metrics(gt[:1024], gt, gt[:1024], gt)
+    assert same["cd1k"] == 0.0 and same["cd10k"] == 0.0 and same["f1"] == 1.0 and same["f2"] == 1.0
+    floor = cloud_metrics(again[:1024], again, gt[:1024], gt)
+    assert 0.0 < floor["cd1k"] < 0.1 and floor["cd10k"] < floor["cd1k"]
+    # the true mesh itself, posed, scored as a prediction: at the floor
+    mesh = trimesh.load(meta["mesh"], force="mesh", process=False)
+    rot = torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)[None]
+    verts = frame.object_to_view(torch.tensor(mesh.vertices)[None], rot)[0].numpy()
+    perfect = mesh_metrics(verts, np.asarray(mesh.faces), Target(gt[:1024], gt))
+    assert perfect["cd1k"] == pytest.approx(floor["cd1k"], rel=0.25)
+    assert perfect["f2"] > 0.95
+
+
+def test_genre_eval_writes_every_row_and_applies_the_seen_threshold(tiny, tmp_path, capsys):
+    root, views, run = tiny
+    out = tmp_path / "res"
+    rc = main(_args(root, views, run, out, "--gallery", "1", "--heatmap-shapes", "1", "--heatmap-elevations", "20",
+                    "--heatmap-azimuths", "2", "--render-samples", "2"))
+    assert rc == 0
+    printed = capsys.readouterr().out
+    table = (out / "table.md").read_text()
+    for row in (*ROWS, FLOOR):
+        assert f"| {row} |" in table and f"| {row} |" in printed, row
+    assert "seen-test" in table and "unseen" in table
+    for name in ("per_view.csv", "per_shape.csv", "per_class.csv", "thresholds.json", "bars.png", "depth_vs_dissimilarity.png",
+                 "viewpoint_heatmap.png", "gallery.png"):
+        assert (out / name).is_file(), name
+    records = _read(out / "per_view.csv")
+    assert len(records) == 4 * (len(ROWS) + 1)
+    choice = json.loads((out / "thresholds.json").read_text())
+    thresholds = TINY.geometry.thresholds()
+    per_class = {(r["row"], r["class"]): r for r in _read(out / "per_class.csv")}
+    for row in ROWS:
+        seen = [r for r in records if r["row"] == row and r["groups"] == "test"]
+        unseen = [r for r in records if r["row"] == row and "unseen" in r["groups"].split("|")]
+        means = {t: np.mean([float(r[f"cd1k@{t:.2f}"]) for r in seen]) for t in thresholds}
+        t_star = choice["seen"][row]
+        assert means[t_star] == pytest.approx(min(means.values()))  # chosen on seen-test views …
+        applied = np.mean([float(r[f"cd1k@{t_star:.2f}"]) for r in unseen])
+        assert float(per_class[(row, "table")]["cd1k_seen"]) == pytest.approx(applied, rel=1e-5)  # … and applied to unseen
+        assert float(per_class[(row, "table")]["threshold_seen"]) == t_star
+    # the seen threshold does not look at unseen data: worsen unseen CDs at it, choose again → the same
+    spoiled = [dict(r) for r in records]
+    for r in spoiled:
+        if "unseen" in r["groups"].split("|"):
+            for t in thresholds:
+                r[f"cd1k@{t:.2f}"] = str(float(r[f"cd1k@{t:.2f}"]) + (5.0 if t == choice["seen"][r["row"]] else 0.0))
+    again = choose_thresholds(spoiled, thresholds, 0.5)
+    assert again["seen"] == choice["seen"]
+    assert all(math.isfinite(v) for v in aggregate(records, choice)[2]["seen"]["unseen"].values())
+
+
+def test_eval_resumes_after_an_interruption(tiny, tmp_path):
+    root, views, run = tiny
+    out = tmp_path / "res"
+    base = _args(root, views, run, out, "--no-figures", "--rows", "GenRe,Nearest training shape")
+    assert main(base) == 0
+    full = (out / "per_view.csv").read_text().splitlines()
+    assert len(full) == 1 + 4 * 3
+    # killed while writing the last view: its rows cut off mid-line
+    (out / "per_view.csv").write_text("\n".join(full[:-2]) + "\n" + full[-2][: len(full[-2]) // 2])
+    assert main(base) == 0
+    resumed = (out / "per_view.csv").read_text().splitlines()
+    assert sorted(resumed) == sorted(full)
+    # other rows (or weights) in the same folder: refused rather than mixed
+    assert main(_args(root, views, run, out, "--no-figures", "--rows", "GenRe")) == 2
+
+
+def test_missing_weights_or_data_give_a_clear_error(tiny, tmp_path, capsys):
+    root, views, run = tiny
+    assert main(_args(root, views, tmp_path / "nothing", tmp_path / "o")) == 2
+    err = capsys.readouterr().err
+    assert "weights not found" in err and "genre train" in err
+    assert main(_args(root, tmp_path / "no_views", run, tmp_path / "o")) == 2
+    assert "genre data render" in capsys.readouterr().err

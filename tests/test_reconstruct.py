@@ -1,0 +1,318 @@
+"""The reconstruction backend and ``genre reconstruct``, with weights trained here by the project's own code."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import zlib
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+from genre_backend import reconstruct_cli
+from genre_backend.model import WEIGHTS_FORMAT, WeightsError, load_model, save_model
+from genre_backend.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
+from genre_backend.preprocess import ImageError
+from tiny_data import TINY, make_tiny_views
+from training.train import TrainConfig, train
+
+REPO = Path(__file__).resolve().parents[1]
+
+# The tiny renders' masks span a median 0.66 of the image (measured over make_tiny_views), so
+# the test model frames photos that way; the shipped presets use the config default (0.5).
+TINY_FRAMED = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, object_fraction=0.66))
+
+
+def trained_weights(tmp_path_factory) -> tuple[Path, Path]:
+    """(weights, views): tiny renders and weights trained on them stage by stage (cached per session)."""
+    root = tmp_path_factory.getbasetemp() / "genre_trained"
+    weights = root / "run" / "refine" / "final.safetensors"
+    views = root / "views"
+    if weights.is_file():
+        return weights, views
+    views = make_tiny_views(root)
+    run = root / "run"
+    common = dict(data=str(views), out=str(run), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=50)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny nets: one thread is faster, and 25× faster on a busy 2-core machine (measured)
+    try:
+        train(TrainConfig(stage="depth", steps=60, lr=3e-3, **common), TINY_FRAMED)
+        prev = run / "depth" / "final.safetensors"
+        for stage, steps, lr in (("inpaint", 30, 1e-3), ("refine", 60, 3e-3)):
+            train(TrainConfig(stage=stage, steps=steps, lr=lr, init=str(prev), **common))
+            prev = run / stage / "final.safetensors"
+    finally:
+        torch.set_num_threads(threads)
+    return weights, views
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """The tiny model runs faster on one thread (and much faster when other jobs share the CPU)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    return trained_weights(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def rec(trained):
+    return Reconstructor(trained[0])
+
+
+@pytest.fixture(scope="module")
+def photos(trained, tmp_path_factory):
+    """A rendered view as RGB, RGBA (alpha = the render's mask), its mask file, and every odd variant."""
+    views = trained[1]
+    d = tmp_path_factory.mktemp("photos")
+    rgb = np.asarray(Image.open(views / "box" / "view_000.png").convert("RGB"))
+    mask = np.load(views / "box" / "view_000.npz")["mask"] > 0.5
+    p = {}
+    p["rgb"] = views / "box" / "view_000.png"
+    p["rgba"] = d / "rgba.png"
+    Image.fromarray(np.dstack([rgb, mask.astype(np.uint8) * 255]), "RGBA").save(p["rgba"])
+    p["mask"] = d / "mask.png"
+    Image.fromarray(mask.astype(np.uint8) * 255, "L").save(p["mask"])
+    p["empty_mask"] = d / "empty_mask.png"
+    Image.new("L", rgb.shape[1::-1], 0).save(p["empty_mask"])
+    p["small_mask"] = d / "small_mask.png"
+    Image.new("L", (rgb.shape[1] // 2, rgb.shape[0] // 2), 255).save(p["small_mask"])
+    p["transparent"] = d / "transparent.png"
+    Image.new("RGBA", (64, 64), (200, 30, 30, 0)).save(p["transparent"])
+    # accepted odd formats, all of the same render
+    gray = np.asarray(Image.fromarray(rgb).convert("L"))
+    p["gray16"] = d / "gray16.png"
+    Image.fromarray(gray.astype(np.uint16) * 257).save(p["gray16"])
+    assert Image.open(p["gray16"]).mode.startswith("I")
+    p["gray"] = d / "gray.png"
+    Image.fromarray(gray, "L").save(p["gray"])
+    p["palette"] = d / "palette.png"
+    Image.fromarray(rgb).quantize(64).save(p["palette"])
+    p["cmyk"] = d / "cmyk.jpg"
+    Image.fromarray(rgb).convert("CMYK").save(p["cmyk"], quality=95)
+    p["animated"] = d / "animated.gif"
+    first = Image.fromarray(rgb).quantize(128)
+    first.save(p["animated"], save_all=True, append_images=[Image.new("P", first.size, 3)], duration=100, loop=0)
+    # bad files
+    p["text"] = d / "notes.png"
+    p["text"].write_text("this is not an image\n")
+    p["zero"] = d / "zero.png"
+    p["zero"].write_bytes(b"")
+    data = p["rgb"].read_bytes()
+    p["truncated"] = d / "truncated.png"
+    p["truncated"].write_bytes(data[: len(data) // 2])
+    p["directory"] = d / "folder.png"
+    p["directory"].mkdir()
+    p["missing"] = d / "missing.png"
+    p["huge"] = d / "huge.png"
+    p["huge"].write_bytes(huge_png(30000, 30000))
+    return p
+
+
+def huge_png(width: int, height: int) -> bytes:
+    """A PNG whose header claims width×height 8-bit grayscale; the pixel data is a few bytes (no decoder gets that far)."""
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\x00" * 1024)) + chunk(b"IEND", b"")
+
+
+# ---- the pipeline ------------------------------------------------------------------------------
+def test_reconstructs_a_rendered_view_in_the_view_frame(rec, photos, trained, tmp_path):
+    stages = []
+    res = rec.run(photos["rgb"], progress=lambda s, f: stages.append((s, f)))
+    assert res.mask_source == "silhouette"
+    assert [s for s, _ in stages] == list(STAGES[:-1])
+    fractions = [f for _, f in stages]
+    assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] < 1.0
+    assert set(res.timings) == set(STAGES[:-1])
+    assert res.vertices.dtype == np.float32 and res.vertices.shape[1] == 3
+    assert res.faces.dtype == np.int64 and res.faces.shape[1] == 3 and len(res.faces) > 50
+    assert np.abs(res.vertices).max() <= 0.5 + 1e-5  # inside the voxel cube of the view frame
+    # every intermediate, with its documented shape
+    g = TINY.geometry
+    shapes = {"rgb": (3, 64, 64), "depth": (64, 64), "mask": (64, 64), "partial_sph": (g.sph_size,) * 2, "full_sph": (g.sph_size,) * 2,
+              "vox_sph": (g.voxel_size,) * 3, "vox_depth": (g.voxel_size,) * 3, "logits": (g.voxel_size,) * 3}
+    for name, shape in shapes.items():
+        assert tuple(res.intermediates[name].shape) == shape, name
+    assert res.intermediates["mask"].dtype == torch.bool and res.intermediates["mask"].any()
+    # the reconstruction resembles the box it was rendered from, posed as seen
+    meta = json.loads((trained[1] / "box" / "view_000.json").read_text())
+    box = trimesh.load(trained[1].parent / "meshes" / "box.ply")
+    rot = np.asarray(meta["rotation_cam_to_obj"])
+    gt = box.vertices @ rot  # object → view frame (frame.object_to_view)
+    lo, hi = res.vertices.min(0), res.vertices.max(0)
+    assert np.all(np.abs((lo + hi) / 2 - (gt.min(0) + gt.max(0)) / 2) < 0.15), (lo, hi, gt.min(0), gt.max(0))
+    # files: mesh and intermediates
+    path, fmt = res.save_mesh(tmp_path / "box.glb")
+    assert fmt == "glb" and len(trimesh.load(path, force="mesh").faces) == len(res.faces)
+    pngs = res.save_intermediates(tmp_path / "inter")
+    names = {p.name for p in pngs}
+    assert {"input.png", "mask.png", "depth.png", "partial_sph.png", "full_sph.png", "vox_sph.png", "vox_depth.png"} <= names
+    for p in pngs:
+        with Image.open(p) as im:
+            assert im.size[0] >= 64
+    assert not list(tmp_path.glob(".*tmp*"))  # atomic writes leave no temporary files
+
+
+def test_mask_source_order(rec, photos):
+    assert rec.run(photos["rgb"], mask_path=photos["mask"]).mask_source == "file"
+    assert rec.run(photos["rgba"], mask_path=photos["mask"]).mask_source == "file"
+    assert rec.run(photos["rgba"]).mask_source == "alpha"
+    assert rec.run(photos["rgb"]).mask_source == "silhouette"
+    # an opaque alpha channel is no mask: the silhouette is used
+    opaque = photos["rgba"].with_name("opaque.png")
+    Image.open(photos["rgb"]).convert("RGBA").save(opaque)
+    assert rec.run(opaque).mask_source == "silhouette"
+
+
+@pytest.mark.parametrize("kind", ["gray16", "gray", "palette", "cmyk", "animated"])
+def test_odd_but_valid_images_reconstruct(rec, photos, kind):
+    res = rec.run(photos[kind], mask_path=photos["mask"])
+    assert len(res.faces) > 0 and res.mask_source == "file"
+
+
+def test_cancel_at_a_stage_boundary(rec, photos):
+    seen = []
+
+    def progress(stage, fraction):
+        seen.append(stage)
+
+    with pytest.raises(Cancelled):
+        rec.run(photos["rgba"], progress=progress, should_cancel=lambda: "inpaint" in seen)
+    assert seen[-1] == "inpaint" and seen == list(STAGES[: STAGES.index("inpaint") + 1])
+
+
+def test_bad_arguments_and_weights(trained, tmp_path):
+    corrupt = tmp_path / "corrupt.safetensors"
+    corrupt.write_bytes(trained[0].read_bytes()[:1000])
+    with pytest.raises(WeightsError, match="not a readable safetensors"):
+        Reconstructor(corrupt)
+    from safetensors.torch import save_file
+
+    model = load_model(trained[0])
+    other = tmp_path / "other.safetensors"
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(other), metadata={"format": "genre-weights/0", "config": "{}"})
+    with pytest.raises(WeightsError, match=r"genre-weights/0.*" + WEIGHTS_FORMAT):
+        Reconstructor(other)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            Reconstructor(trained[0], device="cuda")
+    with pytest.raises(ValueError, match="device"):
+        Reconstructor(trained[0], device="tpu")
+
+
+# ---- the command line -----------------------------------------------------------------------------
+def _cli(capsys, *args):
+    code = reconstruct_cli.main([str(a) for a in args], prog="genre reconstruct")
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_cli_writes_each_format(trained, photos, tmp_path, capsys):
+    for fmt in ("obj", "ply", "glb"):
+        code, out, err = _cli(capsys, photos["rgb"], "-o", tmp_path / f"m.{fmt}", "--weights", trained[0], "--threshold", 0.5)
+        assert code == 0, err
+        assert "mask: silhouette" in out
+        assert len(trimesh.load(tmp_path / f"m.{fmt}", force="mesh").faces) > 0
+    with pytest.raises(SystemExit) as exc:  # argparse: the format contradicts the extension
+        _cli(capsys, photos["rgba"], "-o", tmp_path / "x.obj", "--format", "ply", "--weights", trained[0])
+    assert exc.value.code == 2 and "does not match" in capsys.readouterr().err
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    code, out, err = _cli(capsys, photos["rgba"], "-o", folder, "--format", "ply", "--weights", trained[0], "--save-intermediates", tmp_path / "inter")
+    assert code == 0, err
+    assert (folder / "rgba.ply").is_file() and (tmp_path / "inter" / "full_sph.png").is_file()
+
+
+BAD_INPUTS = {
+    "text": ("bad_image", "not an image"),
+    "zero": ("bad_image", "empty file (0 bytes)"),
+    "truncated": ("bad_image", "truncated"),
+    "directory": ("bad_image", "is a directory"),
+    "missing": ("bad_image", "no such file"),
+    "huge": ("bad_image", "too large"),
+    "transparent": ("no_object", "no object"),
+}
+
+
+def test_cli_many_images_one_line_per_bad_input(trained, photos, tmp_path, capsys):
+    good = [photos["rgb"], photos["rgba"], photos["gray"], photos["palette"], photos["cmyk"], photos["animated"], photos["gray16"]]
+    bad = [photos[k] for k in BAD_INPUTS]
+    out_dir = tmp_path / "meshes"
+    code, out, err = _cli(capsys, *good[:2], *bad, *good[2:], "-o", out_dir, "--weights", trained[0], "--format", "ply")
+    assert code == 1
+    errors = [line for line in err.splitlines() if "error:" in line]
+    assert len(errors) == len(bad), err
+    for (kind, (code_name, text)), line in zip(BAD_INPUTS.items(), errors):
+        assert str(photos[kind]) in line and text in line and f"[{code_name}]" in line, (kind, line)
+    written = sorted(p.name for p in out_dir.iterdir())
+    # every good image was reconstructed (grayscale and friends through the silhouette) or failed cleanly
+    ok_lines = [line for line in out.splitlines() if " -> " in line]
+    assert len(ok_lines) + 0 == len(written) and len(written) >= 2
+    assert f"{len(bad)} of {len(good) + len(bad)} images failed" in err
+
+
+@pytest.mark.parametrize(
+    "mask, code_name, text",
+    [("empty_mask", "bad_mask", "empty mask"), ("small_mask", "bad_mask", "mask is 32×32, the image is 64×64"), ("missing", "bad_mask", "no such file"),
+     ("text", "bad_mask", "not an image")],
+)
+def test_cli_bad_masks(trained, photos, tmp_path, capsys, mask, code_name, text):
+    code, out, err = _cli(capsys, photos["rgb"], "--mask", photos[mask], "-o", tmp_path / "m.obj", "--weights", trained[0])
+    assert code == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and text in lines[0] and f"[{code_name}]" in lines[0], err
+    assert not (tmp_path / "m.obj").exists()
+
+
+def test_cli_unwritable_output_and_bad_weights(trained, photos, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    for out in (blocker / "m.obj", tmp_path / "no" / "such" / "dir" / "m.obj"):
+        code, _, err = _cli(capsys, photos["rgba"], "-o", out, "--weights", trained[0])
+        assert code == 1 and "[output_unwritable]" in err and len(err.strip().splitlines()) == 1, err
+    corrupt = tmp_path / "corrupt.safetensors"
+    corrupt.write_bytes(b"\x00" * 100)
+    code, _, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "m.obj", "--weights", corrupt)
+    assert code == 1 and "[bad_weights]" in err and len(err.strip().splitlines()) == 1
+    code, _, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "m.obj", "--weights", tmp_path / "nope.safetensors")
+    assert code == 1 and "weights file not found" in err
+    if not DEFAULT_WEIGHTS.is_file():
+        code, _, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "m.obj")
+        assert code == 1 and str(DEFAULT_WEIGHTS) in err and "--weights" in err and "genre train" in err
+
+
+def test_genre_entry_point(trained, photos, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    out = tmp_path / "m.obj"
+    inter = tmp_path / "inter"
+    proc = subprocess.run([sys.executable, "-m", "genre_backend.cli", "reconstruct", str(photos["rgba"]), "-o", str(out), "--weights", str(trained[0]),
+                           "--save-intermediates", str(inter)], capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "mask: alpha" in proc.stdout and out.is_file() and (inter / "depth.png").is_file()
+    proc = subprocess.run([sys.executable, "-m", "genre_backend.cli", "reconstruct", str(photos["huge"]), "--weights", str(trained[0])],
+                          capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
+    assert proc.returncode == 1 and "too large" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_error_codes():
+    assert error_code(ImageError("bad_mask", "x")) == "bad_mask"
+    assert error_code(OutputError("x")) == "output_unwritable"
+    assert error_code(WeightsError("x")) == "bad_weights"
+    assert error_code(RuntimeError("x")) == "internal"

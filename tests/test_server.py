@@ -1,0 +1,257 @@
+"""``genre serve``: the JSON-lines protocol of docs/protocol.md, against a real server process."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import trimesh
+
+from test_reconstruct import huge_png, trained_weights
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+class ServerProcess:
+    """A ``genre serve`` subprocess with a reader thread collecting its stdout events."""
+
+    def __init__(self, *args: str):
+        env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}  # tiny model: one thread is fastest
+        self.proc = subprocess.Popen([sys.executable, "-m", "genre_backend.cli", "serve", *args], cwd=REPO, env=env, text=True,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=1)
+        self.events: "queue.Queue[dict | None]" = queue.Queue()
+        self.raw: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self):
+        for line in self.proc.stdout:
+            self.raw.append(line)
+            self.events.put(json.loads(line))  # every stdout line must be one JSON object
+        self.events.put(None)
+
+    def send(self, obj) -> None:
+        self.proc.stdin.write((obj if isinstance(obj, str) else json.dumps(obj)) + "\n")
+        self.proc.stdin.flush()
+
+    def next(self, timeout: float = 120.0) -> dict | None:
+        return self.events.get(timeout=timeout)
+
+    def until(self, pred, timeout: float = 120.0) -> list[dict]:
+        """Events up to and including the first for which ``pred`` holds."""
+        seen = []
+        deadline = time.time() + timeout
+        while True:
+            ev = self.events.get(timeout=max(0.1, deadline - time.time()))
+            assert ev is not None, f"server exited; events so far {seen}; stderr: {self.proc.stderr.read()}"
+            seen.append(ev)
+            if pred(ev):
+                return seen
+
+    def close(self) -> int:
+        if self.proc.poll() is None:
+            try:
+                self.proc.stdin.close()
+            except OSError:
+                pass
+        try:
+            return self.proc.wait(timeout=60)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return trained_weights(tmp_path_factory)
+    finally:
+        torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def files(trained, tmp_path_factory):
+    from PIL import Image
+    import numpy as np
+
+    d = tmp_path_factory.mktemp("serve")
+    views = trained[1]
+    rgb = np.asarray(Image.open(views / "box" / "view_000.png").convert("RGB"))
+    mask = np.load(views / "box" / "view_000.npz")["mask"] > 0.5
+    f = {"rgb": views / "box" / "view_000.png", "rgba": d / "rgba.png", "mask": d / "mask.png", "empty_mask": d / "empty.png",
+         "small_mask": d / "small.png", "text": d / "text.png", "zero": d / "zero.png", "truncated": d / "trunc.png", "dir": d / "dir.png",
+         "missing": d / "missing.png", "huge": d / "huge.png", "transparent": d / "transparent.png", "blocker": d / "blocker"}
+    Image.fromarray(np.dstack([rgb, mask.astype(np.uint8) * 255]), "RGBA").save(f["rgba"])
+    Image.fromarray(mask.astype(np.uint8) * 255, "L").save(f["mask"])
+    Image.new("L", (64, 64), 0).save(f["empty_mask"])
+    Image.new("L", (32, 48), 255).save(f["small_mask"])
+    Image.new("RGBA", (64, 64), (9, 9, 9, 0)).save(f["transparent"])
+    f["text"].write_text("hello")
+    f["zero"].write_bytes(b"")
+    data = f["rgb"].read_bytes()
+    f["truncated"].write_bytes(data[: len(data) // 2])
+    f["dir"].mkdir()
+    f["huge"].write_bytes(huge_png(30000, 30000))
+    f["blocker"].write_text("a file, not a folder")
+    f["out"] = d / "out"
+    f["out"].mkdir()
+    return f
+
+
+@pytest.fixture(scope="module")
+def server(trained):
+    s = ServerProcess("--weights", str(trained[0]))
+    ready = s.next(timeout=300)
+    assert ready["type"] == "ready" and ready["protocol"] == 1 and ready["preset"] == "tiny" and ready["device"] == "cpu"
+    yield s
+    s.send({"type": "shutdown", "id": "end"})
+    assert s.until(lambda e: e["type"] == "bye") [-1]["id"] == "end"
+    assert s.close() == 0
+
+
+def _alive(server):
+    server.send({"type": "ping", "id": "alive"})
+    assert server.until(lambda e: e["type"] == "pong")[-1] == {"type": "pong", "id": "alive"}
+
+
+def test_ping_and_version(server, trained):
+    server.send({"type": "ping", "id": 7})
+    assert server.next() == {"type": "pong", "id": 7}
+    server.send({"type": "version", "id": "v"})
+    v = server.next()
+    assert v["type"] == "version" and v["id"] == "v" and v["weights"] == str(trained[0]) and v["preset"] == "tiny" and v["protocol"] == 1
+
+
+@pytest.mark.parametrize(
+    "line, code, rid",
+    [
+        ("{not json", "bad_json", None),
+        ("[1, 2]", "bad_json", None),
+        ('"text"', "bad_json", None),
+        ('{"id": 3}', "missing_field", 3),
+        ('{"type": "explode", "id": 4}', "unknown_type", 4),
+        ('{"type": "reconstruct", "image": "a.png", "output": "b.obj"}', "missing_field", None),
+        ('{"type": "reconstruct", "id": 5, "output": "b.obj"}', "missing_field", 5),
+        ('{"type": "reconstruct", "id": 6, "image": "a.png"}', "missing_field", 6),
+        ('{"type": "reconstruct", "id": 7, "image": 12, "output": "b.obj"}', "bad_field", 7),
+        ('{"type": "reconstruct", "id": 8, "image": "a.png", "output": "b.obj", "options": {"threshold": 1.5}}', "bad_field", 8),
+        ('{"type": "reconstruct", "id": 9, "image": "a.png", "output": "b.obj", "options": {"format": "stl"}}', "bad_field", 9),
+        ('{"type": "reconstruct", "id": 10, "image": "a.png", "output": "b.obj", "options": [1]}', "bad_field", 10),
+        ('{"type": "reconstruct", "id": 11, "image": "a.png", "output": "b.obj", "options": {"thresh": 0.4}}', "bad_field", 11),
+        ('{"type": "reconstruct", "id": true, "image": "a.png", "output": "b.obj"}', "bad_field", None),
+        ('{"type": "cancel"}', "missing_field", None),
+        ('{"type": "cancel", "id": "nobody"}', "unknown_job", "nobody"),
+    ],
+)
+def test_malformed_requests_get_error_events(server, line, code, rid):
+    server.send(line)
+    ev = server.next()
+    assert ev["type"] == "error" and ev["code"] == code and ev["id"] == rid, ev
+    assert "\n" not in ev["message"] and ev["message"]
+    _alive(server)
+
+
+def test_reconstruct_reports_progress_and_result(server, files):
+    out = files["out"] / "box.ply"
+    server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.5, "save_intermediates": str(files["out"] / "inter")}})
+    events = server.until(lambda e: e["type"] in ("result", "error"))
+    result = events[-1]
+    assert result["type"] == "result", result
+    progress = [e for e in events if e["type"] == "progress"]
+    assert [e["stage"] for e in progress] == ["load", "preprocess", "depth", "partial_sph", "inpaint", "voxels", "refine", "mesh", "write"]
+    assert all(e["id"] == "job1" for e in events)
+    fr = [e["fraction"] for e in progress]
+    assert fr == sorted(fr) and 0 <= fr[0] and fr[-1] <= 1
+    assert result["mesh"] == str(out) and result["format"] == "ply" and result["mask_source"] == "silhouette"
+    assert result["faces"] == len(trimesh.load(out, force="mesh").faces) > 0
+    assert set(result["timings"]) >= {"depth", "refine", "mesh", "write"}
+    assert result["camera"] == {"lens_mm": 50.0, "sensor_mm": 30.594, "distance": 2.2}
+    assert (files["out"] / "inter" / "depth.png").is_file()
+    # mask file and alpha are reported as such
+    server.send({"type": "reconstruct", "id": "job2", "image": str(files["rgb"]), "mask": str(files["mask"]), "output": str(files["out"] / "m.glb")})
+    assert server.until(lambda e: e["type"] in ("result", "error"))[-1]["mask_source"] == "file"
+    server.send({"type": "reconstruct", "id": "job3", "image": str(files["rgba"]), "output": str(files["out"] / "a.obj")})
+    r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
+    assert r["mask_source"] == "alpha" and r["format"] == "obj"
+
+
+@pytest.mark.parametrize(
+    "image, mask, output, code, text",
+    [
+        ("text", None, "o.obj", "bad_image", "not an image"),
+        ("zero", None, "o.obj", "bad_image", "0 bytes"),
+        ("truncated", None, "o.obj", "bad_image", "truncated"),
+        ("dir", None, "o.obj", "bad_image", "is a directory"),
+        ("missing", None, "o.obj", "bad_image", "no such file"),
+        ("huge", None, "o.obj", "bad_image", "too large"),
+        ("transparent", None, "o.obj", "no_object", "no object"),
+        ("rgb", "empty_mask", "o.obj", "bad_mask", "empty mask"),
+        ("rgb", "small_mask", "o.obj", "bad_mask", "mask is 32×48"),
+        ("rgb", "text", "o.obj", "bad_mask", "not an image"),
+        ("rgba", None, "blocker/o.obj", "output_unwritable", "does not exist"),
+        ("rgba", None, ".", "output_unwritable", "is a directory"),
+    ],
+)
+def test_bad_inputs_give_an_error_and_the_server_goes_on(server, files, image, mask, output, code, text):
+    req = {"type": "reconstruct", "id": f"bad-{image}-{code}", "image": str(files[image]), "output": str(files["out"] / output)}
+    if mask:
+        req["mask"] = str(files[mask])
+    server.send(req)
+    ev = server.until(lambda e: e["type"] in ("result", "error"))[-1]
+    assert ev["type"] == "error" and ev["id"] == req["id"] and ev["code"] == code and text in ev["message"], ev
+    _alive(server)
+
+
+def test_cancel_running_and_queued_jobs(server, files):
+    job = {"type": "reconstruct", "image": str(files["rgba"])}
+    server.send({**job, "id": "c1", "output": str(files["out"] / "c1.obj")})
+    server.send({**job, "id": "c2", "output": str(files["out"] / "c2.obj")})
+    server.send({"type": "cancel", "id": "c2"})  # still queued: answered at once
+    server.send({"type": "cancel", "id": "c1"})  # running: stops at the next stage boundary
+    events = server.until(lambda e: e["type"] == "cancelled" and e["id"] == "c1")
+    assert {"type": "cancelled", "id": "c2"} in events
+    assert not any(e["type"] in ("result", "error") for e in events)
+    assert not (files["out"] / "c1.obj").exists() and not (files["out"] / "c2.obj").exists()
+    # the id is free again and the server goes on
+    server.send({**job, "id": "c1", "output": str(files["out"] / "c1.obj")})
+    assert server.until(lambda e: e["type"] in ("result", "error"))[-1]["type"] == "result"
+
+
+def test_duplicate_job_id_is_refused(server, files):
+    job = {"type": "reconstruct", "id": "dup", "image": str(files["rgba"]), "output": str(files["out"] / "dup.obj")}
+    server.send(job)
+    server.send(job)
+    events = server.until(lambda e: e["type"] == "result")
+    assert any(e["type"] == "error" and e["code"] == "bad_field" and e["id"] == "dup" for e in events)
+
+
+def test_end_of_input_finishes_queued_jobs_then_exits(trained, files):
+    s = ServerProcess("--weights", str(trained[0]))
+    assert s.next(timeout=300)["type"] == "ready"
+    s.send({"type": "reconstruct", "id": 1, "image": str(files["rgba"]), "output": str(files["out"] / "eof.obj")})
+    assert s.close() == 0
+    events = []
+    while (ev := s.next()) is not None:
+        events.append(ev)
+    assert events[-2]["type"] == "result" and events[-1] == {"type": "bye", "id": None}
+    assert all(line.endswith("\n") for line in s.raw)
+    assert "genre serve" in s.proc.stderr.read()  # logs go to stderr
+
+
+def test_bad_weights_give_an_error_event_and_exit_1(tmp_path):
+    corrupt = tmp_path / "w.safetensors"
+    corrupt.write_bytes(b"garbage" * 10)
+    s = ServerProcess("--weights", str(corrupt))
+    ev = s.next(timeout=300)
+    assert ev["type"] == "error" and ev["code"] == "bad_weights" and ev["id"] is None
+    assert s.close() == 1
