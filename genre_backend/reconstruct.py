@@ -207,10 +207,22 @@ class Reconstruction:
     intermediates: dict[str, torch.Tensor] = field(repr=False)
     notes: list[str] = field(default_factory=list)
 
-    def camera(self) -> dict[str, float]:
-        """The view the mesh is posed for (protocol ``camera`` object)."""
+    def camera(self) -> dict:
+        """The view the mesh is posed for (protocol ``camera`` object).
+
+        ``lens_mm``, ``sensor_mm`` and ``distance`` describe the backend's
+        square camera; it sees exactly ``crop_box`` (x0, y0, x1, y1; pixels of
+        the photo as displayed, rows downward, may extend past the photo) of
+        the photo, whose size is ``image_size`` (width, height).
+        """
         c = self.config.camera
-        return {"lens_mm": c.lens_mm, "sensor_mm": c.sensor_mm, "distance": c.distance}
+        return {
+            "lens_mm": c.lens_mm,
+            "sensor_mm": c.sensor_mm,
+            "distance": c.distance,
+            "crop_box": [round(float(v), 3) for v in self.crop_box],
+            "image_size": [int(v) for v in self.image_size],
+        }
 
     def save_mesh(self, path: str | os.PathLike, fmt: str | None = None) -> tuple[Path, str]:
         """Write the mesh atomically (obj, ply or glb; default from the extension); times the ``write`` stage."""
