@@ -13,7 +13,8 @@ demo: setup
 		echo "make demo: photo -> mesh needs genre_backend/weights/default.safetensors and examples/photo.png (not shipped yet)"; \
 	fi
 
-test: setup
+test:
+	@bash scripts/setup.sh --test
 	.venv/bin/python -m pytest
 
 bench: setup

@@ -21,20 +21,30 @@ if [ -z "$PY" ]; then
 fi
 
 # 2. The X and GL client libraries that 'import bpy' loads even with no screen
-APT_PKGS=(libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libsm6 libice6 libxext6 libgl1 libegl1)
-missing=()
-for pkg in "${APT_PKGS[@]}"; do
-  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
-done
-if [ ${#missing[@]} -gt 0 ]; then
+#    (required); with --test also a GUI Blender and Xvfb for the add-on's real
+#    modal run (optional: tests/test_addon_gui.py is skipped without them).
+REQUIRED=(libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libsm6 libice6 libxext6 libgl1 libegl1)
+OPTIONAL=()
+[ "${1:-}" = "--test" ] && OPTIONAL=(blender xvfb xauth)
+not_installed() {
+  local pkg
+  for pkg in "$@"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || echo "$pkg"
+  done
+}
+missing=($(not_installed "${REQUIRED[@]}"))
+missing_optional=($(not_installed "${OPTIONAL[@]}"))
+if [ $(( ${#missing[@]} + ${#missing_optional[@]} )) -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "setup: installing Debian packages: ${missing[*]}"
+    echo "setup: installing Debian packages: ${missing[*]} ${missing_optional[*]}"
     DEBIAN_FRONTEND=noninteractive apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
-  else
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" "${missing_optional[@]}" >/dev/null
+  elif [ ${#missing[@]} -gt 0 ]; then
     echo "setup: bpy needs these Debian packages; run as root:" >&2
     echo "  apt-get install ${missing[*]}" >&2
     exit 1
+  else
+    echo "setup: not root: the GUI add-on test is skipped without: apt-get install ${missing_optional[*]}" >&2
   fi
 fi
 

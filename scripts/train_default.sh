@@ -1,27 +1,50 @@
 #!/usr/bin/env bash
-# The whole chain that produces the default weights, on the 2-core CPU.
+# The whole chain that produces, evaluates and installs the default weights on
+# the 2-core CPU: corpus, renders, targets, the four GenRe stages, the two
+# trained baselines, the evaluation views and `genre eval`.
 # Every step resumes where it stopped: run this script again after an
 # interruption. Step counts can be raised to continue training (the
 # checkpoint's step count carries on). Timings go to data/logs/chain.log.
+# SKIP_TO=NAME starts at the step whose log name is NAME (e.g. SKIP_TO=eval).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 G=.venv/bin/genre
 VIEWS=${VIEWS:-data/views/default}
+EVAL_VIEWS=${EVAL_VIEWS:-data/views/eval}
 RUN=${RUN:-runs/default}
-DEPTH_STEPS=${DEPTH_STEPS:-2000}
-INPAINT_STEPS=${INPAINT_STEPS:-1500}
-REFINE_STEPS=${REFINE_STEPS:-1500}
+RESULTS=${RESULTS:-results/default}
+TRAIN_VIEWS_PER_SHAPE=${TRAIN_VIEWS_PER_SHAPE:-20}
+EVAL_VIEWS_PER_SHAPE=${EVAL_VIEWS_PER_SHAPE:-4}
+DEPTH_STEPS=${DEPTH_STEPS:-6000}
+INPAINT_STEPS=${INPAINT_STEPS:-3000}
+REFINE_STEPS=${REFINE_STEPS:-2000}
 JOINT_STEPS=${JOINT_STEPS:-500}
+SKIP_TO=${SKIP_TO:-}
 mkdir -p data/logs
 log() { echo "$(date -u +%FT%TZ) $*" | tee -a data/logs/chain.log; }
-step() { local t0=$SECONDS; log "start: $*"; "$@"; log "done in $((SECONDS - t0)) s: $*"; }
+step() {
+  local name=$1; shift
+  if [ -n "$SKIP_TO" ] && [ "$SKIP_TO" != "$name" ]; then log "skip: $name"; return; fi
+  SKIP_TO=""
+  local t0=$SECONDS; log "start: $name: $*"; "$@"; log "done in $((SECONDS - t0)) s: $name"
+}
+M=data/corpus/manifest.json
 
-step $G data fetch
-step $G data build
-step $G data render --shapes data/corpus/manifest.json --split train --out "$VIEWS" --views 20 --preset default --no-progress
-step $G data targets --views "$VIEWS" --preset default --no-progress
-step $G train depth   --data "$VIEWS" --out "$RUN" --steps "$DEPTH_STEPS" --no-progress
-step $G train inpaint --data "$VIEWS" --out "$RUN" --steps "$INPAINT_STEPS" --init "$RUN/depth/best.safetensors" --no-progress
-step $G train refine  --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/inpaint/best.safetensors" --no-progress
-step $G train joint   --data "$VIEWS" --out "$RUN" --steps "$JOINT_STEPS" --init "$RUN/refine/best.safetensors" --no-progress
-log "weights: $RUN/joint/best.safetensors"
+step fetch   $G data fetch
+step build   $G data build
+step render  $G data render --shapes $M --split train --out "$VIEWS" --views "$TRAIN_VIEWS_PER_SHAPE" --preset default --no-progress
+step targets $G data targets --views "$VIEWS" --preset default --no-progress
+step depth   $G train depth   --data "$VIEWS" --out "$RUN" --steps "$DEPTH_STEPS" --no-progress
+step inpaint $G train inpaint --data "$VIEWS" --out "$RUN" --steps "$INPAINT_STEPS" --init "$RUN/depth/best.safetensors" --no-progress
+step refine  $G train refine  --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/inpaint/best.safetensors" --no-progress
+step joint   $G train joint   --data "$VIEWS" --out "$RUN" --steps "$JOINT_STEPS" --init "$RUN/refine/best.safetensors" --no-progress
+# Evaluation views: seen-test and both unseen groups.
+step render_eval bash -c "for s in test unseen unseen-pix3d; do $G data render --shapes $M --split \$s --out $EVAL_VIEWS --views $EVAL_VIEWS_PER_SHAPE --preset default --seed 1 --no-progress; done"
+step targets_eval $G data targets --views "$EVAL_VIEWS" --preset default --no-progress
+# Baselines, same data; the completion net gets the refiner's budget, 1-step the depth net's.
+step completion $G train completion --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/depth/best.safetensors" --no-progress
+step onestep    $G train onestep    --data "$VIEWS" --out "$RUN" --steps "$DEPTH_STEPS" --no-progress
+step eval    $G eval --data "$EVAL_VIEWS" --run "$RUN" --train-views "$VIEWS" --manifest $M --out "$RESULTS" \
+                     --heatmap-shapes 3 --gallery 3 --no-progress
+step install bash -c "mkdir -p genre_backend/weights && cp $RUN/joint/best.safetensors genre_backend/weights/default.safetensors && cp $RUN/joint/best.json genre_backend/weights/default.json"
+log "weights: genre_backend/weights/default.safetensors; results: $RESULTS"

@@ -126,3 +126,20 @@ def test_ddp_with_two_cpu_processes(tiny_views, tmp_path):
     assert len(set(summary["rank_param_digests"])) == 1  # all-reduced gradients keep parameters equal
     assert len(set(summary["rank_digests"])) == 1
     assert summary["rank_digests"][0] == weights_digest(load_model(tmp_path / "ddp" / "depth" / "final.safetensors"))
+
+
+def test_validation_shapes_come_from_the_training_split():
+    """The corpus puts a seen shape in 'train' when an unsalted hash of its id is
+    >= TEST_FRACTION; the validation split must still find ~val_fraction of them."""
+    from training.corpus import split_of
+    from training.dataset import ViewRef, split_views
+
+    ids = [f"shape-{i:04d}" for i in range(2000)]
+    train_ids = [s for s in ids if split_of(s, "chair") == "train"]
+    refs = [ViewRef(Path("/views") / s, v) for s in train_ids for v in range(2)]
+    train_refs, val_refs = split_views(refs, 0.05)
+    val_ids = {r.shape_id for r in val_refs}
+    assert 0.03 < len(val_ids) / len(train_ids) < 0.07
+    assert not val_ids & {r.shape_id for r in train_refs}  # by shape: no shape on both sides
+    assert len(train_refs) + len(val_refs) == len(refs)
+    assert split_views(refs, 0.05) == (train_refs, val_refs)  # deterministic

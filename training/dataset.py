@@ -64,9 +64,15 @@ def _unit_hash(text: str) -> float:
 
 
 def split_views(refs: list[ViewRef], val_fraction: float) -> tuple[list[ViewRef], list[ViewRef]]:
-    """Deterministic train/validation split **by shape** (a hash of the shape id)."""
-    train = [r for r in refs if _unit_hash(r.shape_id) >= val_fraction]
-    val = [r for r in refs if _unit_hash(r.shape_id) < val_fraction]
+    """Deterministic train/validation split **by shape** (a salted hash of the shape id).
+
+    The salt keeps this split independent of the corpus's train/test split,
+    which thresholds the unsalted hash: without it every training shape
+    would hash above the test fraction and validation would be empty.
+    """
+    val_ids = {r.shape_id for r in refs if _unit_hash("validation:" + r.shape_id) < val_fraction}
+    train = [r for r in refs if r.shape_id not in val_ids]
+    val = [r for r in refs if r.shape_id in val_ids]
     return train, val
 
 
