@@ -247,6 +247,29 @@ class Reconstruction:
             raise OutputError(f"{folder}: cannot create the intermediates folder: {exc.strerror or exc}") from None
         if not os.access(folder, os.W_OK | os.X_OK):
             raise OutputError(f"{folder}: intermediates folder is not writable")
+        paths = []
+        for name, img in self.intermediate_images().items():
+            p = folder / f"{name}.png"
+            _png(p, _upscale(img))
+            paths.append(p)
+        return paths
+
+    def save_preview(self, path: str | os.PathLike, samples: int = 16) -> Path:
+        """Write one PNG a person can judge the result by (:func:`genre_backend.preview.preview_image`)."""
+        from .preview import preview_image
+
+        path = Path(path)
+        check_output_path(path)
+        t0 = time.perf_counter()
+        _png(path, preview_image(self, samples=samples))
+        self.timings["preview"] = time.perf_counter() - t0
+        return path
+
+    def intermediate_images(self) -> dict[str, np.ndarray]:
+        """The intermediates as images at their own resolution: name → (h, w) or (h, w, 3) uint8.
+
+        Names as in :meth:`save_intermediates`.
+        """
         it = {k: v.detach().cpu().float().numpy() for k, v in self.intermediates.items()}
         g = self.config.geometry
         images: dict[str, np.ndarray] = {}
@@ -268,12 +291,7 @@ class Reconstruction:
             top = v.max(axis=1).T  # seen from +y: rows +z, cols +x
             sep = np.ones((v.shape[1], 1), np.float32)
             images[name] = _colour(np.concatenate([front, sep, side, sep, top], axis=1), np.ones((v.shape[1], 3 * v.shape[0] + 2), bool), 0.0, 1.0, "gray")
-        paths = []
-        for name, img in images.items():
-            p = folder / f"{name}.png"
-            _png(p, _upscale(img))
-            paths.append(p)
-        return paths
+        return images
 
 
 class Reconstructor:

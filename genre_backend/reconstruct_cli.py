@@ -51,6 +51,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     parser.add_argument("--threshold", type=float, metavar="T", help="isosurface level in (0, 1) (default: the weights' config)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
     parser.add_argument("--save-intermediates", metavar="DIR", help="write PNGs of depth, mask, spherical maps and voxels here")
+    parser.add_argument("--preview", action="store_true",
+                        help="also write MESH_preview.png beside each mesh: the photo, depth, spherical maps and the mesh rendered from the photo's viewpoint and the side (Blender)")
     parser.add_argument("--weights", metavar="W", help=f"weights file (default: {DEFAULT_WEIGHTS})")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     args = parser.parse_args(argv)
@@ -122,6 +124,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
                 result.save_intermediates(folder)
+            if args.preview:
+                result.save_preview(path.with_name(path.stem + "_preview.png"))
             total = sum(result.timings.values())
             say(f"{image} -> {path} ({used}, {len(result.vertices)} vertices, {len(result.faces)} faces, mask: {result.mask_source}, {total:.2f} s)")
         except Exception as exc:  # one bad input must not stop the others

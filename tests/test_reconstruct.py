@@ -316,3 +316,17 @@ def test_error_codes():
     assert error_code(OutputError("x")) == "output_unwritable"
     assert error_code(WeightsError("x")) == "bad_weights"
     assert error_code(RuntimeError("x")) == "internal"
+
+
+def test_cli_preview_shows_the_mesh(trained, photos, tmp_path, capsys):
+    from PIL import Image
+
+    code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "m.obj", "--weights", trained[0], "--preview")
+    assert code == 0, err
+    with Image.open(tmp_path / "m_preview.png") as im:
+        rgb = np.asarray(im.convert("RGB"))
+    assert rgb.shape[0] > 400 and rgb.shape[1] > 1000
+    # the bottom-left panel holds the mesh rendered in Blender: clay-coloured pixels, not an empty white square
+    h, w = rgb.shape[:2]
+    panel = rgb[h // 2 :, : w // 5].astype(int)
+    assert ((panel[..., 2] - panel[..., 0]) > 15).sum() > 100

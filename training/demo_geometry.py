@@ -39,9 +39,9 @@ def suzanne_mesh() -> tuple[np.ndarray, np.ndarray]:
 
     Suzanne faces −Y in Blender, which is the object frame's front already.
     """
-    from training.render import _import_bpy
+    from genre_backend.blender import import_bpy
 
-    bpy = _import_bpy()
+    bpy = import_bpy()
     mesh = bpy.data.meshes.new("suzanne")
     import bmesh
 

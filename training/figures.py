@@ -158,72 +158,14 @@ def viewpoint_heatmap(out: Path, models, views, choice, args) -> str:
 
 
 # ---- Blender gallery ----------------------------------------------------------------------
-def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, samples: int = 16, distance: float = 2.2,
-                  lens_mm: float = 50.0, sensor_mm: float = 30.594) -> list[list[np.ndarray]]:
-    """Render view-frame meshes with Blender (Cycles, CPU) from the input camera and from the right side.
-
-    Returns, per mesh, ``[front, side]`` RGB images (size, size, 3) uint8 on white.
-    Blender's world is the view frame itself: the input camera sits at (0, 0, d)
-    looking along −z, the side camera at (d, 0, 0) looking along −x.
-    """
-    import bpy
+def render_meshes(meshes, size: int = 160, samples: int = 16):
+    """:func:`genre_backend.blender.render_meshes`, after forgetting any training renderer (its scene is reset)."""
+    from genre_backend.blender import render_meshes as render
 
     from training import render as render_mod
 
-    render_mod._ACTIVE_RENDERER = None  # the reset below replaces any BlenderRenderer's scene
-    with render_mod._quiet_stdout(True):
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = samples
-    scene.cycles.use_denoising = False
-    scene.render.resolution_x = scene.render.resolution_y = size
-    scene.render.film_transparent = True
-    scene.render.image_settings.file_format = "PNG"
-    scene.render.image_settings.color_mode = "RGBA"
-    world = bpy.data.worlds.new("w")
-    world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.8, 0.8, 0.8, 1.0)
-    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.6
-    scene.world = world
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy = 3.0
-    sun.rotation_euler = (math.radians(-35), math.radians(35), 0.0)
-    scene.collection.objects.link(sun)
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    cam.data.lens, cam.data.sensor_width, cam.data.sensor_fit = lens_mm, sensor_mm, "HORIZONTAL"
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    mat = bpy.data.materials.new("clay")
-    mat.use_nodes = True
-    mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.55, 0.62, 0.75, 1.0)
-    poses = [((0.0, 0.0, distance), (0.0, 0.0, 0.0)), ((distance, 0.0, 0.0), (0.0, math.pi / 2, 0.0))]
-    from PIL import Image
-
-    out = []
-    tmp = Path(bpy.app.tempdir or "/tmp") / f"genre_gallery_{os.getpid()}.png"
-    for verts, faces in meshes:
-        me = bpy.data.meshes.new("m")
-        me.from_pydata(np.asarray(verts, float).tolist(), [], np.asarray(faces, int).tolist())
-        me.update()
-        obj = bpy.data.objects.new("m", me)
-        obj.data.materials.append(mat)
-        scene.collection.objects.link(obj)
-        images = []
-        for loc, rot in poses:
-            cam.location, cam.rotation_euler = loc, rot
-            scene.render.filepath = str(tmp)
-            with render_mod._quiet_stdout(True):
-                bpy.ops.render.render(write_still=True)
-            with Image.open(tmp) as im:
-                rgba = np.asarray(im.convert("RGBA"), np.float32) / 255.0
-            images.append((rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:])).__mul__(255).astype(np.uint8))
-        bpy.data.objects.remove(obj)
-        bpy.data.meshes.remove(me)
-        out.append(images)
-    tmp.unlink(missing_ok=True)
-    return out
+    render_mod._ACTIVE_RENDERER = None
+    return render(meshes, size=size, samples=samples)
 
 
 def gallery(out: Path, views, gallery_keys: list[str], choice, samples: int) -> str:

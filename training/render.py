@@ -42,7 +42,6 @@ to three suns.  Backgrounds are seeded the same way, on their own stream.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -55,6 +54,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+
+from genre_backend.blender import import_bpy, prepare_blender_environment, quiet_stdout
 
 __all__ = [
     "MESH_SUFFIXES",
@@ -88,57 +89,6 @@ MAX_ATTEMPTS = 2
 
 
 # --------------------------------------------------------------------------- environment
-
-
-def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> Path:
-    """Point Blender's user resources and cache at ``cache_dir`` before ``import bpy``.
-
-    Sets ``BLENDER_USER_RESOURCES`` and ``XDG_CACHE_HOME`` unless they are
-    already set, so bpy never writes into the home folder.  The default
-    folder is ``$GENRE_BLENDER_CACHE`` or ``<tmp>/genre-blender-<uid>``.
-    Returns the folder used.
-    """
-    if cache_dir is None:
-        cache_dir = os.environ.get("GENRE_BLENDER_CACHE") or os.path.join(
-            tempfile.gettempdir(), f"genre-blender-{os.getuid() if hasattr(os, 'getuid') else 'user'}"
-        )
-    root = Path(cache_dir)
-    (root / "user").mkdir(parents=True, exist_ok=True)
-    (root / "xdg-cache").mkdir(parents=True, exist_ok=True)
-    os.environ.setdefault("BLENDER_USER_RESOURCES", str(root / "user"))
-    os.environ.setdefault("XDG_CACHE_HOME", str(root / "xdg-cache"))
-    return root
-
-
-@contextlib.contextmanager
-def _quiet_stdout(enabled: bool = True):
-    """Silence Blender's C-level prints ("Saved: ...", importer logs) on file descriptor 1."""
-    if not enabled:
-        yield
-        return
-    sys.stdout.flush()
-    try:
-        saved = os.dup(1)
-    except OSError:  # no real stdout (embedded interpreter): nothing to silence
-        yield
-        return
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
-
-
-def _import_bpy():
-    if "bpy" not in sys.modules:
-        prepare_blender_environment()
-    import bpy  # noqa: PLC0415  (deliberately lazy: bpy costs ~1 s and 300 MB)
-
-    return bpy
 
 
 # --------------------------------------------------------------------------- randomness
@@ -284,10 +234,10 @@ class BlenderRenderer:
         self.scratch = Path(scratch_dir) if scratch_dir is not None else Path(tempfile.mkdtemp(prefix="genre-render-"))
         self.scratch.mkdir(parents=True, exist_ok=True)
         self.quiet = quiet
-        self.bpy = _import_bpy()
+        self.bpy = import_bpy()
         global _ACTIVE_RENDERER
         _ACTIVE_RENDERER = None  # the factory reset below invalidates any earlier renderer's scene
-        with _quiet_stdout(self.quiet):
+        with quiet_stdout(self.quiet):
             self._setup_scene()
         self.shape_path: Path | None = None
         _ACTIVE_RENDERER = self
@@ -471,7 +421,7 @@ class BlenderRenderer:
             raise ValueError(f"{path}: no such mesh file")
         self.clear_shape()
         before = {o.as_pointer() for o in bpy.data.objects}
-        with _quiet_stdout(self.quiet):
+        with quiet_stdout(self.quiet):
             if suffix in (".glb", ".gltf"):
                 bpy.ops.import_scene.gltf(filepath=str(path), loglevel=50)
             elif suffix == ".obj":
@@ -618,7 +568,7 @@ class BlenderRenderer:
         depth_path = self.scratch / "view_depth.exr"
         for f in (rgba_path, depth_path):
             f.unlink(missing_ok=True)
-        with _quiet_stdout(self.quiet):
+        with quiet_stdout(self.quiet):
             bpy.ops.render.render(write_still=False)
         if not rgba_path.is_file() or not depth_path.is_file():
             found = sorted(p.name for p in self.scratch.iterdir())
