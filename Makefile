@@ -1,17 +1,18 @@
 # Quick start: `make demo` (set up, then run the main job) and `make test`
 # (set up, then run the whole test suite).  Set-up happens on first use.
-.PHONY: setup demo test bench clean
+.PHONY: setup demo demo-geometry test bench clean
 
 setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	.venv/bin/python -m training.demo_geometry --out out/demo
-	@if [ -f genre_backend/weights/default.safetensors ] && [ -f examples/photo.png ]; then \
-		.venv/bin/genre reconstruct examples/photo.png -o out/demo/photo.obj --save-intermediates out/demo/photo; \
-	else \
-		echo "make demo: photo -> mesh needs genre_backend/weights/default.safetensors and examples/photo.png (not shipped yet)"; \
-	fi
+	.venv/bin/genre reconstruct examples/chair.png -o out/demo/chair.obj --preview --save-intermediates out/demo/chair
+	@echo "make demo: mesh out/demo/chair.obj, preview out/demo/chair_preview.png, intermediates out/demo/chair/"
+
+# The deterministic geometry alone on a Cycles render of Suzanne (the true full
+# spherical map stands in for the inpainting net): out/demo-geometry/preview.png
+demo-geometry: setup
+	.venv/bin/python -m training.demo_geometry --out out/demo-geometry
 
 test:
 	@bash scripts/setup.sh --test
@@ -19,13 +20,14 @@ test:
 
 bench: setup
 	.venv/bin/genre bench geometry
+	.venv/bin/genre bench inference
 
 clean:
 	rm -rf out .pytest_cache build dist
 
 # The Blender add-on in a real GUI Blender (system `blender` + `xvfb-run`; Debian:
-# apt-get install blender xvfb xauth): builds dist/, trains tiny test weights once
-# (cached in out/e2e/weights), presses Reconstruct, saves screenshots to out/e2e/.
+# apt-get install blender xvfb xauth): builds dist/, presses Reconstruct on
+# examples/chair.png with the shipped weights, saves screenshots to out/e2e/.
 .PHONY: e2e
 e2e: setup
 	.venv/bin/python tests/e2e/run_gui_e2e.py

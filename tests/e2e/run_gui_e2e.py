@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """The add-on in a real GUI Blender: ``make e2e`` (or ``python tests/e2e/run_gui_e2e.py``).
 
-Builds the add-on zips, trains tiny test weights with the project's own
-training code (unless ``--weights``/``--photo`` are given), then starts the
+Builds the add-on zips, takes the shipped default weights and the bundled
+example photo (or ``--weights``/``--photo``; without shipped weights it
+trains tiny test weights with the project's own training code), then starts the
 system's ``blender`` (Debian's 3.4.1 here) under ``xvfb-run`` with
 ``blender_gui_script.py``: the legacy zip is installed, Reconstruct is
 pressed, the modal operator runs on its timer against a real ``genre serve``
@@ -80,8 +81,8 @@ def run(out: Path, weights: Path, photo: Path, zip_path: Path, timeout: float = 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(REPO / "out" / "e2e"))
-    parser.add_argument("--weights", help="weights file (default: train tiny test weights now)")
-    parser.add_argument("--photo", help="photo (default: the tiny data's box, cut out)")
+    parser.add_argument("--weights", help="weights file (default: the shipped default weights, else tiny test weights trained now)")
+    parser.add_argument("--photo", help="photo (default: examples/chair.png with the shipped weights, else the tiny data's box)")
     parser.add_argument("--timeout", type=float, default=300.0)
     args = parser.parse_args(argv)
     why = missing_tools()
@@ -94,8 +95,11 @@ def main(argv: list[str] | None = None) -> int:
 
     out = Path(args.out)
     built = build_addon.build(out / "dist")
+    shipped = REPO / "genre_backend" / "weights" / "default.safetensors", REPO / "examples" / "chair.png"
     if args.weights and args.photo:
         weights, photo = Path(args.weights), Path(args.photo)
+    elif not args.weights and not args.photo and all(p.is_file() for p in shipped):
+        weights, photo = shipped  # the shipped default weights on the bundled example photo
     else:
         from test_addon import make_photo, make_weights
 
