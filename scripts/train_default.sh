@@ -14,11 +14,13 @@ EVAL_VIEWS=${EVAL_VIEWS:-data/views/eval}
 RUN=${RUN:-runs/default}
 RESULTS=${RESULTS:-results/default}
 TRAIN_VIEWS_PER_SHAPE=${TRAIN_VIEWS_PER_SHAPE:-20}
-EVAL_VIEWS_PER_SHAPE=${EVAL_VIEWS_PER_SHAPE:-4}
+EVAL_TEST_VIEWS=${EVAL_TEST_VIEWS:-3}      # per seen-test shape (they also choose the honest threshold)
+EVAL_UNSEEN_VIEWS=${EVAL_UNSEEN_VIEWS:-1}  # per unseen shape: every unseen shape, one random view
 DEPTH_STEPS=${DEPTH_STEPS:-6000}
 INPAINT_STEPS=${INPAINT_STEPS:-3000}
-REFINE_STEPS=${REFINE_STEPS:-2000}
-JOINT_STEPS=${JOINT_STEPS:-500}
+REFINE_STEPS=${REFINE_STEPS:-1500}
+JOINT_STEPS=${JOINT_STEPS:-400}
+ONESTEP_STEPS=${ONESTEP_STEPS:-3000}
 SKIP_TO=${SKIP_TO:-}
 mkdir -p data/logs
 log() { echo "$(date -u +%FT%TZ) $*" | tee -a data/logs/chain.log; }
@@ -39,11 +41,13 @@ step inpaint $G train inpaint --data "$VIEWS" --out "$RUN" --steps "$INPAINT_STE
 step refine  $G train refine  --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/inpaint/best.safetensors" --no-progress
 step joint   $G train joint   --data "$VIEWS" --out "$RUN" --steps "$JOINT_STEPS" --init "$RUN/refine/best.safetensors" --no-progress
 # Evaluation views: seen-test and both unseen groups.
-step render_eval bash -c "for s in test unseen unseen-pix3d; do $G data render --shapes $M --split \$s --out $EVAL_VIEWS --views $EVAL_VIEWS_PER_SHAPE --preset default --seed 1 --no-progress; done"
+step render_eval bash -c "$G data render --shapes $M --split test --out $EVAL_VIEWS --views $EVAL_TEST_VIEWS --preset default --seed 1 --no-progress &&
+  for s in unseen unseen-pix3d; do $G data render --shapes $M --split \$s --out $EVAL_VIEWS --views $EVAL_UNSEEN_VIEWS --preset default --seed 1 --no-progress; done"
 step targets_eval $G data targets --views "$EVAL_VIEWS" --preset default --no-progress
-# Baselines, same data; the completion net gets the refiner's budget, 1-step the depth net's.
+# Baselines, same data: the completion net gets the refiner's steps; 1-step gets half the
+# depth net's (ONESTEP_STEPS), to fit the CPU budget.
 step completion $G train completion --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/depth/best.safetensors" --no-progress
-step onestep    $G train onestep    --data "$VIEWS" --out "$RUN" --steps "$DEPTH_STEPS" --no-progress
+step onestep    $G train onestep    --data "$VIEWS" --out "$RUN" --steps "$ONESTEP_STEPS" --no-progress
 step eval    $G eval --data "$EVAL_VIEWS" --run "$RUN" --train-views "$VIEWS" --manifest $M --out "$RESULTS" \
                      --heatmap-shapes 3 --gallery 3 --no-progress
 step install bash -c "mkdir -p genre_backend/weights && cp $RUN/joint/best.safetensors genre_backend/weights/default.safetensors && cp $RUN/joint/best.json genre_backend/weights/default.json"

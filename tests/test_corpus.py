@@ -12,7 +12,7 @@ import pytest
 import trimesh
 
 from training import corpus
-from training.data_cli import format_stats
+from training.data_cli import format_credits, format_stats
 from training.data_cli import main as data_main
 from training.sources import Y_UP_FRONT_POS_Z, rotation_from_axes, sweethome3d
 
@@ -266,6 +266,12 @@ def test_build_folder_skips_bad_files_and_collapses_duplicates(tmp_path, capsys)
     assert "chair" in out and "unreadable [folder]" in out
     text = format_stats(on_disk)
     assert "TOTAL" in text
+    # credits: one table row per shape of the split, with its creator and licence
+    assert data_main(["credits", "--data-dir", str(data), "--split", "unseen", "--out", str(tmp_path / "c.md")], prog="genre data") == 0
+    rows = [line for line in (tmp_path / "c.md").read_text().splitlines() if line.startswith(f"| {kept['t']['id']} ")]
+    assert len(rows) == 1 and kept["t"]["licence"] in rows[0]
+    with pytest.raises(ValueError, match="no shapes"):
+        format_credits(on_disk, "no-such-split")
 
 
 def test_fetch_downloads_unpacks_then_caches(tmp_path):

@@ -3,6 +3,7 @@
     genre data fetch  [--data-dir D] [--packages P ...]
     genre data build  [--data-dir D] [--sources S ...] [--shapenet DIR] [--folder DIR] [--jobs N]
     genre data stats  [--data-dir D]
+    genre data credits [--split S] [--out F]
     genre data render ...   (see training/render.py)
     genre data targets ...  (see training/targets.py)
     genre data show ...     (see training/show.py)
@@ -17,7 +18,7 @@ import sys
 import time
 from collections import Counter, defaultdict
 
-__all__ = ["main", "format_stats"]
+__all__ = ["main", "format_stats", "format_credits"]
 
 
 def _skip_kind(reason: str) -> str:
@@ -101,6 +102,22 @@ def format_stats(manifest: dict) -> str:
     return "\n".join(lines)
 
 
+def format_credits(manifest: dict, split: str) -> str:
+    """Markdown: the shapes of ``split`` (a split or a group) with their class, source, creator and licence."""
+    shapes = [s for s in manifest["shapes"] if s["split"] == split or split in s.get("groups", [])]
+    if not shapes:
+        raise ValueError(f"no shapes in split {split!r}")
+    licences = Counter(s["licence"] for s in shapes)
+    lines = [f"# Shapes of the '{split}' split ({len(shapes)})", "",
+             "Licences: " + ", ".join(f"{k} {v}" for k, v in sorted(licences.items())) + ".", "",
+             "| shape | class | name | source (package) | creator | licence |", "|---|---|---|---|---|---|"]
+    for s in sorted(shapes, key=lambda s: (s["class"], s["id"])):
+        cells = [s["id"], s["class"], s.get("name") or "", f"{s['source']} ({s.get('package') or '-'})",
+                 s.get("creator") or "", s["licence"]]
+        lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def _parser(prog: str) -> argparse.ArgumentParser:
     from .corpus import DEBIAN_PACKAGES, SOURCES
 
@@ -128,6 +145,9 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                    help="worker processes (default: CPUs, at most 8)")
 
     sub.add_parser("stats", parents=[common], help="counts per class, split, source, licence; skips; rules")
+    p = sub.add_parser("credits", parents=[common], help="Markdown list of the shapes of a split with creator and licence")
+    p.add_argument("--split", default="train", help="split or group (default: train)")
+    p.add_argument("--out", default=None, help="write here (default: standard output)")
     sub.add_parser("render", add_help=False, help="render views of the corpus (training/render.py)")
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/targets.py)")
     sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/show.py)")
@@ -193,5 +213,20 @@ def main(argv: list[str] | None = None, prog: str = "genre data") -> int:
             print(f"{prog} stats: {exc}", file=sys.stderr)
             return 1
         print(format_stats(manifest))
+        return 0
+
+    if args.command == "credits":
+        try:
+            manifest = corpus.load_manifest(args.data_dir)
+        except FileNotFoundError as exc:
+            print(f"{prog} credits: {exc}", file=sys.stderr)
+            return 1
+        text = format_credits(manifest, args.split)
+        if args.out:
+            from pathlib import Path
+
+            Path(args.out).write_text(text)
+        else:
+            print(text, end="")
         return 0
     return 2  # pragma: no cover  (argparse rejects unknown commands)
