@@ -8,21 +8,13 @@ import torch
 
 from genre_backend import frame
 from genre_backend.model import WeightsError, load_model
-from tiny_data import TINY, make_tiny_views
+from tiny_data import TINY, tiny_train_config
 from training.baselines import CompletionBaseline, NearestIndex, OneStepNet, build_nearest_index, load_baseline, save_baseline
 from training.dataset import ViewDataset, find_views
-from training.train import TrainConfig, train
+from training.train import train
 
 
-@pytest.fixture(scope="module")
-def tiny_views(tmp_path_factory):
-    return make_tiny_views(tmp_path_factory.mktemp("tiny"))
-
-
-def _cfg(stage, views, out, **kw):
-    base = dict(stage=stage, data=str(views), out=str(out), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=5)
-    base.update(kw)
-    return TrainConfig(**base)
+_cfg = tiny_train_config
 
 
 def test_baseline_stages_overfit_four_samples(tiny_views, tmp_path):

@@ -18,7 +18,7 @@ import trimesh
 from PIL import Image
 
 from genre_backend import reconstruct_cli
-from genre_backend.model import WEIGHTS_FORMAT, WeightsError, load_model, save_model
+from genre_backend.model import WEIGHTS_FORMAT, WeightsError, load_model
 from genre_backend.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
 from genre_backend.preprocess import ImageError
 from tiny_data import TINY, make_tiny_views

@@ -11,16 +11,11 @@ from scipy import ndimage
 
 from genre_backend import frame
 from genre_backend.spherical import raycast_triangles_reference, sph_directions
-from tiny_data import TINY, make_tiny_views
+from tiny_data import TINY
 from training.dataset import ViewDataset, find_views
 from training.targets import build_targets, load_targets
 
 PITCH = 1.0 / TINY.geometry.voxel_size
-
-
-@pytest.fixture(scope="module")
-def tiny_views(tmp_path_factory):
-    return make_tiny_views(tmp_path_factory.mktemp("tiny"))
 
 
 def _posed_mesh(shape_dir: Path, view: int) -> trimesh.Trimesh:

@@ -6,25 +6,16 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 import torch
 
 from genre_backend.model import GenRe, load_model
-from tiny_data import TINY, make_tiny_views
-from training.train import StageModule, TrainConfig, train, weights_digest
+from tiny_data import TINY, tiny_train_config
+from training.train import StageModule, train, weights_digest
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def tiny_views(tmp_path_factory):
-    return make_tiny_views(tmp_path_factory.mktemp("tiny"))
-
-
-def _cfg(stage, views, out, **kw):
-    base = dict(stage=stage, data=str(views), out=str(out), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=5)
-    base.update(kw)
-    return TrainConfig(**base)
+_cfg = tiny_train_config
 
 
 def test_every_stage_overfits_four_samples(tiny_views, tmp_path):

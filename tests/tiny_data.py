@@ -49,3 +49,12 @@ def make_tiny_views(root: Path, config: GenreConfig = TINY, views_per_shape: int
         render_shape(renderer, shape, poses, views, seed=0)
     build_targets(views, config, progress=False)
     return views
+
+
+def tiny_train_config(stage: str, views: Path, out: Path, **overrides):
+    """A :class:`training.train.TrainConfig` for the tiny views: batch 4, no validation, no augmentation, quiet."""
+    from training.train import TrainConfig
+
+    base = dict(stage=stage, data=str(views), out=str(out), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=5)
+    base.update(overrides)
+    return TrainConfig(**base)

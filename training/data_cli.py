@@ -206,22 +206,21 @@ def main(argv: list[str] | None = None, prog: str = "genre data") -> int:
               f"{len(manifest['skipped'])} skipped, {time.time() - start:.0f} s")
         return 0
 
+    try:  # stats and credits read the manifest
+        manifest = corpus.load_manifest(args.data_dir)
+    except FileNotFoundError as exc:
+        print(f"{prog} {args.command}: {exc}", file=sys.stderr)
+        return 1
     if args.command == "stats":
-        try:
-            manifest = corpus.load_manifest(args.data_dir)
-        except FileNotFoundError as exc:
-            print(f"{prog} stats: {exc}", file=sys.stderr)
-            return 1
         print(format_stats(manifest))
         return 0
 
     if args.command == "credits":
         try:
-            manifest = corpus.load_manifest(args.data_dir)
-        except FileNotFoundError as exc:
+            text = format_credits(manifest, args.split)
+        except ValueError as exc:
             print(f"{prog} credits: {exc}", file=sys.stderr)
             return 1
-        text = format_credits(manifest, args.split)
         if args.out:
             from pathlib import Path
 
