@@ -49,6 +49,6 @@ step targets_eval $G data targets --views "$EVAL_VIEWS" --preset default --no-pr
 step completion $G train completion --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/depth/best.safetensors" --no-progress
 step onestep    $G train onestep    --data "$VIEWS" --out "$RUN" --steps "$ONESTEP_STEPS" --no-progress
 step eval    $G eval --data "$EVAL_VIEWS" --run "$RUN" --train-views "$VIEWS" --manifest $M --out "$RESULTS" \
-                     --heatmap-shapes 3 --gallery 3 --no-progress
+                     --heatmap-shapes 2 --gallery 2 --no-progress
 step install bash -c "mkdir -p genre_backend/weights && cp $RUN/joint/best.safetensors genre_backend/weights/default.safetensors && cp $RUN/joint/best.json genre_backend/weights/default.json"
 log "weights: genre_backend/weights/default.safetensors; results: $RESULTS"

@@ -175,7 +175,15 @@ def test_reconstruct_reports_progress_and_result(server, files):
     assert result["mesh"] == str(out) and result["format"] == "ply" and result["mask_source"] == "silhouette"
     assert result["faces"] == len(trimesh.load(out, force="mesh").faces) > 0
     assert set(result["timings"]) >= {"depth", "refine", "mesh", "write"}
-    assert result["camera"] == {"lens_mm": 50.0, "sensor_mm": 30.594, "distance": 2.2}
+    cam = result["camera"]
+    assert {k: cam[k] for k in ("lens_mm", "sensor_mm", "distance")} == {"lens_mm": 50.0, "sensor_mm": 30.594, "distance": 2.2}
+    # where the backend's square view lies in the photo: the photo's size, and a square crop box
+    from PIL import Image
+
+    with Image.open(files["rgb"]) as im:
+        assert cam["image_size"] == list(im.size)
+    x0, y0, x1, y1 = cam["crop_box"]
+    assert x1 - x0 == pytest.approx(y1 - y0) and x1 > x0
     assert (files["out"] / "inter" / "depth.png").is_file()
     # mask file and alpha are reported as such
     server.send({"type": "reconstruct", "id": "job2", "image": str(files["rgb"]), "mask": str(files["mask"]), "output": str(files["out"] / "m.glb")})
