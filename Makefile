@@ -6,8 +6,8 @@ setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	.venv/bin/genre reconstruct examples/chair.png -o out/demo/chair.obj --preview --save-intermediates out/demo/chair
-	@echo "make demo: mesh out/demo/chair.obj, preview out/demo/chair_preview.png, intermediates out/demo/chair/"
+	.venv/bin/genre reconstruct examples/sofa.png -o out/demo/sofa.obj --preview --save-intermediates out/demo/sofa
+	@echo "make demo: mesh out/demo/sofa.obj, preview out/demo/sofa_preview.png, intermediates out/demo/sofa/"
 
 # The deterministic geometry alone on a Cycles render of Suzanne (the true full
 # spherical map stands in for the inpainting net): out/demo-geometry/preview.png
@@ -27,7 +27,7 @@ clean:
 
 # The Blender add-on in a real GUI Blender (system `blender` + `xvfb-run`; Debian:
 # apt-get install blender xvfb xauth): builds dist/, presses Reconstruct on
-# examples/chair.png with the shipped weights, saves screenshots to out/e2e/.
+# examples/sofa.png with the shipped weights, saves screenshots to out/e2e/.
 .PHONY: e2e
 e2e: setup
 	.venv/bin/python tests/e2e/run_gui_e2e.py

@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(REPO / "out" / "e2e"))
     parser.add_argument("--weights", help="weights file (default: the shipped default weights, else tiny test weights trained now)")
-    parser.add_argument("--photo", help="photo (default: examples/chair.png with the shipped weights, else the tiny data's box)")
+    parser.add_argument("--photo", help="photo (default: examples/sofa.png with the shipped weights, else the tiny data's box)")
     parser.add_argument("--timeout", type=float, default=300.0)
     args = parser.parse_args(argv)
     why = missing_tools()
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
 
     out = Path(args.out)
     built = build_addon.build(out / "dist")
-    shipped = REPO / "genre_backend" / "weights" / "default.safetensors", REPO / "examples" / "chair.png"
+    shipped = REPO / "genre_backend" / "weights" / "default.safetensors", REPO / "examples" / "sofa.png"
     if args.weights and args.photo:
         weights, photo = Path(args.weights), Path(args.photo)
     elif not args.weights and not args.photo and all(p.is_file() for p in shipped):
