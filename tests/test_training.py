@@ -6,6 +6,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import torch
 
 from genre_backend.model import GenRe, load_model
@@ -134,3 +135,20 @@ def test_validation_shapes_come_from_the_training_split():
     assert not val_ids & {r.shape_id for r in train_refs}  # by shape: no shape on both sides
     assert len(train_refs) + len(val_refs) == len(refs)
     assert split_views(refs, 0.05) == (train_refs, val_refs)  # deterministic
+
+
+def test_install_stores_the_seen_test_threshold(tmp_path):
+    from genre_backend.model import save_model
+    from training.install import install
+
+    src = tmp_path / "w.safetensors"
+    model = GenRe(TINY)
+    save_model(model, src)
+    (tmp_path / "t.json").write_text(json.dumps({"seen": {"GenRe": 0.65, "3D Completion": 0.4}}))
+    assert install(src, tmp_path / "t.json", tmp_path / "out" / "d.safetensors") == 0.65
+    loaded = load_model(tmp_path / "out" / "d.safetensors")
+    assert loaded.config.geometry.default_threshold == 0.65
+    assert weights_digest(loaded) == weights_digest(model)  # the weights themselves are unchanged
+    (tmp_path / "bad.json").write_text(json.dumps({"seen": {}}))
+    with pytest.raises(ValueError, match="no seen-test threshold"):
+        install(src, tmp_path / "bad.json", tmp_path / "x.safetensors")
