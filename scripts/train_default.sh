@@ -48,7 +48,14 @@ step targets_eval $G data targets --views "$EVAL_VIEWS" --preset default --no-pr
 # depth net's (ONESTEP_STEPS), to fit the CPU budget.
 step completion $G train completion --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/depth/best.safetensors" --no-progress
 step onestep    $G train onestep    --data "$VIEWS" --out "$RUN" --steps "$ONESTEP_STEPS" --no-progress
-step eval    $G eval --data "$EVAL_VIEWS" --run "$RUN" --train-views "$VIEWS" --manifest $M --out "$RESULTS" \
-                     --heatmap-shapes 2 --gallery 2 --no-progress
-step install bash -c "mkdir -p genre_backend/weights && cp $RUN/joint/best.safetensors genre_backend/weights/default.safetensors && cp $RUN/joint/best.json genre_backend/weights/default.json"
+# Every seen-test shape and at most 8 shapes per unseen class, one view each, in two halves
+# that two single-threaded processes evaluate side by side; then one run over the whole
+# subset resumes from their rows, aggregates and draws the figures.
+step eval_subset .venv/bin/python scripts/eval_subset.py --views "$EVAL_VIEWS" --cap 8
+EVAL_ARGS=(--run "$RUN" --train-views "$VIEWS" --manifest $M --max-views 1)
+step eval_parts bash -c "for p in a b; do OMP_NUM_THREADS=1 $G eval --data ${EVAL_VIEWS}_part_\$p --out $RESULTS.part_\$p ${EVAL_ARGS[*]} --gallery 0 --no-figures --no-progress & done; wait"
+step eval bash -c "mkdir -p $RESULTS && { head -1 $RESULTS.part_a/per_view.csv; tail -q -n +2 $RESULTS.part_a/per_view.csv $RESULTS.part_b/per_view.csv; } > $RESULTS/per_view.csv &&
+  $G eval --data ${EVAL_VIEWS}_sub --out $RESULTS ${EVAL_ARGS[*]} --heatmap-shapes 2 --gallery 2 --no-progress"
+step install .venv/bin/python -m training.install --weights "$RUN/joint/best.safetensors" --thresholds "$RESULTS/thresholds.json" \
+                     --out genre_backend/weights/default.safetensors
 log "weights: genre_backend/weights/default.safetensors; results: $RESULTS"
