@@ -6,6 +6,7 @@ setup:
 	@bash scripts/setup.sh
 
 demo: setup
+	@mkdir -p out/demo
 	.venv/bin/genre reconstruct examples/sofa.png -o out/demo/sofa.obj --preview --save-intermediates out/demo/sofa
 	@echo "make demo: mesh out/demo/sofa.obj, preview out/demo/sofa_preview.png, intermediates out/demo/sofa/"
 
