@@ -323,12 +323,7 @@ def _read_done(path: Path, columns: list[str]) -> list[dict]:
         if reader.fieldnames != columns:
             raise ValueError(f"{path} has other columns (another preset or version): use another --out")
         rows = [r for r in reader if r.get(columns[-1]) not in (None, "")]
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=columns)
-        w.writeheader()
-        w.writerows(rows)
-    os.replace(tmp, path)
+    _write_csv(path, rows, columns)
     return rows
 
 
@@ -350,12 +345,7 @@ def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, devi
     complete = {k for k, got in done.items() if set(rows + [FLOOR]) <= got}
     if any(r["key"] not in complete for r in records):  # a view cut short by a kill: drop its rows, redo it
         records = [r for r in records if r["key"] in complete]
-        tmp = path.with_name(path.name + ".tmp")
-        with tmp.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=columns)
-            w.writeheader()
-            w.writerows(records)
-        os.replace(tmp, path)
+        _write_csv(path, records, columns)
     todo = [v for v in views if v.key not in complete]
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in todo], models.config) if todo else None
     truth = Truth()
@@ -517,12 +507,16 @@ def aggregate(records: list[dict], choice: dict) -> tuple[list[dict], list[dict]
     return per_shape, per_class, groups
 
 
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    if not rows:
+def _write_csv(path: Path, rows: list[dict], columns: list[str] | None = None) -> None:
+    """Write ``rows`` atomically (temporary file, then rename); floats with 6 significant digits.
+
+    Without ``columns`` the first row's keys are the header and no rows means no file.
+    """
+    if not rows and columns is None:
         return
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w = csv.DictWriter(fh, fieldnames=columns or list(rows[0]))
         w.writeheader()
         for r in rows:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
@@ -729,7 +723,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
              "preset": genre.config.preset, "rows": rows_wanted, "train_views": [str(p) for p in args.train_views]}
     ident = json.loads(json.dumps(ident))  # as it reads back (lists, not tuples)
     ident_path = out / "eval_config.json"
-    if ident_path.is_file() and (old := json.loads(ident_path.read_text())) != ident:
+    if ident_path.is_file() and json.loads(ident_path.read_text()) != ident:
         if (out / "per_view.csv").is_file():
             return _fail(prog, f"{out} holds results of other weights or rows ({ident_path}); use another --out or delete it")
     ident_path.write_text(json.dumps(ident, indent=2))
