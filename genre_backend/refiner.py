@@ -11,8 +11,15 @@ resolution (all but the first level) and a 4×4×4 stride-2 convolution down
 to N/2^(k+1), ending at 2³.  The bottleneck flattens the 2³ features through
 a ``fc``-wide fully-connected layer and back.  The decoder mirrors the
 encoder: a 4×4×4 stride-2 transposed convolution up, the encoder's features
-at that resolution concatenated, a 3×3×3 convolution fusing them; a last
-transposed convolution returns to N³ and one channel of logits.
+at that resolution concatenated, a 3×3×3 convolution fusing them.  A last
+transposed convolution returns to N³ and one channel of logits, to which a
+3×3×3 convolution of the two input grids themselves is added.  That
+full-resolution skip is ours, not the original's: without it the finest
+features the output sees are N/2³, so even a perfect spherical map came out
+as a blob (measured on the default preset: CD 0.19 from the true spherical
+and depth maps, against 0.055 for the projected map alone).  It is linear
+and one channel wide because anything wider at N³ tripled the refiner's
+training time on the CPU.
 At N = 128, nf = 20, fc = 640 (the ``paper`` preset) this has 52.5 M
 parameters (the original: 53.5 M).
 """
@@ -27,6 +34,8 @@ from torch import nn
 from .validation import check_tensor
 
 __all__ = ["VoxelRefiner"]
+
+SKIP_INIT = 0.5  # initial weight of every tap of the full-resolution skip
 
 
 def _block(conv: nn.Module, channels: int) -> nn.Sequential:
@@ -65,11 +74,16 @@ class VoxelRefiner(nn.Module):
             self.up.append(_block(nn.ConvTranspose3d(widths[k], w_out, 4, 2, 1, bias=False), w_out))
             self.fuse.append(_block(nn.Conv3d(2 * w_out, w_out, 3, 1, 1, bias=False), w_out))
         self.out = nn.ConvTranspose3d(widths[0], 1, 4, 2, 1)
+        self.skip = nn.Conv3d(2, 1, 3, 1, 1, bias=False)  # the input grids at full resolution
+        # Start it as a dilation of the input hits (a voxel next to projected surface is likely
+        # shell): with Adam at lr 1e-4 a randomly initialised tap would take ~10⁴ steps to get there.
+        nn.init.constant_(self.skip.weight, SKIP_INIT)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 2, N, N, N) float → (B, 1, N, N, N) logits."""
         n = self.resolution
         check_tensor("refiner input", x, ("B", 2, n, n, n), finite=False)
+        inputs = x
         feats = []
         for pre, down in zip(self.pre, self.down):
             x = down(pre(x))
@@ -77,4 +91,4 @@ class VoxelRefiner(nn.Module):
         x = self.fc(x).view(-1, self.deep, 2, 2, 2)
         for up, fuse, skip in zip(self.up, self.fuse, reversed(feats[:-1])):
             x = fuse(torch.cat([up(x), skip], dim=1))
-        return self.out(x)
+        return self.out(x) + self.skip(inputs)

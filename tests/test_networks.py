@@ -34,6 +34,35 @@ def test_paper_nets_run_on_batch_one():
 
 
 @torch.no_grad()
+def test_refiner_sees_its_input_at_full_resolution():
+    """With the coarse trunk silenced, the logits are the skip alone: at initialisation a
+    3×3×3 box sum of both input grids × SKIP_INIT, voxel for voxel (held to a plain loop)."""
+    import numpy as np
+
+    from genre_backend.refiner import SKIP_INIT
+
+    n = 16
+    net = VoxelRefiner(n, 4, 16).eval()
+    torch.nn.init.zeros_(net.out.weight)
+    torch.nn.init.zeros_(net.out.bias)
+    x = torch.zeros(1, 2, n, n, n)
+    gen = torch.Generator().manual_seed(0)
+    hits = torch.randint(0, n, (12, 4), generator=gen)
+    for c, i, j, k in hits.tolist():
+        x[0, c % 2, i, j, k] = 0.3 + 0.05 * (i % 5)
+    logits = net(x)[0, 0].numpy()
+    grid = x[0].sum(0).numpy()
+    pad = np.pad(grid, 1)
+    ref = np.zeros_like(grid)
+    for i in range(n):
+        for j in range(n):
+            for k in range(n):
+                ref[i, j, k] = SKIP_INIT * pad[i:i + 3, j:j + 3, k:k + 3].sum()
+    np.testing.assert_allclose(logits, ref, atol=1e-5)
+    assert (logits > 0).sum() >= 27  # one isolated hit already lights its whole neighbourhood
+
+
+@torch.no_grad()
 def test_default_model_shapes():
     cfg = get_preset("default")
     g = cfg.geometry
