@@ -44,7 +44,7 @@ def test_refiner_sees_its_input_at_full_resolution():
     n = 16
     net = VoxelRefiner(n, 4, 16).eval()
     torch.nn.init.zeros_(net.out.weight)
-    torch.nn.init.zeros_(net.out.bias)
+    torch.nn.init.zeros_(net.out.bias)  # (initialised at OUT_BIAS_INIT)
     x = torch.zeros(1, 2, n, n, n)
     gen = torch.Generator().manual_seed(0)
     hits = torch.randint(0, n, (12, 4), generator=gen)
