@@ -165,6 +165,12 @@ def test_eval_resumes_after_an_interruption(tiny, tmp_path):
     assert main(base) == 0
     resumed = (out / "per_view.csv").read_text().splitlines()
     assert sorted(resumed) == sorted(full)
+    # the gallery of a run resumed from rows scored earlier (or by other processes) still gets its grids
+    assert not (out / "grids").exists()
+    assert main(_args(root, views, run, out, "--rows", "GenRe,Nearest training shape", "--gallery", "1", "--heatmap-shapes", "0",
+                      "--render-samples", "2")) == 0
+    assert len(list((out / "grids").glob("*.npz"))) == 2 and (out / "gallery.png").is_file()
+    assert sorted((out / "per_view.csv").read_text().splitlines()) == sorted(full)
     # other rows (or weights) in the same folder: refused rather than mixed
     assert main(_args(root, views, run, out, "--no-figures", "--rows", "GenRe")) == 2
 

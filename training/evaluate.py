@@ -313,6 +313,31 @@ class Truth:
         return pose(stored), pose(again)
 
 
+def grid_path(grids_dir: Path, key: str) -> Path:
+    """Where GenRe's probability grid of one view is kept for the figures."""
+    return grids_dir / (key.replace("/", "__") + ".npz")
+
+
+def _write_grid(grids_dir: Path, key: str, prob: torch.Tensor) -> None:
+    grids_dir.mkdir(exist_ok=True)
+    np.savez_compressed(grid_path(grids_dir, key), prob=prob.numpy().astype(np.float16))
+
+
+@torch.no_grad()
+def _save_grids(models: Models, views: list["EvalView"], grids_dir: Path, device) -> None:
+    """GenRe's grid of each view that has none yet (its metrics are already in the CSV)."""
+    from .dataset import ViewDataset, ViewRef
+
+    views = [v for v in views if not grid_path(grids_dir, v.key).is_file()]
+    if not views:
+        return
+    data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], models.config)
+    for i, view in enumerate(views):
+        sample = data.sample(i, None)
+        out = models.genre(sample["rgb"][None].to(device), mask=sample["mask"][None].to(device))
+        _write_grid(grids_dir, view.key, torch.sigmoid(out["logits"])[0, 0].cpu())
+
+
 # ---- the per-view CSV (resumable) ---------------------------------------------------------
 def _read_done(path: Path, columns: list[str]) -> list[dict]:
     """Complete rows of an earlier run (a line cut by a kill is dropped; the file is rewritten cleanly)."""
@@ -347,6 +372,9 @@ def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, devi
         records = [r for r in records if r["key"] in complete]
         _write_csv(path, records, columns)
     todo = [v for v in views if v.key not in complete]
+    grids_dir = out_dir / "grids"
+    if save_grids:  # views scored earlier (or by another process) whose grid the figures still need
+        _save_grids(models, [v for v in views if v.key in save_grids and v.key in complete], grids_dir, device)
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in todo], models.config) if todo else None
     truth = Truth()
     new_file = not path.is_file()
@@ -354,7 +382,6 @@ def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, devi
     writer = csv.DictWriter(fh, fieldnames=columns)
     if new_file:
         writer.writeheader()
-    grids_dir = out_dir / "grids"
     try:
         for i, view in enumerate(tqdm(todo, desc="eval", unit="view", disable=not progress, dynamic_ncols=True)):
             sample = data.sample(i, None)
@@ -371,8 +398,7 @@ def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, devi
                 if "prob" in p:
                     results[row] = score_grid(p["prob"], thresholds, target)
                     if save_grids is not None and view.key in save_grids and row == "GenRe":
-                        grids_dir.mkdir(exist_ok=True)
-                        np.savez_compressed(grids_dir / (view.key.replace("/", "__") + ".npz"), prob=p["prob"].numpy().astype(np.float16))
+                        _write_grid(grids_dir, view.key, p["prob"])
                 else:
                     pts = p["points"]
                     m = target.metrics(pts[:POINTS_SMALL], pts)

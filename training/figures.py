@@ -176,13 +176,13 @@ def gallery(out: Path, views, gallery_keys: list[str], choice, samples: int) -> 
     from genre_backend import frame
     from genre_backend.mesh_voxels import voxels_to_mesh
 
-    from .evaluate import GROUP_LABEL, _resolve_mesh
+    from .evaluate import GROUP_LABEL, _resolve_mesh, grid_path
 
     by_key = {v.key: v for v in views}
     t = choice["seen"].get("GenRe", 0.5)
     items, meshes = [], []
     for key in gallery_keys:
-        grid_file = out / "grids" / (key.replace("/", "__") + ".npz")
+        grid_file = grid_path(out / "grids", key)
         if key not in by_key or not grid_file.is_file():
             continue
         v = by_key[key]
