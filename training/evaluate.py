@@ -6,7 +6,8 @@ data targets`` of the seen-test and unseen shapes):
 ==========================  =====================================================================
 GenRe                       the full model (depth net → partial map → inpainting → voxels → refiner)
 GenRe-Oracle                the true depth (and mask) in place of the depth net
-GenRe-SphOracle             the true full spherical map in place of the inpainting net (depth predicted)
+GenRe-SphOracle             the true depth and the true full spherical map: the refiner's inputs
+                            all true (the paper's upper bound for the refiner, nested in Oracle)
 3D Completion               depth net → depth voxels → a completion net of the refiner's size
 GenRe-1step                 RGB → full spherical map in one U-ResNet → GenRe's projection and refiner
                             (the depth channel from GenRe's depth net)
@@ -213,7 +214,7 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     if "GenRe-Oracle" in models.wanted:
         out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu()}
     if "GenRe-SphOracle" in models.wanted:
-        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, full_sph=full)["logits"])[0, 0].cpu()}
+        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full)["logits"])[0, 0].cpu()}
     if models.completion is not None:
         out["3D Completion"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask)["logits"])[0, 0].cpu()}
     if models.onestep is not None:
