@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -182,3 +183,23 @@ def test_missing_weights_or_data_give_a_clear_error(tiny, tmp_path, capsys):
     assert "weights not found" in err and "genre train" in err
     assert main(_args(root, tmp_path / "no_views", run, tmp_path / "o")) == 2
     assert "genre data render" in capsys.readouterr().err
+
+
+def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
+    import importlib.util
+
+    root, views, run = tiny
+    spec = importlib.util.spec_from_file_location("stage_errors", Path(__file__).resolve().parents[1] / "scripts" / "stage_errors.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--weights", str(run / "refine" / "final.safetensors"), "--views", str(views),
+                     "--manifest", str(root / "manifest.json"), "--thresholds", "0.5"]) == 0
+    out = capsys.readouterr().out
+    lines = {line[:36].strip(): line for line in out.splitlines()[1:]}
+    assert out.startswith("1 seen-test views")  # the box (test split); the unseen table is never looked at
+    assert set(lines) == {"true shell, marching cubes", "true spherical map, projected", "refiner <- true depth + true map",
+                          "refiner <- true depth", "GenRe spherical map, projected", "GenRe"}
+    # the representation's own error of a box at the tiny preset's voxel size: a few voxels, finite
+    shell_cd = float(lines["true shell, marching cubes"].split(": ")[1])
+    sph_cd = float(lines["true spherical map, projected"].split(": ")[1])
+    assert 0.0 < shell_cd < 0.25 and 0.0 < sph_cd < 0.25
