@@ -16,11 +16,10 @@ transposed convolution returns to N³ and one channel of logits, to which a
 3×3×3 convolution of the two input grids themselves is added.  That
 full-resolution skip is ours, not the original's: without it the finest
 features the output sees are N/2³, so even a perfect spherical map came out
-as a blob (measured on 8 seen-test views, default preset: CD 0.18 from the
-true spherical and depth maps, against 0.065 for the projected true map
-alone; `results/default/table.md` defines the CD).  It is linear
-and one channel wide because anything wider at N³ tripled the refiner's
-training time on the CPU.
+as a blob (the first default weights, commit 5aa4676, on 8 seen-test views:
+CD 0.18 from the true spherical and depth maps, against 0.065 for the
+projected true map alone).  It is linear and one channel wide to keep the
+cost at N³ small on the CPU.
 At N = 128, nf = 20, fc = 640 (the ``paper`` preset) this has 52.5 M
 parameters (the original: 53.5 M).
 """
@@ -37,7 +36,7 @@ from .validation import check_tensor
 __all__ = ["VoxelRefiner"]
 
 SKIP_INIT = 0.5  # initial weight of every tap of the full-resolution skip
-OUT_BIAS_INIT = -3.0  # initial logit bias: about the prior of a shell voxel (3.6 % of a default-preset grid)
+OUT_BIAS_INIT = -3.0  # initial logit bias: about the prior of a shell voxel (scripts/stage_errors.py prints the fraction)
 
 
 def _block(conv: nn.Module, channels: int) -> nn.Sequential:

@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     pick = np.random.default_rng(args.seed).choice(len(views), min(args.views_count, len(views)), replace=False)
     views = [views[i] for i in sorted(pick)]
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)
-    truth, scores = Truth(), {}
+    truth, scores, shell_fraction = Truth(), {}, []
 
     def add(name: str, per_t: dict) -> None:
         for t, m in per_t.items():
@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             gt, _ = truth.posed(view)
             target = Target(gt[:POINTS_SMALL], gt)
             rgb, mask, depth, full = s["rgb"][None], s["mask"][None], s["depth"][None], s["full_sph"][None]
+            shell_fraction.append(float(s["shell"].mean()))
             add("true shell, marching cubes", score_grid(s["shell"], [0.5], target))
             sph_oracle = model(rgb, mask=mask, depth=depth, full_sph=full)
             add("true spherical map, projected", score_grid(sph_oracle["vox_sph"][0, 0], [HIT], target))
@@ -76,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
             genre = model(rgb, mask=mask)
             add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))
             add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target))
-    print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold")
+    print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
+          f"the true shell fills {100 * np.mean(shell_fraction):.1f} % of the grid")
     for name, per_t in scores.items():
         print(f"{name:36s} " + "  ".join(f"t={t:.2f}: {np.mean(v):.4f}" for t, v in per_t.items()))
     return 0

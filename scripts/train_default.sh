@@ -22,7 +22,7 @@ REFINE_STEPS=${REFINE_STEPS:-3000}
 JOINT_STEPS=${JOINT_STEPS:-400}
 ONESTEP_STEPS=${ONESTEP_STEPS:-3000}
 # The voxel stages (refiner, joint, 3D Completion) depart from the paper's optimiser numbers
-# (lr 1e-4, surface weight 10) to fit the CPU budget; see ARCHITECTURE.md, "Where we depart from the paper".
+# (lr 1e-4, surface weight 10); why: ARCHITECTURE.md, "Where we depart from the paper".
 REFINE_LR=${REFINE_LR:-1e-3}
 SURFACE_WEIGHT=${SURFACE_WEIGHT:-0.1}
 SKIP_TO=${SKIP_TO:-}
