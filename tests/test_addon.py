@@ -285,9 +285,14 @@ def scenario_failures(args: dict) -> dict:
     attempt("crash", on_tick=kill_when_running)
     works("works_after_crash")
     out["restarted_after_crash"] = ops.manager.client.pid != pids[0]
-    # 6. time-out
+    # 6. time-out.  The warm backend answers the box in ~0.1 s, which on a loaded machine can beat the
+    # next tick; freeze it (SIGSTOP) so no answer can come and the time-out is the only way out.  The
+    # add-on then kills it (SIGKILL ends a stopped process too) and the next request starts a fresh one.
     prefs.job_timeout = 0.001
+    frozen = ops.manager.client.pid
+    os.kill(frozen, signal.SIGSTOP)
     attempt("timeout")
+    out["timed_out_backend_replaced"] = ops.manager.client is None or ops.manager.client.pid != frozen
     prefs.job_timeout = 300.0
     works("works_after_timeout")
     # 7. cancel while it runs
@@ -609,6 +614,7 @@ def test_failures_leave_nothing_behind_and_say_why(built, trained, tmp_path):
     check("broken_mesh", "could not add the result", "vertex")
     check("photo_gone", "could not add the result", "vanishing.png")
     assert r["restarted_after_crash"]
+    assert r["timed_out_backend_replaced"]
     for name in ("works_after_missing_command", "works_after_crash", "works_after_timeout", "works_at_the_end"):
         rec = r[name]
         assert rec["outcome"][0] == "INFO", (name, rec)
