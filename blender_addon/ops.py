@@ -78,6 +78,7 @@ def advance(job: Job, scene, status, cursor_location, now: float | None = None):
             try:
                 job.apply(scene, cursor_location)
                 outcome = ("INFO", job.result_line())
+                _follow_threshold(scene, job.request.result or {})
             except UserError as exc:
                 outcome = ("ERROR", f"GenRe: {exc}")
         elif job.state == "cancelled":
@@ -89,6 +90,15 @@ def advance(job: Job, scene, status, cursor_location, now: float | None = None):
         outcome = ("ERROR", f"GenRe: unexpected error: {type(exc).__name__}: {exc}")
     finish_job(job, status, outcome)
     return outcome
+
+
+def _follow_threshold(scene, result: dict) -> None:
+    """Without an override, the Threshold field shows the level the weights used, so ticking
+    Custom Threshold starts from the shipped mesh rather than from an arbitrary 0.5."""
+    settings = getattr(scene, "genre", None)
+    level = result.get("threshold")
+    if settings is not None and not settings.use_threshold and isinstance(level, (int, float)) and 0.0 < level < 1.0:
+        settings.threshold = float(level)
 
 
 def finish_job(job: Job, status, outcome) -> None:
@@ -134,7 +144,7 @@ def advance_check(req: Request, status, now: float | None = None):
     if req.state == "done":
         ev = req.result or {}
         outcome = ("INFO", f"GenRe backend {ev.get('version', '?')} (protocol {ev.get('protocol', '?')}), "
-                           f"preset {ev.get('preset', '?')}, device {ev.get('device', '?')}, weights {ev.get('weights', '?')}")
+                           f"preset {ev.get('preset', '?')}, threshold {ev.get('threshold', '?')}, device {ev.get('device', '?')}, weights {ev.get('weights', '?')}")
     elif req.state == "cancelled":
         outcome = ("WARNING", "backend check cancelled")
     else:

@@ -104,6 +104,7 @@ class Server:
             "weights": str(self.rec.weights_path),
             "preset": self.rec.preset,
             "device": self.device,
+            "threshold": self.rec.config.geometry.default_threshold,
         }
 
     # ---- requests -----------------------------------------------------------------------
@@ -292,6 +293,7 @@ class Server:
                 "vertices": int(len(result.vertices)),
                 "faces": int(len(result.faces)),
                 "mask_source": result.mask_source,
+                "threshold": result.threshold,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},
                 "camera": result.camera(),
             }

@@ -173,12 +173,15 @@ def scenario_reconstruct(args: dict) -> dict:
     if args.get("threshold") is not None:
         settings.use_threshold = True
         settings.threshold = args["threshold"]
+    else:
+        settings.threshold = 0.2  # not the weights' level: a plain run should bring the field to it
     status = bpy.context.window_manager.genre_status
     out = {}
     snap = _Snapshot(bpy)
     t0 = time.monotonic()
     job, outcome, states = _drive(ops, settings, prefs, status, scene)
     out["first_seconds"] = time.monotonic() - t0
+    out["threshold_field_after"] = settings.threshold
     out["outcome"] = list(outcome)
     out["result_event"] = job.request.result
     out["stages"] = sorted({s[1] for s in states})
@@ -549,6 +552,11 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     r = run_scenario("reconstruct", {"zip": str(built["legacy"]), "weights": str(weights), "photo": str(photo)}, tmp_path)
     ev = r["result_event"]
     assert r["outcome"][0] == "INFO", r["outcome"]
+    # no override: the mesh is cut at the weights' level, and the panel's Threshold field now shows it
+    from genre_backend.model import load_model
+
+    level = load_model(weights).config.geometry.default_threshold
+    assert ev["threshold"] == level and r["threshold_field_after"] == pytest.approx(level)
     mesh = r["mesh"]
     assert mesh["name"] == "box"
     assert mesh["collections"] == ["GenRe"]
@@ -574,7 +582,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert r["operator"] == ["FINISHED"] and r["same_backend"]
     assert len(r["objects_after_second"]) == 3
     assert r["check"] == ["FINISHED"]
-    assert "preset tiny" in r["backend_info"] and "device cpu" in r["backend_info"]
+    assert "preset tiny" in r["backend_info"] and "device cpu" in r["backend_info"] and f"threshold {level}" in r["backend_info"]
     assert r["backend_exit_after_disable"] is not None
 
 

@@ -130,6 +130,9 @@ def test_ping_and_version(server, trained):
     server.send({"type": "version", "id": "v"})
     v = server.next()
     assert v["type"] == "version" and v["id"] == "v" and v["weights"] == str(trained[0]) and v["preset"] == "tiny" and v["protocol"] == 1
+    from genre_backend.model import load_model
+
+    assert v["threshold"] == load_model(trained[0]).config.geometry.default_threshold
 
 
 @pytest.mark.parametrize(
@@ -161,9 +164,9 @@ def test_malformed_requests_get_error_events(server, line, code, rid):
     _alive(server)
 
 
-def test_reconstruct_reports_progress_and_result(server, files):
+def test_reconstruct_reports_progress_and_result(server, files, trained):
     out = files["out"] / "box.ply"
-    server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.5, "save_intermediates": str(files["out"] / "inter")}})
+    server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.45, "save_intermediates": str(files["out"] / "inter")}})
     events = server.until(lambda e: e["type"] in ("result", "error"))
     result = events[-1]
     assert result["type"] == "result", result
@@ -173,6 +176,7 @@ def test_reconstruct_reports_progress_and_result(server, files):
     fr = [e["fraction"] for e in progress]
     assert fr == sorted(fr) and 0 <= fr[0] and fr[-1] <= 1
     assert result["mesh"] == str(out) and result["format"] == "ply" and result["mask_source"] == "silhouette"
+    assert result["threshold"] == 0.45  # the option, not the weights' level (0.5 here)
     assert result["faces"] == len(trimesh.load(out, force="mesh").faces) > 0
     assert set(result["timings"]) >= {"depth", "refine", "mesh", "write"}
     cam = result["camera"]
@@ -187,7 +191,11 @@ def test_reconstruct_reports_progress_and_result(server, files):
     assert (files["out"] / "inter" / "depth.png").is_file()
     # mask file and alpha are reported as such
     server.send({"type": "reconstruct", "id": "job2", "image": str(files["rgb"]), "mask": str(files["mask"]), "output": str(files["out"] / "m.glb")})
-    assert server.until(lambda e: e["type"] in ("result", "error"))[-1]["mask_source"] == "file"
+    r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
+    assert r["mask_source"] == "file"
+    from genre_backend.model import load_model
+
+    assert r["threshold"] == load_model(trained[0]).config.geometry.default_threshold
     server.send({"type": "reconstruct", "id": "job3", "image": str(files["rgba"]), "output": str(files["out"] / "a.obj")})
     r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
     assert r["mask_source"] == "alpha" and r["format"] == "obj"
