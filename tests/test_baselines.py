@@ -1,5 +1,6 @@
 """The baselines of Table 1: their training stages, weights files and the nearest-shape index."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -48,6 +49,14 @@ def test_baseline_stage_resumes_from_its_checkpoint(tiny_views, tmp_path):
     train(_cfg("onestep", tiny_views, run, steps=2, checkpoint_every=1), TINY)
     s = train(_cfg("onestep", tiny_views, run, steps=4), TINY)
     assert s["resumed_from"] == 2
+    # the checkpoint holds the baseline alone, so a change to GenRe's refiner does not stop it resuming
+    from safetensors import safe_open
+
+    with safe_open(str(run / "onestep" / "checkpoint" / "state.safetensors"), "pt") as f:
+        assert {k.split(".")[0] for k in f.keys()} == {"baseline", "opt"}
+    wider = dataclasses.replace(TINY, network=dataclasses.replace(TINY.network, refiner_nf=2 * TINY.network.refiner_nf))
+    s = train(_cfg("onestep", tiny_views, run, steps=6), wider)
+    assert s["resumed_from"] == 4
 
 
 def test_save_load_round_trip_gives_the_same_outputs(tmp_path):

@@ -106,6 +106,30 @@ def test_kill_and_resume_gives_the_same_weights(tiny_views, tmp_path):
         assert torch.allclose(a[k].float(), b[k].float(), atol=1e-6, rtol=1e-5), k
 
 
+def test_resuming_with_another_architecture_says_which_checkpoint(tiny_views, tmp_path, capsys):
+    import dataclasses
+
+    from training.train import CheckpointMismatch
+
+    run = tmp_path / "run"
+    train(_cfg("refine", tiny_views, run, steps=1, checkpoint_every=1), TINY)
+    wider = dataclasses.replace(TINY, network=dataclasses.replace(TINY.network, refiner_nf=2 * TINY.network.refiner_nf))
+    ck = run / "refine" / "checkpoint"
+    with pytest.raises(CheckpointMismatch, match="refine") as err:
+        train(_cfg("refine", tiny_views, run, steps=2), wider)
+    assert str(ck) in str(err.value) and "delete" in str(err.value)
+    assert (ck / "state.json").is_file()  # nothing was overwritten
+    # the command line says so in one line and exits 2, no traceback
+    from training.train import main
+
+    cfg_json = tmp_path / "wider.json"
+    cfg_json.write_text(json.dumps(wider.to_dict()))
+    argv = ["refine", "--data", str(tiny_views), "--out", str(run), "--model-config", str(cfg_json), "--steps", "2",
+            "--batch-size", "4", "--val-fraction", "0", "--no-augment", "--no-progress"]
+    assert main(argv) == 2
+    assert f"genre train: error: {ck} was written for a different model" in capsys.readouterr().err
+
+
 def test_ddp_with_two_cpu_processes(tiny_views, tmp_path):
     cfg_json = tmp_path / "tiny.json"
     cfg_json.write_text(json.dumps(TINY.to_dict()))

@@ -236,12 +236,17 @@ def _to(batch, device):
 
 
 # ---- checkpoints -------------------------------------------------------------------------
+class CheckpointMismatch(ValueError):
+    """A stage's checkpoint does not fit the model being trained (architecture or stage changed)."""
+
+
 def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer, step: int, best: float, tcfg: TrainConfig) -> None:
     from safetensors.torch import save_file
 
-    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in module.model.state_dict().items()}
-    if module.baseline is not None:
-        tensors.update({f"baseline.{k}": v.detach().cpu().contiguous() for k, v in module.baseline.state_dict().items()})
+    # A stage keeps only what it trains: GenRe's nets, or (baseline stages) the baseline alone,
+    # so a baseline's checkpoint does not depend on GenRe's architecture.
+    prefix, trained = ("model", module.model) if module.baseline is None else ("baseline", module.baseline)
+    tensors = {f"{prefix}.{k}": v.detach().cpu().contiguous() for k, v in trained.state_dict().items()}
     opt_state = opt.state_dict()
     scalars = {}
     for idx, st in opt_state["state"].items():
@@ -282,9 +287,22 @@ def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
         ck = old[-1]
     meta = json.loads((ck / "state.json").read_text())
     tensors = load_file(str(ck / "state.safetensors"))
-    module.model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
-    if module.baseline is not None:
-        module.baseline.load_state_dict({k[9:]: v for k, v in tensors.items() if k.startswith("baseline.")})
+    # (checkpoints of baseline stages written before they kept only the baseline also hold
+    # "model." tensors: those are ignored)
+    prefix, trained = ("model", module.model) if module.baseline is None else ("baseline", module.baseline)
+    try:
+        trained.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")})
+        _load_optimizer(opt, tensors, meta)
+    except (RuntimeError, ValueError, KeyError) as exc:
+        first = " ".join(str(exc).split())[:300] or type(exc).__name__
+        raise CheckpointMismatch(
+            f"{ck} was written for a different model or optimiser than this run's ({first}); "
+            f"to train the {module.stage} stage afresh, delete {ck} (or pass another --out)"
+        ) from exc
+    return int(meta["step"]), float(meta["best_val"])
+
+
+def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
     state: dict[int, dict] = {}
     for k, v in tensors.items():
         if k.startswith("opt."):
@@ -294,7 +312,6 @@ def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
         idx, name = k.split(".", 1)
         state.setdefault(int(idx), {})[name] = v
     opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
-    return int(meta["step"]), float(meta["best_val"])
 
 
 def _plot_losses(csv_path: Path, png_path: Path, stage: str) -> None:
@@ -531,7 +548,11 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
             model_config = GenreConfig.from_dict(json.loads(Path(args.model_config).read_text()))
         except (OSError, ValueError) as exc:
             parser.error(f"--model-config: {exc}")
-    summary = train(tcfg, model_config)
+    try:
+        summary = train(tcfg, model_config)
+    except CheckpointMismatch as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
     if _dist_info()[0] == 0:
         print(json.dumps(summary, indent=2))
     return 0
