@@ -277,7 +277,8 @@ def scenario_failures(args: dict) -> dict:
     settings.mask_path = args["bad_mask"]
     attempt("error_event")
     settings.mask_path = ""
-    # 5. the backend crashes mid-job
+    # 5. the backend crashes mid-job (frozen first, so it cannot answer before the kill on a loaded machine)
+    os.kill(ops.manager.client.pid, signal.SIGSTOP)
     pids = []
 
     def kill_when_running(job):
