@@ -230,10 +230,13 @@ def test_bad_inputs_give_an_error_and_the_server_goes_on(server, files, image, m
 
 def test_cancel_running_and_queued_jobs(server, files):
     job = {"type": "reconstruct", "image": str(files["rgba"])}
-    server.send({**job, "id": "c1", "output": str(files["out"] / "c1.obj")})
-    server.send({**job, "id": "c2", "output": str(files["out"] / "c2.obj")})
-    server.send({"type": "cancel", "id": "c2"})  # still queued: answered at once
-    server.send({"type": "cancel", "id": "c1"})  # running: stops at the next stage boundary
+    # one write, so the cancels reach the server before the ~0.1 s job can end even on a loaded machine
+    server.send("\n".join(json.dumps(m) for m in (
+        {**job, "id": "c1", "output": str(files["out"] / "c1.obj")},
+        {**job, "id": "c2", "output": str(files["out"] / "c2.obj")},
+        {"type": "cancel", "id": "c2"},  # still queued: answered at once
+        {"type": "cancel", "id": "c1"},  # running: stops at the next stage boundary
+    )))
     events = server.until(lambda e: e["type"] == "cancelled" and e["id"] == "c1")
     assert {"type": "cancelled", "id": "c2"} in events
     assert not any(e["type"] in ("result", "error") for e in events)
@@ -245,8 +248,7 @@ def test_cancel_running_and_queued_jobs(server, files):
 
 def test_duplicate_job_id_is_refused(server, files):
     job = {"type": "reconstruct", "id": "dup", "image": str(files["rgba"]), "output": str(files["out"] / "dup.obj")}
-    server.send(job)
-    server.send(job)
+    server.send(json.dumps(job) + "\n" + json.dumps(job))  # one write: the first cannot end before the second arrives
     events = server.until(lambda e: e["type"] == "result")
     assert any(e["type"] == "error" and e["code"] == "bad_field" and e["id"] == "dup" for e in events)
 
