@@ -132,6 +132,11 @@ class StageModule(nn.Module):
                 p.requires_grad_(False)
             self.frozen.append(self.baseline.depth_net)
 
+    def checkpointed(self) -> tuple[str, nn.Module]:
+        """The key prefix and module a checkpoint keeps: GenRe's nets, or for a baseline stage the
+        baseline alone (so its checkpoint does not depend on GenRe's architecture)."""
+        return ("model", self.model) if self.baseline is None else ("baseline", self.baseline)
+
     def save_weights(self, path: Path, extra: dict) -> None:
         """The stage's weights file: GenRe's format, or the baseline's for a baseline stage."""
         if self.baseline is None:
@@ -243,9 +248,7 @@ class CheckpointMismatch(ValueError):
 def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer, step: int, best: float, tcfg: TrainConfig) -> None:
     from safetensors.torch import save_file
 
-    # A stage keeps only what it trains: GenRe's nets, or (baseline stages) the baseline alone,
-    # so a baseline's checkpoint does not depend on GenRe's architecture.
-    prefix, trained = ("model", module.model) if module.baseline is None else ("baseline", module.baseline)
+    prefix, trained = module.checkpointed()
     tensors = {f"{prefix}.{k}": v.detach().cpu().contiguous() for k, v in trained.state_dict().items()}
     opt_state = opt.state_dict()
     scalars = {}
@@ -287,16 +290,14 @@ def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
         ck = old[-1]
     meta = json.loads((ck / "state.json").read_text())
     tensors = load_file(str(ck / "state.safetensors"))
-    # (checkpoints of baseline stages written before they kept only the baseline also hold
-    # "model." tensors: those are ignored)
-    prefix, trained = ("model", module.model) if module.baseline is None else ("baseline", module.baseline)
+    prefix, trained = module.checkpointed()  # older baseline checkpoints also hold "model." tensors: ignored
     try:
         trained.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")})
         _load_optimizer(opt, tensors, meta)
     except (RuntimeError, ValueError, KeyError) as exc:
-        first = " ".join(str(exc).split())[:300] or type(exc).__name__
+        why = " ".join(str(exc).split())[:300] or type(exc).__name__
         raise CheckpointMismatch(
-            f"{ck} was written for a different model or optimiser than this run's ({first}); "
+            f"{ck} was written for a different model or optimiser than this run's ({why}); "
             f"to train the {module.stage} stage afresh, delete {ck} (or pass another --out)"
         ) from exc
     return int(meta["step"]), float(meta["best_val"])
