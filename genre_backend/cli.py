@@ -15,12 +15,12 @@ from . import __version__
 
 # name -> (module, one-line summary)
 COMMANDS: dict[str, tuple[str | None, str]] = {
-    "data": ("training.data_cli", "fetch, build, render and inspect the training corpus"),
-    "train": ("training.train", "train the networks stage by stage"),
-    "eval": ("training.evaluate", "evaluate a trained model over a split"),
-    "reconstruct": ("genre_backend.reconstruct_cli", "turn photos into meshes"),
-    "serve": ("genre_backend.server", "run the JSON-over-stdio reconstruction server"),
-    "bench": ("genre_backend.bench", "print speed figures (geometry, inference)"),
+    "data": ("training.data.cli", "fetch, build, render and inspect the training corpus"),
+    "train": ("training.learn.train", "train the networks stage by stage"),
+    "eval": ("training.eval.runner", "evaluate a trained model over a split"),
+    "reconstruct": ("genre_backend.inference.reconstruct_cli", "turn photos into meshes"),
+    "serve": ("genre_backend.inference.server", "run the JSON-over-stdio reconstruction server"),
+    "bench": ("genre_backend.inference.bench", "print speed figures (geometry, inference)"),
 }
 
 

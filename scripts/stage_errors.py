@@ -31,9 +31,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.model import load_model  # noqa: E402
-from training.dataset import ViewDataset, ViewRef  # noqa: E402
-from training.evaluate import POINTS_SMALL, Target, Truth, find_eval_views, score_grid  # noqa: E402
+from genre_backend.nets.model import load_model  # noqa: E402
+from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
+from training.eval.runner import POINTS_SMALL, Target, Truth, find_eval_views, score_grid  # noqa: E402
 
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
 

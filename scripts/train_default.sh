@@ -60,6 +60,6 @@ EVAL_ARGS=(--run "$RUN" --train-views "$VIEWS" --manifest $M --max-views 1)
 step eval_parts bash -c "for p in a b; do OMP_NUM_THREADS=1 $G eval --data ${EVAL_VIEWS}_part_\$p --out $RESULTS.part_\$p ${EVAL_ARGS[*]} --gallery 0 --no-figures --no-progress & done; wait"
 step eval bash -c "mkdir -p $RESULTS && { head -1 $RESULTS.part_a/per_view.csv; tail -q -n +2 $RESULTS.part_a/per_view.csv $RESULTS.part_b/per_view.csv; } > $RESULTS/per_view.csv &&
   $G eval --data ${EVAL_VIEWS}_sub --out $RESULTS ${EVAL_ARGS[*]} --heatmap-shapes 2 --gallery 2 --no-progress"
-step install .venv/bin/python -m training.install --weights "$RUN/joint/best.safetensors" --thresholds "$RESULTS/thresholds.json" \
+step install .venv/bin/python -m training.eval.install --weights "$RUN/joint/best.safetensors" --thresholds "$RESULTS/thresholds.json" \
                      --out genre_backend/weights/default.safetensors
 log "weights: genre_backend/weights/default.safetensors; results: $RESULTS"

@@ -505,7 +505,7 @@ import sys
 from pathlib import Path
 sys.path[:0] = [{str(REPO / 'tests')!r}, {str(REPO)!r}]
 from tiny_data import TINY, make_tiny_views
-from training.train import TrainConfig, train
+from training.learn.train import TrainConfig, train
 root = Path({str(root)!r})
 views = make_tiny_views(root)
 prev = None
@@ -554,7 +554,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     ev = r["result_event"]
     assert r["outcome"][0] == "INFO", r["outcome"]
     # no override: the mesh is cut at the weights' level, and the panel's Threshold field now shows it
-    from genre_backend.model import load_model
+    from genre_backend.nets.model import load_model
 
     level = load_model(weights).config.geometry.default_threshold
     assert ev["threshold"] == level and r["threshold_field_after"] == pytest.approx(level)

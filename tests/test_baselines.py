@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from genre_backend import frame
-from genre_backend.model import WeightsError, load_model
+from genre_backend.nets.model import WeightsError, load_model
 from tiny_data import TINY, tiny_train_config
-from training.baselines import CompletionBaseline, NearestIndex, OneStepNet, build_nearest_index, load_baseline, save_baseline
-from training.dataset import ViewDataset, find_views
-from training.train import train
+from training.learn.baselines import CompletionBaseline, NearestIndex, OneStepNet, build_nearest_index, load_baseline, save_baseline
+from training.data.dataset import ViewDataset, find_views
+from training.learn.train import train
 
 
 _cfg = tiny_train_config

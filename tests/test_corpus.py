@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from training import corpus
-from training.data_cli import format_credits, format_stats
-from training.data_cli import main as data_main
-from training.sources import Y_UP_FRONT_POS_Z, rotation_from_axes, sweethome3d
+from training.data import corpus
+from training.data.cli import format_credits, format_stats
+from training.data.cli import main as data_main
+from training.data.sources import Y_UP_FRONT_POS_Z, rotation_from_axes, sweethome3d
 
 
 def _box_obj(sx: float, sy: float, sz: float, offset=(0.0, 0.0, 0.0), mtl: str | None = None) -> str:
@@ -308,8 +308,8 @@ def test_data_dir_env(monkeypatch, tmp_path):
     assert corpus.data_dir() == corpus.REPO_ROOT / "data"
 
 
-def _entry(shape_id: str, faces: int, vertices: int, extents, family: str = "") -> corpus.ShapeEntry:
-    return corpus.ShapeEntry(
+def _entry(shape_id: str, faces: int, vertices: int, extents, family: str = "") -> corpus.ManifestRecord:
+    return corpus.ManifestRecord(
         id=shape_id, source="s", package=None, path="p", name=shape_id, category="", creator="", licence="x",
         cls="vessel", split="unseen", groups=["unseen"], faces=faces, vertices=vertices, parts=1,
         watertight=False, textured=False, extents=list(extents), transform=np.eye(4).tolist(), mesh="m",

@@ -11,10 +11,10 @@ import torch
 import trimesh
 
 from genre_backend import frame
-from genre_backend.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
+from genre_backend.geometry.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
 from tiny_data import TINY, make_tiny_views
-from training.evaluate import FLOOR, ROWS, EvalView, Target, Truth, aggregate, choose_thresholds, cloud_metrics, main, mesh_metrics
-from training.train import TrainConfig, train
+from training.eval.runner import FLOOR, ROWS, EvalView, Target, Truth, aggregate, choose_thresholds, cloud_metrics, main, mesh_metrics
+from training.learn.train import TrainConfig, train
 
 
 # ---- F-score -----------------------------------------------------------------------------

@@ -6,7 +6,7 @@ import torch
 
 from genre_backend import frame
 from genre_backend.config import CameraConfig, get_preset
-from genre_backend.analytic import sphere_depth, sphere_silhouette_radius_px
+from genre_backend.geometry.analytic import sphere_depth, sphere_silhouette_radius_px
 
 CAM = CameraConfig()
 

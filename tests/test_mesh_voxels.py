@@ -3,8 +3,8 @@ import pytest
 import torch
 import trimesh
 
-from genre_backend.mesh_voxels import grid_index_to_view, mesh_to_shell, mesh_to_surface_voxels, voxels_to_mesh
-from genre_backend.voxels import voxel_centres
+from genre_backend.geometry.mesh_voxels import grid_index_to_view, mesh_to_shell, mesh_to_surface_voxels, voxels_to_mesh
+from genre_backend.geometry.voxels import voxel_centres
 
 
 def _centre_radii(n):

@@ -4,7 +4,7 @@ import torch
 import trimesh
 
 from genre_backend.config import get_preset
-from genre_backend.metrics import (
+from genre_backend.geometry.metrics import (
     chamfer_distance,
     chamfer_distance_reference,
     mesh_chamfer,
@@ -12,7 +12,7 @@ from genre_backend.metrics import (
     sample_surface,
     sweep_thresholds,
 )
-from genre_backend.mesh_voxels import mesh_to_shell
+from genre_backend.geometry.mesh_voxels import mesh_to_shell
 
 
 def _sphere_points(n, r, seed):

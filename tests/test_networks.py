@@ -2,11 +2,11 @@ import pytest
 import torch
 
 from genre_backend.config import get_preset
-from genre_backend.depth_net import DepthNet
-from genre_backend.inpaint_net import InpaintNet
-from genre_backend.model import GenRe, WeightsError, load_model, save_model
-from genre_backend.refiner import VoxelRefiner
-from genre_backend.uresnet import count_parameters
+from genre_backend.nets.depth_net import DepthNet
+from genre_backend.nets.inpaint_net import InpaintNet
+from genre_backend.nets.model import GenRe, WeightsError, load_model, save_model
+from genre_backend.nets.refiner import VoxelRefiner
+from genre_backend.nets.uresnet import count_parameters
 
 
 def test_paper_parameter_counts_match_the_original():
@@ -39,7 +39,7 @@ def test_refiner_sees_its_input_at_full_resolution():
     3×3×3 box sum of both input grids × SKIP_INIT, voxel for voxel (held to a plain loop)."""
     import numpy as np
 
-    from genre_backend.refiner import SKIP_INIT
+    from genre_backend.nets.refiner import SKIP_INIT
 
     n = 16
     net = VoxelRefiner(n, 4, 16).eval()

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from genre_backend.config import get_preset
-from genre_backend.preprocess import (
+from genre_backend.inference.preprocess import (
     NEUTRAL_BACKGROUND,
     ImageError,
     crop_resize,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from genre_backend.analytic import sphere_silhouette_radius_px
-from genre_backend.blender import render_meshes
+from genre_backend.geometry.analytic import sphere_silhouette_radius_px
+from genre_backend.inference.blender import render_meshes
 from genre_backend.config import CameraConfig
 
 SIZE = 96

@@ -7,8 +7,8 @@ import struct
 import numpy as np
 import pytest
 
-from training.readers import read_3ds, read_ac3d
-from training.readers.ac3d import read_ac3d_parts, triangulate_polygon
+from training.data.readers import read_3ds, read_ac3d
+from training.data.readers.ac3d import read_ac3d_parts, triangulate_polygon
 
 CUBE_VERTS = [(x, y, z) for x in (0, 1) for y in (0, 1) for z in (0, 1)]
 # quads of the unit cube, outward winding, indices into CUBE_VERTS (index = 4x + 2y + z)

@@ -17,12 +17,12 @@ import torch
 import trimesh
 from PIL import Image
 
-from genre_backend import reconstruct_cli
-from genre_backend.model import WEIGHTS_FORMAT, WeightsError, load_model
-from genre_backend.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
-from genre_backend.preprocess import ImageError
+from genre_backend.inference import reconstruct_cli
+from genre_backend.nets.model import WEIGHTS_FORMAT, WeightsError, load_model
+from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
+from genre_backend.inference.preprocess import ImageError
 from tiny_data import TINY, make_tiny_views
-from training.train import TrainConfig, train
+from training.learn.train import TrainConfig, train
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -22,7 +22,7 @@ trimesh = pytest.importorskip("trimesh")
 
 from genre_backend import frame  # noqa: E402
 from genre_backend.config import get_preset  # noqa: E402
-from training import render  # noqa: E402
+from training.render import scene as render  # noqa: E402
 
 CONFIG = get_preset("default")
 CAM = CONFIG.camera
@@ -218,7 +218,7 @@ def test_discover_shapes_from_manifest_and_folder(tmp_path):
 
 
 def test_importing_render_does_not_import_bpy():
-    code = "import sys, training.render; assert 'bpy' not in sys.modules"
+    code = "import sys, training.render.scene; assert 'bpy' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
 
 
@@ -260,7 +260,7 @@ def test_render_killed_mid_run_resumes_without_corrupt_views(sphere_path, tmp_pa
         (shapes / f"{name}.ply").write_bytes(Path(sphere_path).read_bytes())
     out = tmp_path / "out"
     code = (
-        "import sys; from training.render import main; "
+        "import sys; from training.render.scene import main; "
         f"sys.exit(main(['--shapes', {str(shapes)!r}, '--out', {str(out)!r}, '--views', '3', '--no-progress'], 'r'))"
     )
     root = Path(__file__).resolve().parents[1]

@@ -130,7 +130,7 @@ def test_ping_and_version(server, trained):
     server.send({"type": "version", "id": "v"})
     v = server.next()
     assert v["type"] == "version" and v["id"] == "v" and v["weights"] == str(trained[0]) and v["preset"] == "tiny" and v["protocol"] == 1
-    from genre_backend.model import load_model
+    from genre_backend.nets.model import load_model
 
     assert v["threshold"] == load_model(trained[0]).config.geometry.default_threshold
 
@@ -193,7 +193,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     server.send({"type": "reconstruct", "id": "job2", "image": str(files["rgb"]), "mask": str(files["mask"]), "output": str(files["out"] / "m.glb")})
     r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
     assert r["mask_source"] == "file"
-    from genre_backend.model import load_model
+    from genre_backend.nets.model import load_model
 
     assert r["threshold"] == load_model(trained[0]).config.geometry.default_threshold
     server.send({"type": "reconstruct", "id": "job3", "image": str(files["rgba"]), "output": str(files["out"] / "a.obj")})

@@ -5,11 +5,11 @@ import pytest
 import torch
 import trimesh
 
-from genre_backend import spherical as sph
+from genre_backend.geometry import spherical as sph
 from genre_backend.config import CameraConfig, get_preset
-from genre_backend.mesh_voxels import voxels_to_mesh
-from genre_backend.metrics import sample_surface
-from genre_backend.analytic import sphere_depth, sphere_silhouette_radius_px
+from genre_backend.geometry.mesh_voxels import voxels_to_mesh
+from genre_backend.geometry.metrics import sample_surface
+from genre_backend.geometry.analytic import sphere_depth, sphere_silhouette_radius_px
 
 CAM = CameraConfig()
 

@@ -10,10 +10,10 @@ import trimesh
 from scipy import ndimage
 
 from genre_backend import frame
-from genre_backend.spherical import raycast_triangles_reference, sph_directions
+from genre_backend.geometry.spherical import raycast_triangles_reference, sph_directions
 from tiny_data import TINY
-from training.dataset import ViewDataset, find_views
-from training.targets import build_targets, load_targets
+from training.data.dataset import ViewDataset, find_views
+from training.data.targets import build_targets, load_targets
 
 PITCH = 1.0 / TINY.geometry.voxel_size
 
@@ -80,7 +80,7 @@ def test_targets_resume_and_skip(tiny_views):
 
 
 def test_sphere_full_map_is_one_minus_r(tmp_path):
-    from training.render import BlenderRenderer, ShapeEntry, render_shape
+    from training.render.scene import BlenderRenderer, ShapeEntry, render_shape
 
     r = 0.35
     path = tmp_path / "sphere.ply"
@@ -96,9 +96,9 @@ def test_sphere_full_map_is_one_minus_r(tmp_path):
 
 def test_a_real_sweet_home_3d_model(tmp_path):
     """One real catalogue chair, fetched from Debian's archive (120 MB, cached under data/)."""
-    from training import corpus
-    from training.render import BlenderRenderer, ShapeEntry, render_shape
-    from training.sources import sweethome3d
+    from training.data import corpus
+    from training.render.scene import BlenderRenderer, ShapeEntry, render_shape
+    from training.data.sources import sweethome3d
 
     root = corpus.data_dir()
     status = corpus.fetch(["sweethome3d-furniture"], root)

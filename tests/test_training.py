@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from genre_backend.model import GenRe, load_model
+from genre_backend.nets.model import GenRe, load_model
 from tiny_data import TINY, tiny_train_config
-from training.train import StageModule, train, weights_digest
+from training.learn.train import StageModule, train, weights_digest
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -49,7 +49,7 @@ def test_frozen_nets_stay_frozen(tiny_views, tmp_path):
 
 
 def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
-    from training.dataset import ViewDataset, find_views
+    from training.data.dataset import ViewDataset, find_views
 
     data = ViewDataset(find_views(tiny_views), TINY)
     batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
@@ -68,7 +68,7 @@ def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
 
 
 def _train_cmd(views, out, config_json, steps, extra=()):
-    return [sys.executable, "-m", "training.train", "depth", "--data", str(views), "--out", str(out), "--model-config", str(config_json),
+    return [sys.executable, "-m", "training.learn.train", "depth", "--data", str(views), "--out", str(out), "--model-config", str(config_json),
             "--steps", str(steps), "--batch-size", "2", "--val-fraction", "0", "--no-progress", "--log-every", "1", *extra]
 
 
@@ -109,7 +109,7 @@ def test_kill_and_resume_gives_the_same_weights(tiny_views, tmp_path):
 def test_resuming_with_another_architecture_says_which_checkpoint(tiny_views, tmp_path, capsys):
     import dataclasses
 
-    from training.train import CheckpointMismatch
+    from training.learn.train import CheckpointMismatch
 
     run = tmp_path / "run"
     train(_cfg("refine", tiny_views, run, steps=1, checkpoint_every=1), TINY)
@@ -120,7 +120,7 @@ def test_resuming_with_another_architecture_says_which_checkpoint(tiny_views, tm
     assert str(ck) in str(err.value) and "delete" in str(err.value)
     assert (ck / "state.json").is_file()  # nothing was overwritten
     # the command line says so in one line and exits 2, no traceback
-    from training.train import main
+    from training.learn.train import main
 
     cfg_json = tmp_path / "wider.json"
     cfg_json.write_text(json.dumps(wider.to_dict()))
@@ -147,8 +147,8 @@ def test_ddp_with_two_cpu_processes(tiny_views, tmp_path):
 def test_validation_shapes_come_from_the_training_split():
     """The corpus puts a seen shape in 'train' when an unsalted hash of its id is
     >= TEST_FRACTION; the validation split must still find ~val_fraction of them."""
-    from training.corpus import split_of
-    from training.dataset import ViewRef, split_views
+    from training.data.corpus import split_of
+    from training.data.dataset import ViewRef, split_views
 
     ids = [f"shape-{i:04d}" for i in range(2000)]
     train_ids = [s for s in ids if split_of(s, "chair") == "train"]
@@ -162,8 +162,8 @@ def test_validation_shapes_come_from_the_training_split():
 
 
 def test_install_stores_the_seen_test_threshold(tmp_path):
-    from genre_backend.model import save_model
-    from training.install import install
+    from genre_backend.nets.model import save_model
+    from training.eval.install import install
 
     src = tmp_path / "w.safetensors"
     model = GenRe(TINY)

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from genre_backend.voxels import points_to_voxels, points_to_voxels_reference, voxel_centres
+from genre_backend.geometry.voxels import points_to_voxels, points_to_voxels_reference, voxel_centres
 
 
 def test_single_point_at_a_voxel_centre_gives_one():

@@ -25,8 +25,8 @@ def _normalised(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 def make_tiny_views(root: Path, config: GenreConfig = TINY, views_per_shape: int = 2) -> Path:
     """Render a box and a table-like shape (views_per_shape views each) and build their targets under root/views."""
-    from training.render import BlenderRenderer, ShapeEntry, render_shape
-    from training.targets import build_targets
+    from training.render.scene import BlenderRenderer, ShapeEntry, render_shape
+    from training.data.targets import build_targets
 
     meshes = root / "meshes"
     meshes.mkdir(parents=True, exist_ok=True)
@@ -52,8 +52,8 @@ def make_tiny_views(root: Path, config: GenreConfig = TINY, views_per_shape: int
 
 
 def tiny_train_config(stage: str, views: Path, out: Path, **overrides):
-    """A :class:`training.train.TrainConfig` for the tiny views: batch 4, no validation, no augmentation, quiet."""
-    from training.train import TrainConfig
+    """A :class:`training.learn.train.TrainConfig` for the tiny views: batch 4, no validation, no augmentation, quiet."""
+    from training.learn.train import TrainConfig
 
     base = dict(stage=stage, data=str(views), out=str(out), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=5)
     base.update(overrides)

@@ -3,7 +3,7 @@
 Until the networks are trained, ``make demo`` shows what exists end to end:
 
 1. Blender's Suzanne, normalised into the object frame, is rendered headless
-   with Cycles (RGB, Z-pass depth, alpha mask) by :mod:`training.render`.
+   with Cycles (RGB, Z-pass depth, alpha mask) by :mod:`training.render.scene`.
 2. The rendered depth becomes the partial spherical map; the mesh's own full
    spherical map (ground truth) stands in for the inpainting network
    (the paper's *GenRe-SphOracle* path).
@@ -28,10 +28,10 @@ import torch
 
 from genre_backend import frame
 from genre_backend.config import PRESETS, get_preset
-from genre_backend.mesh_voxels import voxels_to_mesh
-from genre_backend.metrics import mesh_chamfer
-from genre_backend.spherical import depth_to_sph, mesh_to_sph, sph_to_voxels
-from genre_backend.voxels import points_to_voxels
+from genre_backend.geometry.mesh_voxels import voxels_to_mesh
+from genre_backend.geometry.metrics import mesh_chamfer
+from genre_backend.geometry.spherical import depth_to_sph, mesh_to_sph, sph_to_voxels
+from genre_backend.geometry.voxels import points_to_voxels
 
 
 def suzanne_mesh() -> tuple[np.ndarray, np.ndarray]:
@@ -39,7 +39,7 @@ def suzanne_mesh() -> tuple[np.ndarray, np.ndarray]:
 
     Suzanne faces −Y in Blender, which is the object frame's front already.
     """
-    from genre_backend.blender import import_bpy
+    from genre_backend.inference.blender import import_bpy
 
     bpy = import_bpy()
     mesh = bpy.data.meshes.new("suzanne")
@@ -60,7 +60,7 @@ def suzanne_mesh() -> tuple[np.ndarray, np.ndarray]:
 def run(out: Path, preset: str, azimuth: float, elevation: float) -> dict:
     import trimesh
 
-    from training.render import BlenderRenderer, ShapeEntry, load_view, render_shape
+    from training.render.scene import BlenderRenderer, ShapeEntry, load_view, render_shape
 
     cfg = get_preset(preset)
     g, cam = cfg.geometry, cfg.camera

@@ -1,0 +1,338 @@
+"""``genre bench``: speed figures, printed (benchmarks are scripts, not timed tests).
+
+``genre bench geometry`` times each geometry op at the ``default`` and
+``paper`` resolutions on an analytic sphere (radius 0.45, seen from the
+default camera), reports the median of several runs and the ratio to the
+op's plain reference implementation.  References that would take minutes at
+full size are timed on a slice of the work and scaled up; the table says so.
+
+``genre bench inference`` times the reconstruction pipeline
+(:class:`genre_backend.inference.reconstruct.Reconstructor`) stage by stage, end to end
+from an image file (a 640×480 RGBA photo whose alpha holds the object), for
+each preset with randomly initialised weights built in memory (speed does not
+depend on training).  Each preset runs in a fresh subprocess so that its peak
+memory (``getrusage`` max RSS) is its own; per-stage peaks come from sampling
+the process's resident set every 2 ms.  On CUDA, per-stage peaks are
+``torch.cuda.max_memory_allocated``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from ..geometry.analytic import sphere_depth
+from ..config import PRESETS, get_preset
+
+__all__ = ["main", "geometry_benchmark", "inference_benchmark"]
+
+
+def _median_time(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up (caches, allocator)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
+    """Time the geometry ops of one preset; returns one row per op."""
+    import trimesh
+
+    from ..geometry.mesh_voxels import mesh_to_shell, voxels_to_mesh
+    from ..geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
+    from ..geometry.spherical import depth_to_sph, depth_to_triangles, mesh_to_sph, raycast_triangles_reference, sph_to_points, sph_to_voxels
+    from ..geometry.voxels import points_to_voxels_reference
+
+    cfg = get_preset(preset)
+    g, cam = cfg.geometry, cfg.camera
+    r = 0.45
+    depth = sphere_depth(cam, g.image_size, r, dtype=torch.float32)
+    rows = []
+
+    def add(op, fast, ref=None, ref_scale=1.0, note=""):
+        t = _median_time(fast, repeats)
+        row = {"preset": preset, "op": op, "ms": 1e3 * t, "ref_ms": None, "note": note}
+        if ref is not None:
+            row["ref_ms"] = 1e3 * _median_time(ref, 1) * ref_scale
+        rows.append(row)
+
+    # depth → partial spherical map; the reference ray-casts a few map rows against all triangles
+    tris, _ = depth_to_triangles(depth, cam, g.depth_edge_max_ratio)
+    ref_rows = 2
+    tri_np = tris.double().numpy()
+    add(
+        f"depth {g.image_size}² → partial sph {g.sph_size}²",
+        lambda: depth_to_sph(depth, cam, g.sph_size, g.depth_edge_max_ratio),
+        lambda: raycast_triangles_reference(tri_np, ref_rows, g.sph_size),
+        g.sph_size / ref_rows,
+        f"reference timed on {ref_rows} of {g.sph_size} rows, scaled",
+    )
+    # spherical map → voxels
+    full = torch.full((1, g.sph_size, g.sph_size), 1.0 - r)
+    pts, mask = sph_to_points(full, g.sph_nohit_min, g.sph_supersample)
+    sub = max(1, pts.shape[1] // 4096)
+    add(
+        f"sph {g.sph_size}² → voxels {g.voxel_size}³",
+        lambda: sph_to_voxels(full, g.voxel_size, g.sph_nohit_min, g.sph_supersample),
+        lambda: points_to_voxels_reference(pts[:, ::sub], g.voxel_size, mask[:, ::sub]),
+        sub,
+        f"reference timed on 1/{sub} of the points, scaled" if sub > 1 else "",
+    )
+    # marching cubes of a voxelised sphere
+    vox = sph_to_voxels(full, g.voxel_size, g.sph_nohit_min, g.sph_supersample)[0, 0]
+    add(f"marching cubes {g.voxel_size}³ → mesh", lambda: voxels_to_mesh(vox, g.default_threshold), note="scikit-image (no reference)")
+    # ground truth from a mesh (offline data preparation)
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=r)
+    v, f = torch.tensor(sphere.vertices, dtype=torch.float32), torch.tensor(sphere.faces)
+    add(f"mesh (20k faces) → full sph {g.sph_size}²", lambda: mesh_to_sph(v, f, g.sph_size), note="ground truth, offline")
+    add(f"mesh (20k faces) → shell {g.voxel_size}³", lambda: mesh_to_shell(v, f, g.voxel_size, g.shell_dilation), note="ground truth, offline")
+    # Chamfer distance
+    for n in (g.chamfer_points, 10_000):
+        a = sample_surface(v, f, n, seed=0)
+        b = sample_surface(v, f, n, seed=1)
+        sub = max(1, n // 1000)
+        ref_note = f"reference: loop over points, timed on 1/{sub}² of the pairs, scaled" if sub > 1 else "reference: loop over points"
+        add(f"chamfer {n} pts (k-d tree)", lambda: chamfer_distance(a, b), lambda: chamfer_distance_reference(a[::sub].numpy(), b[::sub].numpy()), sub * sub, ref_note)
+        add(f"chamfer {n} pts (brute, differentiable)", lambda: chamfer_distance(a, b, method="brute"), lambda: chamfer_distance_reference(a[::sub].numpy(), b[::sub].numpy()), sub * sub, ref_note)
+    return rows
+
+
+def _print_rows(rows: list[dict]) -> None:
+    print(f"{'preset':<8} {'op':<42} {'median ms':>10} {'ref ms':>10} {'ref/fast':>9}  note")
+    for row in rows:
+        ref = f"{row['ref_ms']:.1f}" if row["ref_ms"] is not None else "—"
+        ratio = f"{row['ref_ms'] / row['ms']:.1f}×" if row["ref_ms"] is not None else "—"
+        print(f"{row['preset']:<8} {row['op']:<42} {row['ms']:>10.1f} {ref:>10} {ratio:>9}  {row['note']}")
+
+
+def _rss_bytes() -> int:
+    """Current resident set size of this process in bytes (Linux /proc; 0 elsewhere)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def _max_rss_bytes() -> int:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
+
+
+def _bench_image(folder: Path) -> Path:
+    """A 640×480 RGBA photo: a shaded ellipse (the object, opaque) on transparent noise."""
+    import numpy as np
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    h, w = 480, 640
+    yy, xx = np.mgrid[0:h, 0:w]
+    inside = ((xx - 330) / 170.0) ** 2 + ((yy - 250) / 120.0) ** 2 <= 1.0
+    shade = np.clip(1.0 - (((xx - 280) / 260.0) ** 2 + ((yy - 200) / 200.0) ** 2), 0.1, 1.0)
+    rgb = (rng.random((h, w, 3)) * 60 + 100).astype(np.uint8)
+    rgb[inside] = (np.array([200, 120, 60])[None] * shade[inside][:, None]).astype(np.uint8)
+    alpha = np.where(inside, 255, 0).astype(np.uint8)
+    path = folder / "bench_photo.png"
+    Image.fromarray(np.dstack([rgb, alpha]), "RGBA").save(path)
+    return path
+
+
+def _inference_worker(preset: str, device: str, repeats: int, threshold: float) -> dict:
+    """Run in a fresh process: time the pipeline of one preset; returns a JSON-able summary."""
+    import tempfile
+    import threading
+
+    from ..nets.model import GenRe
+    from .reconstruct import STAGES, Reconstructor
+
+    base_rss = _rss_bytes()
+    torch.manual_seed(0)
+    rec = Reconstructor.from_model(GenRe(get_preset(preset)), device)
+    model_rss = _rss_bytes()
+    params = sum(p.numel() for p in rec.model.parameters())
+    cuda = rec.device.type == "cuda"
+    current = {"stage": None}
+    peaks: dict[str, int] = {}
+    stop = threading.Event()
+
+    def sampler():
+        while not stop.is_set():
+            st = current["stage"]
+            if st is not None:
+                peaks[st] = max(peaks.get(st, 0), _rss_bytes())
+            time.sleep(0.002)
+
+    def progress(stage: str, fraction: float) -> None:
+        if cuda:
+            prev = current["stage"]
+            if prev is not None:
+                peaks[prev] = max(peaks.get(prev, 0), torch.cuda.max_memory_allocated(rec.device))
+            torch.cuda.reset_peak_memory_stats(rec.device)
+        current["stage"] = stage
+
+    thread = None if cuda else threading.Thread(target=sampler, daemon=True)
+    if thread:
+        thread.start()
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        image = _bench_image(Path(tmp))
+        out_path = Path(tmp) / "mesh.obj"
+        for i in range(repeats + 1):  # the first run warms up caches and the allocator
+            t0 = time.perf_counter()
+            result = rec.run(image, threshold=threshold, progress=progress)
+            progress("write", 1.0)
+            result.save_mesh(out_path)
+            if cuda:
+                progress("done", 1.0)
+            current["stage"] = None
+            total = time.perf_counter() - t0
+            if i:
+                runs.append({**result.timings, "total": total})
+        # the extra depth-net pass that photos without mask or alpha need (in "preprocess")
+        rgb = result.intermediates["rgb"]
+        sil_times = []
+        with torch.inference_mode():
+            for _ in range(repeats):
+                rec._first_pass = None  # no reuse of the previous pass: time the net
+                t0 = time.perf_counter()
+                rec._silhouette(rgb)
+                if cuda:
+                    torch.cuda.synchronize(rec.device)
+                sil_times.append(time.perf_counter() - t0)
+    stop.set()
+    if thread:
+        thread.join()
+    med = {k: statistics.median(r[k] for r in runs) for k in [*STAGES, "total"] if all(k in r for r in runs)}
+    return {
+        "preset": preset,
+        "device": str(rec.device),
+        "threads": torch.get_num_threads(),
+        "params_m": params / 1e6,
+        "repeats": repeats,
+        "median_s": med,
+        "silhouette_pass_s": statistics.median(sil_times),
+        "peak_by_stage_mb": {k: v / 2**20 for k, v in peaks.items()},
+        "peak_kind": "cuda max_memory_allocated" if cuda else "sampled RSS",
+        "rss_start_mb": base_rss / 2**20,
+        "rss_model_mb": model_rss / 2**20,
+        "max_rss_mb": _max_rss_bytes() / 2**20,
+        "vertices": int(len(result.vertices)),
+        "faces": int(len(result.faces)),
+        "mask_source": result.mask_source,
+    }
+
+
+def inference_benchmark(preset: str, device: str = "cpu", repeats: int = 5, threshold: float = 0.5, threads: int | None = None) -> dict:
+    """Time the pipeline of ``preset`` in a fresh subprocess (so its peak memory is its own)."""
+    import json
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "genre_backend.cli", "bench", "_inference-worker", "--preset", preset, "--device", device,
+           "--repeats", str(repeats), "--threshold", str(threshold)]
+    if threads:
+        cmd += ["--threads", str(threads)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"inference benchmark of {preset} on {device} failed: {tail}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+_TARGETS_S = {"default": 1.0, "paper": 8.0}  # CPU targets of the issue (2-core CPU)
+
+
+def _print_inference(summary: dict) -> None:
+    from .reconstruct import STAGES
+
+    s = summary
+    print(f"\n{s['preset']} on {s['device']} ({s['threads']} threads, {s['params_m']:.1f} M parameters, median of {s['repeats']} runs; "
+          f"mesh {s['vertices']} vertices / {s['faces']} faces, mask from {s['mask_source']})")
+    print(f"  {'stage':<12} {'median ms':>10} {'peak MB':>9}")
+    for st in STAGES:
+        if st in s["median_s"]:
+            peak = s["peak_by_stage_mb"].get(st)
+            print(f"  {st:<12} {1e3 * s['median_s'][st]:>10.1f} {peak if peak is not None else float('nan'):>9.0f}")
+    total = s["median_s"]["total"]
+    target = _TARGETS_S.get(s["preset"]) if s["device"] == "cpu" else None
+    verdict = f"  (target ≤ {target:.1f} s: {'met' if total <= target else 'MISSED'})" if target else ""
+    print(f"  {'total':<12} {1e3 * total:>10.1f}{verdict}")
+    print(f"  photos without mask or alpha add one depth-net pass: {1e3 * s['silhouette_pass_s']:.1f} ms")
+    print(f"  memory ({s['peak_kind']} per stage): RSS at start {s['rss_start_mb']:.0f} MB, with model {s['rss_model_mb']:.0f} MB, "
+          f"process peak (getrusage max RSS) {s['max_rss_mb']:.0f} MB")
+
+
+def main(argv: list[str], prog: str = "genre bench") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description="Print speed figures of the project's operations.")
+    sub = parser.add_subparsers(dest="what", required=True)
+    geo = sub.add_parser("geometry", help="time the geometry core at the default and paper resolutions")
+    geo.add_argument("--preset", choices=[*PRESETS, "all"], default="all")
+    geo.add_argument("--repeats", type=int, default=5, help="timed runs per op (median reported)")
+    geo.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    inf = sub.add_parser("inference", help="time the reconstruction pipeline per stage (random weights of each preset)")
+    inf.add_argument("--preset", choices=[*PRESETS, "all"], default="all")
+    inf.add_argument("--device", choices=["cpu", "cuda", "all"], default="all", help="all: the CPU, and CUDA when present")
+    inf.add_argument("--repeats", type=int, default=5, help="timed runs per preset after one warm-up (median reported)")
+    inf.add_argument("--threshold", type=float, default=0.5)
+    inf.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    inf.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
+    worker = sub.add_parser("_inference-worker")  # internal: one preset in a fresh process
+    worker.add_argument("--preset", required=True)
+    worker.add_argument("--device", required=True)
+    worker.add_argument("--repeats", type=int, required=True)
+    worker.add_argument("--threshold", type=float, required=True)
+    worker.add_argument("--threads", type=int, default=None)
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.repeats < 1:
+        parser.error("--repeats must be at least 1")
+    if args.what == "_inference-worker":
+        import json
+
+        print(json.dumps(_inference_worker(args.preset, args.device, args.repeats, args.threshold)))
+        return 0
+    if args.what == "inference":
+        import json
+
+        if not 0.0 < args.threshold < 1.0:
+            parser.error("--threshold must lie in (0, 1)")
+        devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
+        if "cuda" in devices and not torch.cuda.is_available():
+            if args.device == "cuda":
+                print(f"{prog}: error: no CUDA device is available", file=sys.stderr)
+                return 1
+            devices.remove("cuda")
+        print(f"torch {torch.__version__}, {args.threads or torch.get_num_threads()} threads, devices: {', '.join(devices)}")
+        presets = list(PRESETS) if args.preset == "all" else [args.preset]
+        summaries = []
+        for device in devices:
+            for preset in presets:
+                try:
+                    summary = inference_benchmark(preset, device, args.repeats, args.threshold, args.threads)
+                except RuntimeError as exc:
+                    print(f"{prog}: error: {exc}", file=sys.stderr)
+                    return 1
+                summaries.append(summary)
+                _print_inference(summary)
+        if args.json:
+            print(json.dumps(summaries, indent=2))
+        return 0
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device cpu")
+    presets = list(PRESETS) if args.preset == "all" else [args.preset]
+    rows = []
+    for preset in presets:
+        rows += geometry_benchmark(preset, args.repeats)
+    _print_rows(rows)
+    return 0

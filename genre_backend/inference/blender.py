@@ -1,0 +1,150 @@
+"""Blender (``bpy``) as a library: environment, quiet output, and mesh previews.
+
+``bpy`` is imported only inside functions (it costs ~1 s and ~300 MB), so
+importing this module is cheap.  The training renderer
+(:mod:`training.render.scene`), the evaluation gallery and ``genre reconstruct
+--preview`` all go through :func:`import_bpy`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..config import CameraConfig
+
+__all__ = ["prepare_blender_environment", "quiet_stdout", "import_bpy", "render_meshes"]
+
+
+def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> Path:
+    """Point Blender's user resources and cache at ``cache_dir`` before ``import bpy``.
+
+    Sets ``BLENDER_USER_RESOURCES`` and ``XDG_CACHE_HOME`` unless they are
+    already set, so bpy never writes into the home folder.  The default
+    folder is ``$GENRE_BLENDER_CACHE`` or ``<tmp>/genre-blender-<uid>``.
+    Returns the folder used.
+    """
+    if cache_dir is None:
+        cache_dir = os.environ.get("GENRE_BLENDER_CACHE") or os.path.join(
+            tempfile.gettempdir(), f"genre-blender-{os.getuid() if hasattr(os, 'getuid') else 'user'}"
+        )
+    root = Path(cache_dir)
+    (root / "user").mkdir(parents=True, exist_ok=True)
+    (root / "xdg-cache").mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("BLENDER_USER_RESOURCES", str(root / "user"))
+    os.environ.setdefault("XDG_CACHE_HOME", str(root / "xdg-cache"))
+    return root
+
+
+@contextlib.contextmanager
+def quiet_stdout(enabled: bool = True):
+    """Silence Blender's C-level prints ("Saved: ...", importer logs) on file descriptor 1."""
+    if not enabled:
+        yield
+        return
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:  # no real stdout (embedded interpreter): nothing to silence
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def import_bpy():
+    """``import bpy`` after :func:`prepare_blender_environment` (first call only)."""
+    if "bpy" not in sys.modules:
+        prepare_blender_environment()
+    import bpy  # noqa: PLC0415  (deliberately lazy)
+
+    return bpy
+
+
+def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, samples: int = 16,
+                  camera: CameraConfig | None = None) -> list[list[np.ndarray]]:
+    """Render view-frame meshes with Blender (Cycles, CPU) from the input camera and from the right side.
+
+    ``meshes``: (vertices (V, 3) float, faces (F, 3) int) pairs in the view
+    frame of :mod:`genre_backend.frame`.  Returns, per mesh, ``[front,
+    side]`` RGB images (size, size, 3) uint8 on white.  Blender's world is
+    the view frame itself: the input camera sits at (0, 0, d) looking along
+    −z, the side camera at (d, 0, 0) looking along −x, both with the
+    ``camera``'s lens, sensor and distance (default :class:`CameraConfig`).
+    Resets Blender to an empty factory scene first.
+    """
+    if size < 1 or samples < 1:
+        raise ValueError(f"size and samples must be positive, got {size}, {samples}")
+    cam_cfg = camera or CameraConfig()
+    bpy = import_bpy()
+    with quiet_stdout(True):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_denoising = False
+    scene.render.resolution_x = scene.render.resolution_y = size
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    world = bpy.data.worlds.new("w")
+    if world.node_tree is None:
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.8, 0.8, 0.8, 1.0)
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.6
+    scene.world = world
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.data.energy = 3.0
+    sun.rotation_euler = (math.radians(-35), math.radians(35), 0.0)
+    scene.collection.objects.link(sun)
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    cam.data.lens, cam.data.sensor_width, cam.data.sensor_fit = cam_cfg.lens_mm, cam_cfg.sensor_mm, "HORIZONTAL"
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    mat = bpy.data.materials.new("clay")
+    if mat.node_tree is None:  # Blender < 5 makes materials without nodes (5.0 deprecates use_nodes)
+        mat.use_nodes = True
+    mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.55, 0.62, 0.75, 1.0)
+    d = cam_cfg.distance
+    poses = [((0.0, 0.0, d), (0.0, 0.0, 0.0)), ((d, 0.0, 0.0), (0.0, math.pi / 2, 0.0))]
+    from PIL import Image
+
+    out = []
+    tmp = Path(tempfile.gettempdir()) / f"genre_preview_{os.getpid()}.png"
+    try:
+        for verts, faces in meshes:
+            me = bpy.data.meshes.new("m")
+            me.from_pydata(np.asarray(verts, float).tolist(), [], np.asarray(faces, int).tolist())
+            me.update()
+            obj = bpy.data.objects.new("m", me)
+            obj.data.materials.append(mat)
+            scene.collection.objects.link(obj)
+            images = []
+            for loc, rot in poses:
+                cam.location, cam.rotation_euler = loc, rot
+                scene.render.filepath = str(tmp)
+                with quiet_stdout(True):
+                    bpy.ops.render.render(write_still=True)
+                with Image.open(tmp) as im:
+                    rgba = np.asarray(im.convert("RGBA"), np.float32) / 255.0
+                images.append(((rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:])) * 255).astype(np.uint8))
+            bpy.data.objects.remove(obj)
+            bpy.data.meshes.remove(me)
+            out.append(images)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out

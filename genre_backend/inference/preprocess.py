@@ -1,0 +1,411 @@
+"""Photo → network input: decoding, mask selection and the canonical framing.
+
+Training views are rendered in the canonical framing of :mod:`genre_backend.frame`
+(object centred at the origin, bounding-box diagonal 1, camera 2.2 units away),
+so the object sits in the middle of the image.  A photo is brought to that
+framing here, and only here:
+
+1. **Decode** (:func:`load_image`): any format Pillow reads, EXIF orientation
+   applied, the first frame of animations, 16-bit / grayscale / palette /
+   CMYK / bilevel converted to 8-bit RGB(A).  Images above
+   :data:`MAX_PIXELS` are refused before any pixel is decoded (JPEGs are
+   first reduced by the decoder's DCT scaling when that brings them under the
+   limit), and larger ones are downscaled to at most :data:`WORK_SIDE` pixels
+   on their long side, which is far more than the network input needs.
+2. **Mask** (:func:`preprocess`), in this order: a mask file given by the user
+   (same size as the image, not empty), else the image's alpha channel when it
+   has real transparency, else the depth net's own silhouette (two passes:
+   the whole image padded to a square, then the crop around that silhouette).
+3. **Framing** (:func:`square_crop_box`, :func:`crop_resize`): a square
+   centred on the mask's bounding box whose side makes the box's longest side
+   span ``GeometryConfig.object_fraction`` of the image; parts outside the
+   photo are filled with the photo's border colour (or, for images with
+   transparency, the neutral background), then resized to ``image_size``.
+   RGBA images are composited over :data:`NEUTRAL_BACKGROUND`.
+
+Every failure raises :class:`ImageError` whose ``code`` is one of the
+``genre serve`` protocol's error codes (``bad_image``, ``bad_mask``,
+``no_object``) and whose message is one line naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..config import GenreConfig
+
+__all__ = [
+    "ImageError",
+    "LoadedImage",
+    "Preprocessed",
+    "MAX_PIXELS",
+    "WORK_SIDE",
+    "NEUTRAL_BACKGROUND",
+    "MIN_OBJECT_PIXELS",
+    "load_image",
+    "load_mask",
+    "mask_bbox",
+    "square_crop_box",
+    "crop_resize",
+    "preprocess",
+]
+
+# Images with more pixels than this are refused (8-bit RGBA at the limit: 256 MB).
+MAX_PIXELS = 64_000_000
+# Decoded images are downscaled to at most this many pixels on their long side.
+WORK_SIDE = 4096
+# RGB (in [0, 1]) that transparent pixels are composited over.
+NEUTRAL_BACKGROUND = (0.5, 0.5, 0.5)
+# A mask (file, alpha or silhouette) with fewer object pixels than this is "empty".
+MIN_OBJECT_PIXELS = 4
+# Alpha values (0–255) at or above this count as object.
+ALPHA_OBJECT_MIN = 128
+
+
+class ImageError(ValueError):
+    """An image or mask that cannot be used; ``code`` is a protocol error code.
+
+    ``code``: ``"bad_image"`` (unreadable, empty, corrupt, truncated,
+    unsupported or too large), ``"bad_mask"`` (unreadable, empty or of the
+    wrong size) or ``"no_object"`` (nothing found to reconstruct).
+    """
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class LoadedImage:
+    """A decoded image.
+
+    ``rgb``: (H, W, 3) uint8.  ``alpha``: (H, W) uint8 or None (no alpha
+    channel).  ``original_size``: (width, height) as stored in the file
+    (after EXIF rotation); ``scale``: ``rgb``'s size / the original size
+    (< 1 when the image was downscaled).  ``notes``: what was converted.
+    """
+
+    path: Path
+    rgb: np.ndarray
+    alpha: np.ndarray | None
+    original_size: tuple[int, int]
+    scale: float
+    notes: list[str]
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the decoded arrays."""
+        return self.rgb.shape[1], self.rgb.shape[0]
+
+    def has_transparency(self) -> bool:
+        """True when the alpha channel exists and some pixels are transparent."""
+        return self.alpha is not None and int(self.alpha.min()) < ALPHA_OBJECT_MIN
+
+
+@dataclass
+class Preprocessed:
+    """The network input of one photo.
+
+    ``rgb``: (3, S, S) float32 in [0, 1].  ``mask``: (S, S) bool, or None when
+    the depth net's silhouette is to be used (``mask_source`` ``"silhouette"``;
+    the silhouette of the final crop then becomes the mask).  ``mask_source``:
+    ``"file"``, ``"alpha"`` or ``"silhouette"``.  ``crop_box``: (x0, y0, x1, y1)
+    the square crop in the original image's pixel coordinates (may extend past
+    the image).  ``image_size``: (width, height) of the original image.
+    """
+
+    rgb: torch.Tensor
+    mask: torch.Tensor | None
+    mask_source: str
+    crop_box: tuple[float, float, float, float]
+    image_size: tuple[int, int]
+    notes: list[str]
+
+
+# ---------------------------------------------------------------------------------- decoding
+def _check_file(path: Path, what: str, code: str) -> None:
+    if not path.exists():
+        raise ImageError(code, f"{path}: no such file")
+    if path.is_dir():
+        raise ImageError(code, f"{path}: is a directory, not an {what} file")
+    if not path.is_file():
+        raise ImageError(code, f"{path}: not a regular file")
+    if path.stat().st_size == 0:
+        raise ImageError(code, f"{path}: empty file (0 bytes)")
+    if not os.access(path, os.R_OK):
+        raise ImageError(code, f"{path}: not readable (permission denied)")
+
+
+def _to_8bit(im, path: Path, notes: list[str]):
+    """Any Pillow mode → an "RGB" or "RGBA" image (16-bit and float scaled to 8 bits)."""
+    from PIL import Image
+
+    mode = im.mode
+    if mode in ("RGB", "RGBA"):
+        return im
+    if mode in ("I;16", "I;16B", "I;16L", "I;16N", "I", "F"):
+        a = np.asarray(im, dtype=np.float64)
+        if not np.isfinite(a).all():
+            raise ImageError("bad_image", f"{path}: {mode} image with non-finite values")
+        if mode == "F":
+            hi = 1.0 if a.max() <= 1.0 else float(a.max())
+        else:
+            hi = 65535.0 if a.max() <= 65535 else float(a.max())
+        notes.append(f"{mode} ({'float' if mode == 'F' else '16-bit'}) grayscale scaled to 8 bits")
+        g = np.clip(np.rint(a / hi * 255.0), 0, 255).astype(np.uint8)
+        return Image.fromarray(np.repeat(g[:, :, None], 3, axis=2), "RGB")
+    has_alpha = mode in ("LA", "La", "PA", "RGBa") or (mode == "P" and "transparency" in im.info)
+    notes.append(f"{mode} converted to {'RGBA' if has_alpha else 'RGB'}")
+    try:
+        return im.convert("RGBA" if has_alpha else "RGB")
+    except (ValueError, OSError) as exc:
+        raise ImageError("bad_image", f"{path}: unsupported image mode {mode} ({exc})") from None
+
+
+def load_image(path: str | os.PathLike, *, max_pixels: int = MAX_PIXELS, work_side: int = WORK_SIDE, code: str = "bad_image", what: str = "image") -> LoadedImage:
+    """Decode an image file safely; see the module docstring for what is accepted.
+
+    Raises :class:`ImageError` (``code``, default ``"bad_image"``) with a
+    one-line message for a missing path, a directory, an empty file, a file
+    that is not an image, a truncated or corrupt one, an unsupported mode or
+    one above ``max_pixels``.
+    """
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
+    path = Path(path)
+    _check_file(path, what, code)
+    notes: list[str] = []
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(path)  # reads the header only
+    except Image.DecompressionBombError as exc:  # Pillow refuses to even open it (its own limit)
+        found = re.search(r"\((\d+) pixels\)", str(exc))
+        size = f"{int(found.group(1)) / 1e6:.0f} Mpx" if found else f"more than {2 * Image.MAX_IMAGE_PIXELS / 1e6:.0f} Mpx"
+        raise ImageError(code, f"{path}: image too large ({size}; limit {max_pixels / 1e6:.0f} Mpx)") from None
+    except UnidentifiedImageError:
+        raise ImageError(code, f"{path}: not an image (unrecognised file format)") from None
+    except (OSError, SyntaxError, ValueError, EOFError) as exc:
+        raise ImageError(code, f"{path}: corrupt image header ({exc})") from None
+    with im:
+        width, height = im.size
+        fmt = im.format or "image"
+        if width < 1 or height < 1:
+            raise ImageError(code, f"{path}: {fmt} image with no pixels ({width}×{height})")
+        frames = getattr(im, "n_frames", 1)
+        if frames > 1:
+            notes.append(f"animated ({frames} frames): using the first")
+            im.seek(0)
+        if width * height > max_pixels and fmt == "JPEG":
+            # DCT scaling in the decoder: 1/2, 1/4 or 1/8 of the size, never the full image in memory
+            # the decoder picks the largest reduction whose size stays ≥ the request, i.e. < 2× it
+            k = (max_pixels / (width * height)) ** 0.5 / 2.0
+            im.draft("RGB", (max(1, int(width * k)), max(1, int(height * k))))
+            notes.append(f"JPEG decoded at reduced size {im.size[0]}×{im.size[1]}")
+        dw, dh = im.size
+        if dw * dh > max_pixels:
+            raise ImageError(code, f"{path}: image too large ({width * height / 1e6:.0f} Mpx, {width}×{height}; limit {max_pixels / 1e6:.0f} Mpx)")
+        try:
+            im.load()
+            swapped = im.getexif().get(0x0112, 1) in (5, 6, 7, 8)  # EXIF orientations that turn by 90°
+            orig = (height, width) if swapped else (width, height)
+            im = ImageOps.exif_transpose(im)
+            im = _to_8bit(im, path, notes)
+        except ImageError:
+            raise
+        except (OSError, SyntaxError, ValueError, EOFError, IndexError, MemoryError) as exc:
+            reason = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
+            raise ImageError(code, f"{path}: corrupt or truncated {fmt} image ({reason})") from None
+        if swapped:
+            notes.append("EXIF orientation applied")
+        if max(im.size) > work_side:
+            s = work_side / max(im.size)
+            new = (max(1, round(im.size[0] * s)), max(1, round(im.size[1] * s)))
+            im = im.resize(new, Image.BOX, reducing_gap=2.0)
+            notes.append(f"downscaled to {new[0]}×{new[1]}")
+        arr = np.asarray(im)
+    rgb = np.ascontiguousarray(arr[:, :, :3])
+    alpha = np.ascontiguousarray(arr[:, :, 3]) if arr.shape[2] == 4 else None
+    return LoadedImage(path, rgb, alpha, (int(orig[0]), int(orig[1])), im.size[0] / orig[0], notes)
+
+
+def load_mask(path: str | os.PathLike, image: LoadedImage) -> np.ndarray:
+    """A user's mask file → (H, W) bool at the decoded image's resolution.
+
+    Object pixels are bright (luminance ≥ 50%); where the file has
+    transparency, transparent pixels are background.  The file must have the
+    image's size (after EXIF rotation of both) and mark at least
+    :data:`MIN_OBJECT_PIXELS` pixels.  Raises :class:`ImageError` ``bad_mask``.
+    """
+    from PIL import Image
+
+    m = load_image(path, code="bad_mask", what="mask")
+    if m.original_size != image.original_size:
+        ow, oh = m.original_size
+        iw, ih = image.original_size
+        raise ImageError("bad_mask", f"{m.path}: mask is {ow}×{oh}, the image is {iw}×{ih}")
+    lum = m.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    mask = lum >= 127.5
+    if m.alpha is not None:
+        mask &= m.alpha >= ALPHA_OBJECT_MIN
+    if mask.shape != image.rgb.shape[:2]:  # the image was downscaled: bring the mask along
+        im = Image.fromarray(mask.astype(np.uint8) * 255, "L").resize(image.size, Image.BOX, reducing_gap=2.0)
+        mask = np.asarray(im) >= 128
+    if int(mask.sum()) < MIN_OBJECT_PIXELS:
+        raise ImageError("bad_mask", f"{m.path}: empty mask (no object pixels: expected white object on black)")
+    return mask
+
+
+# ---------------------------------------------------------------------------------- framing
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """Bounding box (x0, y0, x1, y1), exclusive upper bounds, of a (H, W) bool mask; None if empty."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return None
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+
+
+def square_crop_box(bbox: tuple[float, float, float, float], object_fraction: float) -> tuple[float, float, float, float]:
+    """The square (x0, y0, x1, y1) centred on ``bbox`` whose side is its longest side / ``object_fraction``."""
+    if not 0.0 < object_fraction <= 1.0:
+        raise ValueError(f"object_fraction: expected a value in (0, 1], got {object_fraction}")
+    x0, y0, x1, y1 = bbox
+    side = max(x1 - x0, y1 - y0, 1.0) / object_fraction
+    cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
+    return cx - side / 2.0, cy - side / 2.0, cx + side / 2.0, cy + side / 2.0
+
+
+def _border_colour(rgb: np.ndarray) -> tuple[int, int, int]:
+    """Median colour (uint8 RGB) of the outermost pixels of a (H, W, 3) image."""
+    border = np.concatenate([rgb[0], rgb[-1], rgb[:, 0], rgb[:, -1]], axis=0)
+    return tuple(int(v) for v in np.median(border, axis=0))
+
+
+def crop_resize(array: np.ndarray, box: tuple[float, float, float, float], size: int, fill) -> np.ndarray:
+    """Crop ``array`` (H, W, C) or (H, W) uint8 to the square ``box`` and resize it to (size, size[, C]).
+
+    Only the part of the box inside the image is resampled (area-averaging when
+    shrinking); the rest is ``fill`` (a value or a per-channel tuple).  Memory
+    stays O(image + size²) however far the box extends past the image.
+    """
+    from PIL import Image
+
+    h, w = array.shape[:2]
+    x0, y0, x1, y1 = box
+    scale = size / (x1 - x0)
+    mode = "L" if array.ndim == 2 else "RGB"
+    out = Image.new(mode, (size, size), fill if mode == "L" else tuple(fill))
+    # destination pixels covered by the image, rounded to whole pixels
+    dx0, dy0 = max(0, round((0 - x0) * scale)), max(0, round((0 - y0) * scale))
+    dx1, dy1 = min(size, round((w - x0) * scale)), min(size, round((h - y0) * scale))
+    if dx1 > dx0 and dy1 > dy0:
+        src = (
+            min(max(x0 + dx0 / scale, 0.0), w),
+            min(max(y0 + dy0 / scale, 0.0), h),
+            min(max(x0 + dx1 / scale, 0.0), w),
+            min(max(y0 + dy1 / scale, 0.0), h),
+        )
+        part = Image.fromarray(array, mode).resize((dx1 - dx0, dy1 - dy0), Image.BILINEAR, box=src, reducing_gap=2.0)
+        out.paste(part, (dx0, dy0))
+    return np.asarray(out)
+
+
+def _composite(image: LoadedImage) -> np.ndarray:
+    """RGB (H, W, 3) uint8 of the image, RGBA composited over the neutral background."""
+    if image.alpha is None:
+        return image.rgb
+    a = image.alpha.astype(np.float32)[:, :, None] / 255.0
+    bg = np.array(NEUTRAL_BACKGROUND, np.float32) * 255.0
+    return np.clip(np.rint(image.rgb.astype(np.float32) * a + bg * (1.0 - a)), 0, 255).astype(np.uint8)
+
+
+def _to_tensor(rgb: np.ndarray) -> torch.Tensor:
+    """(S, S, 3) uint8 → (3, S, S) float32 in [0, 1]."""
+    return torch.from_numpy(rgb.astype(np.float32) / 255.0).permute(2, 0, 1).contiguous()
+
+
+SilhouetteFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+def preprocess(
+    image: LoadedImage,
+    config: GenreConfig,
+    *,
+    mask_path: str | os.PathLike | None = None,
+    silhouette: SilhouetteFn | None = None,
+) -> Preprocessed:
+    """Select the mask and bring the image to the canonical framing.
+
+    ``silhouette``: a function (3, S, S) float RGB → (S, S) bool (the depth
+    net's silhouette), needed only when neither a mask file nor real alpha is
+    there; it runs once on the whole image padded to a square (to find the
+    object), and the returned ``mask`` is None so that the caller takes the
+    silhouette of the final crop.  Raises :class:`ImageError`.
+    """
+    g = config.geometry
+    size = g.image_size
+    rgb = _composite(image)
+    h, w = rgb.shape[:2]
+    notes = list(image.notes)
+    inv = 1.0 / image.scale  # decoded pixels → original pixels
+
+    def original_box(box):
+        return tuple(float(v) * inv for v in box)
+
+    if mask_path is not None or image.has_transparency():
+        if mask_path is not None:
+            mask, source = load_mask(mask_path, image), "file"
+        else:
+            mask, source = image.alpha >= ALPHA_OBJECT_MIN, "alpha"
+            if int(mask.sum()) < MIN_OBJECT_PIXELS:
+                raise ImageError("no_object", f"{image.path}: no object: the alpha channel is fully transparent")
+        box = square_crop_box(mask_bbox(mask), g.object_fraction)
+        fill = tuple(int(round(255 * c)) for c in NEUTRAL_BACKGROUND) if image.alpha is not None else _border_colour(rgb)
+        crop = crop_resize(rgb, box, size, fill)
+        crop_mask = crop_resize(mask.astype(np.uint8) * 255, box, size, 0) >= 128
+        if int(crop_mask.sum()) < MIN_OBJECT_PIXELS:
+            raise ImageError("no_object", f"{image.path}: no object: the {source} mask is too small to see at {size}² pixels")
+        return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, original_box(box), image.original_size, notes)
+
+    if silhouette is None:
+        raise ValueError("preprocess: an image without mask file or transparency needs the silhouette function")
+    # pass 1: the whole image, padded to a square, to find the object
+    side = float(max(w, h))
+    whole = ((w - side) / 2.0, (h - side) / 2.0, (w + side) / 2.0, (h + side) / 2.0)
+    fill = _border_colour(rgb)
+    sil = silhouette(_to_tensor(crop_resize(rgb, whole, size, fill))).cpu().numpy().astype(bool)
+    bbox = mask_bbox(sil)
+    if bbox is None or int(sil.sum()) < MIN_OBJECT_PIXELS:
+        raise ImageError("no_object", f"{image.path}: no object found (the depth net's silhouette is empty; give a mask with --mask or an alpha channel)")
+    k = side / size  # pass-1 pixels → decoded pixels
+    bbox = (whole[0] + bbox[0] * k, whole[1] + bbox[1] * k, whole[0] + bbox[2] * k, whole[1] + bbox[3] * k)
+    box = square_crop_box(bbox, g.object_fraction)
+    if _close_boxes(box, whole):
+        # already framed (e.g. a render): the first pass's input is the framed image, and
+        # the caller may reuse that pass's outputs instead of running the net again
+        box = whole
+        notes.append("already framed: first silhouette pass reused")
+    crop = crop_resize(rgb, box, size, fill)
+    return Preprocessed(_to_tensor(crop), None, "silhouette", original_box(box), image.original_size, notes)
+
+
+# a crop this close to the first pass's square is within the spread of training framings
+# (the mask's longest side spans 0.28–0.68 of the real default renders)
+_REFRAME_SIDE_TOL = 0.10
+_REFRAME_CENTRE_TOL = 0.05
+
+
+def _close_boxes(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    """True when square boxes ``a`` and ``b`` differ by ≤ 10% in side and ≤ 5% of the side in centre."""
+    side_a, side_b = a[2] - a[0], b[2] - b[0]
+    centre = max(abs((a[0] + a[2]) - (b[0] + b[2])), abs((a[1] + a[3]) - (b[1] + b[3]))) / 2.0
+    return abs(side_a / side_b - 1.0) <= _REFRAME_SIDE_TOL and centre <= _REFRAME_CENTRE_TOL * side_b

@@ -1,0 +1,148 @@
+"""``genre reconstruct IMAGE… [-o OUT] [--mask M] [--threshold T] [--format obj|ply|glb]
+[--save-intermediates DIR] [--weights W] [--device cpu|cuda]``.
+
+One image or many (a progress bar on stderr for many).  Each mesh is written
+atomically; every bad input gets one line on stderr naming the file and the
+problem (with its ``genre serve`` error code), the other images go on, and the
+exit status is 1 if any image failed (2 for bad arguments).
+
+Outputs: with one image, ``-o`` is the mesh file (or an existing folder);
+with many, ``-o`` is a folder (created if needed) that receives
+``<image stem>.<format>``.  Default: the current folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+__all__ = ["main", "output_paths"]
+
+
+def output_paths(images: list[Path], out: str | None, fmt: str) -> list[Path]:
+    """The mesh path of every image; names that would collide get ``-2``, ``-3``… appended."""
+    if len(images) == 1 and out is not None and not Path(out).is_dir() and not out.endswith(os.sep):
+        return [Path(out)]
+    folder = Path(out) if out is not None else Path(".")
+    seen: dict[str, int] = {}
+    paths = []
+    for image in images:
+        stem = image.stem or "mesh"
+        n = seen.get(stem, 0) + 1
+        seen[stem] = n
+        paths.append(folder / (f"{stem}.{fmt}" if n == 1 else f"{stem}-{n}.{fmt}"))
+    return paths
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else exc.__class__.__name__
+
+
+def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
+    from .reconstruct import DEFAULT_WEIGHTS, MESH_FORMATS
+
+    parser = argparse.ArgumentParser(prog=prog, description="Turn photos of objects into meshes (posed as seen, in the view frame).")
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (PNG, JPEG, …); RGBA images use their alpha as the mask")
+    parser.add_argument("-o", "--output", metavar="OUT", help="mesh file (one image) or folder (default: the current folder)")
+    parser.add_argument("--mask", metavar="M", help="mask file for the (single) image: white object on black, same size")
+    parser.add_argument("--threshold", type=float, metavar="T", help="isosurface level in (0, 1) (default: the weights' config)")
+    parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
+    parser.add_argument("--save-intermediates", metavar="DIR", help="write PNGs of depth, mask, spherical maps and voxels here")
+    parser.add_argument("--preview", action="store_true",
+                        help="also write MESH_preview.png beside each mesh: the photo, depth, spherical maps and the mesh rendered from the photo's viewpoint and the side (Blender)")
+    parser.add_argument("--weights", metavar="W", help=f"weights file (default: {DEFAULT_WEIGHTS})")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    args = parser.parse_args(argv)
+
+    images = [Path(p) for p in args.images]
+    if args.mask and len(images) > 1:
+        parser.error("--mask applies to one image; give one image per call")
+    if args.threshold is not None and not 0.0 < args.threshold < 1.0:
+        parser.error(f"--threshold must lie in (0, 1), got {args.threshold}")
+    fmt = args.format
+    single_file = len(images) == 1 and args.output and not Path(args.output).is_dir() and not args.output.endswith(os.sep)
+    if single_file:
+        ext = Path(args.output).suffix.lower().lstrip(".")
+        if fmt is None:
+            fmt = ext if ext in MESH_FORMATS else "obj"
+        elif ext in MESH_FORMATS and ext != fmt:
+            parser.error(f"--format {fmt} does not match the output's extension .{ext}")
+    fmt = fmt or "obj"
+    if len(images) > 1 and args.output:
+        out_dir = Path(args.output)
+        if out_dir.exists() and not out_dir.is_dir():
+            print(f"{prog}: error: {out_dir}: with several images, -o must be a folder [output_unwritable]", file=sys.stderr)
+            return 1
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            print(f"{prog}: error: {out_dir}: cannot create the output folder ({exc.strerror or exc}) [output_unwritable]", file=sys.stderr)
+            return 1
+
+    weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
+    if args.weights is None and not weights.is_file():
+        print(
+            f"{prog}: error: no default weights at {weights}: the trained weights are not installed yet; "
+            "train them with 'genre train depth|inpaint|refine …' (see 'genre train --help') and pass --weights RUN/refine/best.safetensors [bad_weights]",
+            file=sys.stderr,
+        )
+        return 1
+
+    from ..nets.model import WeightsError
+    from .reconstruct import Reconstructor, check_output_path, error_code
+
+    try:
+        rec = Reconstructor(weights, args.device)
+    except (WeightsError, ValueError) as exc:
+        print(f"{prog}: error: {_one_line(exc)} [{error_code(exc)}]", file=sys.stderr)
+        return 1
+
+    outputs = output_paths(images, args.output, fmt)
+    many = len(images) > 1
+    bar = None
+    if many:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(images), desc="reconstruct", unit="image", file=sys.stderr, dynamic_ncols=True)
+
+    def say(text: str, err: bool = False) -> None:
+        stream = sys.stderr if err else sys.stdout
+        if bar is not None:
+            bar.write(text, file=stream)
+        else:
+            print(text, file=stream, flush=True)
+
+    failed = 0
+    for image, out in zip(images, outputs):
+        try:
+            check_output_path(out)
+            result = rec.run(image, mask_path=args.mask, threshold=args.threshold)
+            path, used = result.save_mesh(out, fmt)
+            if args.save_intermediates:
+                folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
+                result.save_intermediates(folder)
+            if args.preview:
+                result.save_preview(path.with_name(path.stem + "_preview.png"))
+            total = sum(result.timings.values())
+            say(f"{image} -> {path} ({used}, {len(result.vertices)} vertices, {len(result.faces)} faces, mask: {result.mask_source}, {total:.2f} s)")
+        except Exception as exc:  # one bad input must not stop the others
+            failed += 1
+            code = error_code(exc)
+            msg = _one_line(exc) if code != "internal" else f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
+            if str(image) not in msg:
+                msg = f"{image}: {msg}"
+            say(f"{prog}: error: {msg} [{code}]", err=True)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    if failed and many:
+        print(f"{prog}: {failed} of {len(images)} images failed", file=sys.stderr)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,369 @@
+"""``genre serve``: the long-lived JSON-lines reconstruction server (protocol: ``docs/protocol.md``).
+
+The main thread reads stdin line by line and answers ``ping``, ``version``,
+``cancel`` and ``shutdown`` at once; ``reconstruct`` requests go to a queue
+that one worker thread runs in arrival order with the model loaded once.
+Every event is one JSON object on one stdout line, written under a lock and
+flushed; logs go to stderr only (``sys.stdout`` is pointed at stderr while
+serving, so a stray print cannot corrupt the stream).
+
+Shutdown: a ``shutdown`` request cancels the running job (at its next stage
+boundary) and drops the queued ones (each gets ``cancelled``), then answers
+``bye`` and exits 0.  End of stdin lets the queued jobs finish (nobody is left
+to cancel them), then writes ``bye`` (id null) and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import queue
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from .. import __version__
+
+__all__ = ["PROTOCOL_VERSION", "Server", "main"]
+
+PROTOCOL_VERSION = 1
+_OPTION_KEYS = ("threshold", "format", "save_intermediates")
+log = logging.getLogger("genre.serve")
+
+
+class RequestError(ValueError):
+    """A request that cannot be accepted; becomes an ``error`` event."""
+
+    def __init__(self, code: str, message: str, req_id: Any = None):
+        super().__init__(message)
+        self.code, self.req_id = code, req_id
+
+
+@dataclass
+class Job:
+    id: Any
+    image: str
+    output: str
+    mask: str | None
+    threshold: float | None
+    format: str | None
+    save_intermediates: str | None
+    cancel: threading.Event = field(default_factory=threading.Event)
+    answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
+
+
+def _key(req_id: Any) -> str:
+    """Jobs are keyed by their id's JSON text, so 1 and "1" are different jobs."""
+    return json.dumps(req_id)
+
+
+def _one_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else exc.__class__.__name__
+
+
+class Server:
+    """The protocol over a pair of text streams; ``reconstructor`` is a loaded :class:`Reconstructor`."""
+
+    def __init__(self, reconstructor, out: TextIO, device: str):
+        self.rec = reconstructor
+        self.out = out
+        self.device = device
+        self.lock = threading.Lock()
+        self.jobs: "queue.Queue[Job | None]" = queue.Queue()
+        self.pending: dict[str, Job] = {}  # queued or running, by id
+        self.pending_lock = threading.Lock()
+        self.running: Job | None = None
+        self.broken = threading.Event()  # stdout closed: nobody listens any more
+        self.worker = threading.Thread(target=self._work, name="genre-serve-worker", daemon=True)
+
+    # ---- output -------------------------------------------------------------------------
+    def emit(self, event: dict) -> None:
+        line = json.dumps(event, ensure_ascii=False, allow_nan=False)
+        with self.lock:
+            if self.broken.is_set():
+                return
+            try:
+                self.out.write(line + "\n")
+                self.out.flush()
+            except (BrokenPipeError, OSError, ValueError):
+                self.broken.set()
+
+    def error(self, req_id: Any, code: str, message: str) -> None:
+        log.info("error %s %s: %s", req_id, code, message)
+        self.emit({"type": "error", "id": req_id, "code": code, "message": message})
+
+    def info(self) -> dict:
+        return {
+            "protocol": PROTOCOL_VERSION,
+            "version": __version__,
+            "weights": str(self.rec.weights_path),
+            "preset": self.rec.preset,
+            "device": self.device,
+            "threshold": self.rec.config.geometry.default_threshold,
+        }
+
+    # ---- requests -----------------------------------------------------------------------
+    @staticmethod
+    def _id(msg: dict, required: bool) -> Any:
+        if "id" not in msg:
+            if required:
+                raise RequestError("missing_field", "missing field 'id'")
+            return None
+        rid = msg["id"]
+        if isinstance(rid, bool) or not isinstance(rid, (str, int, float)) or (isinstance(rid, float) and not math.isfinite(rid)):
+            raise RequestError("bad_field", "field 'id' must be a string or a number")
+        return rid
+
+    @staticmethod
+    def _str(msg: dict, name: str, rid: Any, required: bool, where: str = "field") -> str | None:
+        if name not in msg or msg[name] is None:
+            if required:
+                raise RequestError("missing_field", f"missing {where} '{name}'", rid)
+            return None
+        value = msg[name]
+        if not isinstance(value, str) or not value:
+            raise RequestError("bad_field", f"{where} '{name}' must be a non-empty string (a path)", rid)
+        return value
+
+    def _parse_job(self, msg: dict) -> Job:
+        rid = self._id(msg, required=True)
+        image = self._str(msg, "image", rid, True)
+        output = self._str(msg, "output", rid, True)
+        mask = self._str(msg, "mask", rid, False)
+        options = msg.get("options") or {}
+        if not isinstance(options, dict):
+            raise RequestError("bad_field", "field 'options' must be an object", rid)
+        unknown = sorted(set(options) - set(_OPTION_KEYS))
+        if unknown:
+            raise RequestError("bad_field", f"unknown option(s) {', '.join(map(repr, unknown))}; known: {', '.join(_OPTION_KEYS)}", rid)
+        threshold = options.get("threshold")
+        if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 < threshold < 1.0):
+            raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {json.dumps(threshold)}", rid)
+        fmt = options.get("format")
+        if fmt is not None and fmt not in ("obj", "ply", "glb"):
+            raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {json.dumps(fmt)}", rid)
+        inter = self._str(options, "save_intermediates", rid, False, "option")
+        return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter)
+
+    def handle(self, line: str) -> bool:
+        """Answer one input line; returns False when the server should stop reading."""
+        try:
+            msg = json.loads(line)
+        except (json.JSONDecodeError, RecursionError) as exc:
+            self.error(None, "bad_json", f"not valid JSON: {exc}")
+            return True
+        if not isinstance(msg, dict):
+            self.error(None, "bad_json", f"expected a JSON object, got {type(msg).__name__}")
+            return True
+        rid = None
+        try:
+            rid = self._id(msg, required=False)
+            if "type" not in msg:
+                raise RequestError("missing_field", "missing field 'type'", rid)
+            kind = msg["type"]
+            if kind == "ping":
+                self.emit({"type": "pong", "id": rid})
+            elif kind == "version":
+                self.emit({"type": "version", "id": rid, **self.info()})
+            elif kind == "reconstruct":
+                job = self._parse_job(msg)
+                with self.pending_lock:
+                    if _key(job.id) in self.pending:
+                        raise RequestError("bad_field", f"a job with id {json.dumps(job.id)} is already queued or running", job.id)
+                    self.pending[_key(job.id)] = job
+                log.info("queued job %s: %s", job.id, job.image)
+                self.jobs.put(job)
+            elif kind == "cancel":
+                target = self._id(msg, required=True)
+                self.cancel(target)
+            elif kind == "shutdown":
+                self.shutdown(rid, cancel=True)
+                return False
+            else:
+                raise RequestError("unknown_type", f"unknown request type {json.dumps(kind)}; known: ping, version, reconstruct, cancel, shutdown", rid)
+        except RequestError as exc:
+            self.error(exc.req_id if exc.req_id is not None else rid, exc.code, str(exc))
+        return True
+
+    def cancel(self, rid: Any) -> None:
+        with self.pending_lock:
+            job = self.pending.get(_key(rid))
+            if job is None:
+                raise RequestError("unknown_job", f"no queued or running job with id {json.dumps(rid)}", rid)
+            self._cancel_locked(job)
+        log.info("cancel requested for job %s", rid)
+
+    def _cancel_locked(self, job: Job) -> None:
+        """Flag ``job``; a queued job is answered now, the running one at its next stage boundary."""
+        job.cancel.set()
+        if job is not self.running and not job.answered:
+            job.answered = True
+            self.pending.pop(_key(job.id), None)
+            self.emit({"type": "cancelled", "id": job.id})
+
+    def shutdown(self, rid: Any, cancel: bool) -> None:
+        """Stop the worker (cancelling everything when ``cancel``), then say ``bye``."""
+        if cancel:
+            with self.pending_lock:
+                for job in list(self.pending.values()):
+                    self._cancel_locked(job)
+        self.jobs.put(None)
+        if self.worker.is_alive():
+            self.worker.join()
+        self.emit({"type": "bye", "id": rid})
+
+    # ---- the worker ---------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            job = self.jobs.get()
+            if job is None:
+                return
+            with self.pending_lock:
+                if job.answered:
+                    continue
+                self.running = job
+            try:
+                self._run(job)
+            finally:
+                with self.pending_lock:
+                    self.running = None
+                    self.pending.pop(_key(job.id), None)
+
+    def _end(self, job: Job, event: dict) -> None:
+        """Free the job's id, then send its last event (so the client may reuse the id at once)."""
+        with self.pending_lock:
+            self.pending.pop(_key(job.id), None)
+            self.running = None
+        if event["type"] == "error":
+            log.info("error %s %s: %s", job.id, event["code"], event["message"])
+        self.emit(event)
+
+    def _run(self, job: Job) -> None:
+        from .reconstruct import STAGE_START, Cancelled, check_output_path, error_code
+
+        if job.cancel.is_set():
+            self._end(job, {"type": "cancelled", "id": job.id})
+            return
+        log.info("job %s: %s -> %s", job.id, job.image, job.output)
+        try:
+            check_output_path(job.output)
+            if job.save_intermediates and Path(job.save_intermediates).exists() and not Path(job.save_intermediates).is_dir():
+                raise RequestError("output_unwritable", f"{job.save_intermediates}: intermediates path is a file, not a folder", job.id)
+            result = self.rec.run(
+                job.image,
+                mask_path=job.mask,
+                threshold=job.threshold,
+                progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
+                should_cancel=job.cancel.is_set,
+            )
+            if job.cancel.is_set():
+                raise Cancelled("cancelled before stage write")
+            self.emit({"type": "progress", "id": job.id, "stage": "write", "fraction": STAGE_START["write"]})
+            path, fmt = result.save_mesh(job.output, job.format)
+            if job.save_intermediates:
+                result.save_intermediates(job.save_intermediates)
+        except Cancelled:
+            log.info("job %s cancelled", job.id)
+            self._end(job, {"type": "cancelled", "id": job.id})
+            return
+        except RequestError as exc:
+            self._end(job, {"type": "error", "id": job.id, "code": exc.code, "message": str(exc)})
+            return
+        except Exception as exc:  # every failure is reported; the server keeps serving
+            code = error_code(exc)
+            if code == "internal":
+                log.exception("job %s: internal error", job.id)
+                message = f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
+            else:
+                message = _one_line(exc)
+            self._end(job, {"type": "error", "id": job.id, "code": code, "message": message})
+            return
+        self._end(
+            job,
+            {
+                "type": "result",
+                "id": job.id,
+                "mesh": str(path),
+                "format": fmt,
+                "vertices": int(len(result.vertices)),
+                "faces": int(len(result.faces)),
+                "mask_source": result.mask_source,
+                "threshold": result.threshold,
+                "timings": {k: round(v, 4) for k, v in result.timings.items()},
+                "camera": result.camera(),
+            }
+        )
+        log.info("job %s done: %d faces in %.2f s", job.id, len(result.faces), sum(result.timings.values()))
+
+    # ---- the loop -----------------------------------------------------------------------
+    def serve(self, stdin: TextIO) -> int:
+        self.emit({"type": "ready", **self.info()})
+        self.worker.start()
+        for raw in stdin:
+            line = raw.strip()
+            if not line:
+                continue
+            if not self.handle(line):
+                return 0
+            if self.broken.is_set():
+                break
+        log.info("end of input: finishing queued jobs")
+        self.shutdown(None, cancel=self.broken.is_set())
+        return 0
+
+
+def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
+    from .reconstruct import DEFAULT_WEIGHTS
+
+    parser = argparse.ArgumentParser(prog=prog, description="JSON-lines reconstruction server on stdin/stdout (protocol: docs/protocol.md).")
+    parser.add_argument("--weights", metavar="W", help=f"weights file (default: {DEFAULT_WEIGHTS})")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    args = parser.parse_args(argv)
+    logging.basicConfig(stream=sys.stderr, level=args.log_level, format="genre serve: %(levelname)s %(message)s")
+    out = sys.stdout
+    sys.stdout = sys.stderr  # nothing but protocol lines reaches the real stdout
+    stdin = sys.stdin
+    try:
+        out.reconfigure(encoding="utf-8", newline="\n")
+        stdin.reconfigure(encoding="utf-8", errors="replace")
+    except (AttributeError, ValueError):
+        pass
+
+    def fatal(code: str, message: str) -> int:
+        log.error(message)
+        try:
+            out.write(json.dumps({"type": "error", "id": None, "code": code, "message": message}) + "\n")
+            out.flush()
+        except OSError:
+            pass
+        return 1
+
+    weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
+    if args.weights is None and not weights.is_file():
+        return fatal("bad_weights", f"no default weights at {weights}: the trained weights are not installed yet; train them with 'genre train' and pass --weights")
+    from ..nets.model import WeightsError
+    from .reconstruct import Reconstructor
+
+    try:
+        rec = Reconstructor(weights, args.device)
+    except WeightsError as exc:
+        return fatal("bad_weights", _one_line(exc))
+    except ValueError as exc:
+        return fatal("bad_field", _one_line(exc))
+    log.info("loaded %s (preset %s) on %s", weights, rec.preset, rec.device)
+    try:
+        return Server(rec, out, str(rec.device)).serve(stdin)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        sys.stdout = out
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,159 @@
+"""Files: the one atomic-write helper and the one weights format reader/writer.
+
+Every file the project writes goes through :func:`atomic_write` (a temporary
+file created exclusively beside the target, flushed, fsynced, then renamed
+over it), so a crash or a kill never leaves a half-written file at a final
+path.  Weights (GenRe's and the baselines') are safetensors files with a
+format tag and the model config in their metadata, plus a JSON sidecar for
+people; :func:`save_weights` and :func:`read_weights` are the only code that
+writes and reads them.  No pickle anywhere.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, BinaryIO, Callable
+
+__all__ = [
+    "WeightsError",
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "atomic_write_json",
+    "atomic_savez",
+    "save_weights",
+    "read_weights",
+    "load_state_strict",
+]
+
+
+class WeightsError(ValueError):
+    """A weights file that cannot be used: missing, corrupt, foreign, or not matching its config."""
+
+
+# --------------------------------------------------------------------------- atomic writes
+
+
+def tmp_prefix(path: Path) -> str:
+    """The hidden prefix of ``path``'s temporary files: ``.NAME.tmp-PID-`` (a random suffix follows)."""
+    return f".{path.name}.tmp-{os.getpid()}-"
+
+
+def atomic_write(path: str | os.PathLike, writer: Callable[[BinaryIO], Any]) -> Path:
+    """Call ``writer(binary_file)`` on a new temporary file beside ``path``, then rename it to ``path``.
+
+    The temporary file is created with ``O_CREAT | O_EXCL`` (never follows a
+    planted link) in the target's folder (so the rename is atomic), and is
+    removed if ``writer`` or the rename fails; the error propagates.
+    Returns ``path`` as a :class:`~pathlib.Path`.
+    """
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(prefix=tmp_prefix(path), dir=path.parent)
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            writer(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def _read_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()  # read once at import: os.umask can only be read by setting it
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    return atomic_write(path, lambda fh: fh.write(data))
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | os.PathLike, data: Any, indent: int | None = 1, ensure_ascii: bool = True) -> Path:
+    """Write ``data`` as JSON (with a final newline) to ``path`` atomically."""
+    return atomic_write_text(path, json.dumps(data, indent=indent, ensure_ascii=ensure_ascii) + "\n")
+
+
+def atomic_savez(path: str | os.PathLike, **arrays) -> Path:
+    """Write NumPy arrays as a compressed ``.npz`` to ``path`` atomically."""
+    import numpy as np
+
+    return atomic_write(path, lambda fh: np.savez_compressed(fh, **arrays))
+
+
+# --------------------------------------------------------------------------- weights
+
+
+def save_weights(path: str | os.PathLike, state: dict, meta: dict[str, str], sidecar: dict) -> Path:
+    """Write ``state`` (name → tensor) as safetensors with string ``meta``, plus ``path.json`` = ``sidecar``.
+
+    Both files are written atomically; tensors are made contiguous and moved
+    to the CPU first.  ``meta`` must hold a ``format`` tag (read back by
+    :func:`read_weights`).
+    """
+    from safetensors.torch import save
+
+    if "format" not in meta:
+        raise ValueError("save_weights: meta needs a 'format' tag")
+    path = Path(path)
+    tensors = {k: v.detach().contiguous().cpu() for k, v in state.items()}
+    atomic_write_bytes(path, save(tensors, metadata=meta))
+    atomic_write_text(path.with_suffix(".json"), json.dumps(sidecar, indent=2))
+    return path
+
+
+def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weights") -> tuple[dict, dict[str, str]]:
+    """Read a file written by :func:`save_weights`: ``(state, meta)`` on the CPU.
+
+    Raises :class:`WeightsError` with a one-line reason when the file is
+    missing, unreadable, or carries another format tag than ``expect_format``.
+    """
+    from safetensors import safe_open
+
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsError(f"{what} file not found: {path}")
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            meta = f.metadata() or {}
+            state = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as exc:  # noqa: BLE001  (safetensors raises several types for damaged files)
+        raise WeightsError(f"{path}: not a readable safetensors {what} file ({exc.__class__.__name__}: {exc})") from None
+    if meta.get("format") != expect_format:
+        raise WeightsError(f"{path}: {what} format {meta.get('format')!r}, this version reads {expect_format!r}")
+    return state, meta
+
+
+def stored_config(path: str | os.PathLike, meta: dict[str, str]):
+    """The :class:`~genre_backend.config.GenreConfig` stored in a weights file's metadata (or WeightsError)."""
+    from .config import GenreConfig
+
+    try:
+        return GenreConfig.from_dict(json.loads(meta["config"]))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise WeightsError(f"{path}: the stored config is invalid ({exc})") from None
+
+
+def load_state_strict(module, state: dict, path: str | os.PathLike) -> None:
+    """``module.load_state_dict(state, strict=True)``; a mismatch becomes a one-line :class:`WeightsError`."""
+    try:
+        module.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()[0]
+        raise WeightsError(f"{path}: weights do not match the stored config ({first})") from None

@@ -1,0 +1,114 @@
+"""The full GenRe model: three networks joined by the differentiable projections.
+
+``rgb → DepthNet → (depth, silhouette) → depth_to_sph → InpaintNet →
+sph_to_voxels ⊕ depth → voxels → VoxelRefiner → surface-shell logits``
+
+Every projection is the differentiable one from the geometry core, so a 3D
+loss on the logits reaches the depth net (joint fine-tuning).
+
+Weights are stored as one safetensors file whose metadata carries the
+resolved config and a format version (no pickle); :func:`save_model` also
+writes the config beside it as JSON for people to read.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ..config import GenreConfig
+from .depth_net import DepthNet
+from ..frame import depth_to_points
+from .inpaint_net import InpaintNet
+from .refiner import VoxelRefiner
+from ..geometry.spherical import depth_to_sph, sph_to_voxels
+from ..validation import check_tensor
+from ..geometry.voxels import points_to_voxels
+from ..io import WeightsError, load_state_strict, read_weights, save_weights, stored_config
+
+__all__ = ["GenRe", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
+
+WEIGHTS_FORMAT = "genre-weights/1"
+
+
+class GenRe(nn.Module):
+    def __init__(self, config: GenreConfig):
+        super().__init__()
+        self.config = config
+        g = config.geometry
+        self.depth_net = DepthNet(config)
+        self.inpaint_net = InpaintNet(config)
+        self.refiner = VoxelRefiner(g.voxel_size, config.network.refiner_nf, config.network.refiner_fc)
+
+    # -- the projections between the networks --------------------------------------------
+    def masked_depth(self, depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Depth (B, S, S) with background (mask False) set to 0."""
+        return torch.where(mask, depth, torch.zeros_like(depth))
+
+    def partial_sph(self, depth: torch.Tensor) -> torch.Tensor:
+        """Masked depth (B, S, S) → partial spherical maps (B, H, H)."""
+        g = self.config.geometry
+        return depth_to_sph(depth, self.config.camera, g.sph_size, g.depth_edge_max_ratio)
+
+    def depth_voxels(self, depth: torch.Tensor) -> torch.Tensor:
+        """Masked depth (B, S, S) → voxels (B, 1, N, N, N) by the paper's rule."""
+        pts = depth_to_points(depth, self.config.camera).flatten(1, 2)
+        return points_to_voxels(pts, self.config.geometry.voxel_size, (depth > 0).flatten(1))
+
+    def sph_voxels(self, sph: torch.Tensor) -> torch.Tensor:
+        """Full spherical maps (B, H, H) → voxels (B, 1, N, N, N)."""
+        g = self.config.geometry
+        return sph_to_voxels(sph, g.voxel_size, g.sph_nohit_min, g.sph_supersample)
+
+    def refine(self, vox_sph: torch.Tensor, vox_depth: torch.Tensor) -> torch.Tensor:
+        return self.refiner(torch.cat([vox_sph, vox_depth], dim=1))
+
+    # -- the whole pipeline -----------------------------------------------------------------
+    def forward(self, rgb: torch.Tensor, mask: torch.Tensor | None = None, depth: torch.Tensor | None = None, full_sph: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Run the pipeline; every intermediate is returned.
+
+        rgb: (B, 3, S, S) in [0, 1].  mask: (B, S, S) bool, optional (else the
+        depth net's silhouette > 0.5).  ``depth`` (B, S, S) or ``full_sph``
+        (B, H, H) replace the depth net's or the inpainting net's output (the
+        oracle variants).
+        """
+        s = self.config.geometry.image_size
+        check_tensor("rgb", rgb, ("B", 3, s, s))
+        out = self.depth_net(rgb)
+        if mask is None:
+            mask = out["silhouette_logits"] > 0
+        if depth is not None:
+            out["depth"] = depth
+        out["mask"] = mask
+        out["masked_depth"] = self.masked_depth(out["depth"], mask)
+        out["partial_sph"] = self.partial_sph(out["masked_depth"])
+        out["full_sph"] = self.inpaint_net(out["partial_sph"]) if full_sph is None else full_sph
+        out["vox_sph"] = self.sph_voxels(out["full_sph"])
+        out["vox_depth"] = self.depth_voxels(out["masked_depth"])
+        out["logits"] = self.refine(out["vox_sph"], out["vox_depth"])
+        return out
+
+
+def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None) -> Path:
+    """Write ``path`` (.safetensors, config in its metadata) atomically, and ``path`` with .json beside it."""
+    config = model.config.to_dict()
+    meta = {"format": WEIGHTS_FORMAT, "config": json.dumps(config)}
+    if extra:
+        meta["extra"] = json.dumps(extra)
+    return save_weights(path, model.state_dict(), meta, {"format": WEIGHTS_FORMAT, "config": config, "extra": extra or {}})
+
+
+def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> GenRe:
+    """Load a model saved by :func:`save_model`; the config (preset) comes from the file.
+
+    Raises :class:`WeightsError` with a one-line reason for a missing,
+    corrupt, foreign or version-mismatched file.
+    """
+    state, meta = read_weights(path, WEIGHTS_FORMAT)
+    model = GenRe(stored_config(path, meta))
+    load_state_strict(model, state, path)
+    return model.to(device).eval()

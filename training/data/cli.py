@@ -1,0 +1,231 @@
+"""``genre data``: fetch, build, inspect (and render) the training corpus.
+
+    genre data fetch  [--data-dir D] [--packages P ...]
+    genre data build  [--data-dir D] [--sources S ...] [--shapenet DIR] [--folder DIR] [--jobs N]
+    genre data stats  [--data-dir D]
+    genre data credits [--split S] [--out F]
+    genre data render ...   (see training/render/)
+    genre data targets ...  (see training/targets.py)
+    genre data show ...     (see training/show.py)
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from collections import Counter, defaultdict
+
+__all__ = ["main", "format_stats", "format_credits"]
+
+
+def _skip_kind(reason: str) -> str:
+    """Group a skip reason: the text before the first ':' or '(' (``"junk: flat"`` keeps two words)."""
+    if reason.startswith("junk:"):
+        detail = reason[5:].strip()
+        if detail.startswith("name"):
+            return "junk: name"
+        if detail.startswith("flat"):
+            return "junk: flat"
+        return "junk: too few triangles"
+    if reason.startswith("near-duplicate"):
+        return "near-duplicate"
+    return reason.split(":")[0].split("(")[0].strip()
+
+
+def _table(title: str, rows: list[tuple], header: tuple) -> list[str]:
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)] if rows else [len(h) for h in header]
+    out = [title]
+    out.append("  " + "  ".join(str(h).ljust(w) if i == 0 else str(h).rjust(w) for i, (h, w) in enumerate(zip(header, widths))))
+    for row in rows:
+        out.append("  " + "  ".join(str(x).ljust(w) if i == 0 else str(x).rjust(w) for i, (x, w) in enumerate(zip(row, widths))))
+    return out
+
+
+def format_stats(manifest: dict) -> str:
+    """The counts of a manifest (per class x split, source, licence, split; skips) and the rules."""
+    shapes = manifest["shapes"]
+    skipped = manifest.get("skipped", [])
+    splits = ("train", "test", "unseen", "unassigned")
+    by_class: dict[str, Counter] = defaultdict(Counter)
+    for s in shapes:
+        by_class[s["class"]][s["split"]] += 1
+    seen = manifest["classes"]["seen"]
+    unseen = manifest["classes"]["unseen"]
+    pix3d = manifest["classes"]["unseen-pix3d"]
+
+    def group(cls: str) -> str:
+        g = []
+        if cls in seen:
+            g.append("seen")
+        if cls in unseen:
+            g.append("unseen")
+        if cls in pix3d:
+            g.append("pix3d")
+        return "+".join(g) or "-"
+
+    order = sorted(by_class, key=lambda c: (group(c) == "-", -sum(by_class[c].values()), c))
+    rows = [(c, group(c), *(by_class[c][s] for s in splits), sum(by_class[c].values()),
+             "  (<10: small)" if 0 < sum(by_class[c].values()) < 10 and group(c) != "-" else "") for c in order]
+    totals = Counter(s["split"] for s in shapes)
+    rows.append(("TOTAL", "", *(totals[s] for s in splits), len(shapes), ""))
+    lines = _table("Shapes per class and split:", rows, ("class", "group", *splits, "total", ""))
+    lines.append("")
+    lines.append("Split lists (a sofa/table is in both unseen lists): " + ", ".join(
+        f"{k} {len(v)}" for k, v in manifest["splits"].items()))
+    lines.append("")
+    src = Counter((s["source"], s.get("package") or "-") for s in shapes)
+    src_skip = Counter(s["source"] for s in skipped)
+    rows = [(f"{k[0]} ({k[1]})", v, src_skip.get(k[0], 0)) for k, v in sorted(src.items())]
+    lines += _table("Per source:", rows, ("source (package)", "kept", "skipped"))
+    lines.append("")
+    lic = Counter(s["licence"] for s in shapes)
+    lines += _table("Per licence:", sorted(lic.items(), key=lambda kv: -kv[1]), ("licence", "shapes"))
+    lines.append("")
+    reasons = Counter((s["source"], _skip_kind(s["reason"])) for s in skipped)
+    rows = [(f"{k[1]} [{k[0]}]", v) for k, v in sorted(reasons.items(), key=lambda kv: (kv[0][1], kv[0][0]))]
+    rows.append(("TOTAL", len(skipped)))
+    lines += _table("Skipped (reason [source]):", rows, ("reason", "count"))
+    textured = sum(1 for s in shapes if s.get("textured"))
+    watertight = sum(1 for s in shapes if s.get("watertight"))
+    lines.append("")
+    lines.append(f"Textured: {textured}/{len(shapes)}; watertight: {watertight}/{len(shapes)}")
+    errs = [s["extra"]["catalogue_extent_error"] for s in shapes if "catalogue_extent_error" in s.get("extra", {})]
+    if errs:
+        bad = sum(1 for e in errs if e > 0.02)
+        lines.append(f"Sweet Home 3D orientation check: {len(errs) - bad}/{len(errs)} models have canonical X/Y/Z "
+                     f"extents within 0.02 of the catalogue's width/depth/height (max error {max(errs):.3f})")
+    lines.append("")
+    lines.append(manifest.get("rules", ""))
+    return "\n".join(lines)
+
+
+def format_credits(manifest: dict, split: str) -> str:
+    """Markdown: the shapes of ``split`` (a split or a group) with their class, source, creator and licence."""
+    shapes = [s for s in manifest["shapes"] if s["split"] == split or split in s.get("groups", [])]
+    if not shapes:
+        raise ValueError(f"no shapes in split {split!r}")
+    licences = Counter(s["licence"] for s in shapes)
+    lines = [f"# Shapes of the '{split}' split ({len(shapes)})", "",
+             "Licences: " + ", ".join(f"{k} {v}" for k, v in sorted(licences.items())) + ".", "",
+             "| shape | class | name | source (package) | creator | licence |", "|---|---|---|---|---|---|"]
+    for s in sorted(shapes, key=lambda s: (s["class"], s["id"])):
+        cells = [s["id"], s["class"], s.get("name") or "", f"{s['source']} ({s.get('package') or '-'})",
+                 s.get("creator") or "", s["licence"]]
+        lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _parser(prog: str) -> argparse.ArgumentParser:
+    from .corpus import DEBIAN_PACKAGES, SOURCES
+
+    parser = argparse.ArgumentParser(prog=prog, description="Fetch, build and inspect the training corpus.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--data-dir", default=None,
+                        help="data folder (default: $GENRE_DATA_DIR or <repo>/data; git-ignored)")
+    common.add_argument("-v", "--verbose", action="store_true", help="log every skipped file")
+
+    p = sub.add_parser("fetch", parents=[common], help="apt-get download + dpkg -x the model packages")
+    p.add_argument("--packages", nargs="+", default=list(DEBIAN_PACKAGES), metavar="PKG",
+                   help=f"packages (default: {' '.join(DEBIAN_PACKAGES)})")
+
+    p = sub.add_parser("build", parents=[common], help="normalise, classify, split; write corpus/manifest.json")
+    p.add_argument("--sources", nargs="+", choices=list(SOURCES), default=None, help="Debian sources to use (default: all)")
+    p.add_argument("--no-debian", action="store_true", help="use only --shapenet/--folder sources")
+    p.add_argument("--shapenet", default=None, metavar="DIR", help="a ShapeNetCore v1/v2 folder")
+    p.add_argument("--shapenet-front", default="+z", help="ShapeNet's front axis (default +z; up is +y)")
+    p.add_argument("--folder", action="append", default=[], metavar="DIR",
+                   help="a folder of meshes, class = sub-folder name (repeatable)")
+    p.add_argument("--folder-up", default="+z", help="up axis of --folder meshes (default +z)")
+    p.add_argument("--folder-front", default="-y", help="front axis of --folder meshes (default -y)")
+    p.add_argument("--jobs", type=int, default=max(1, min(8, (os.cpu_count() or 1))),
+                   help="worker processes (default: CPUs, at most 8)")
+
+    sub.add_parser("stats", parents=[common], help="counts per class, split, source, licence; skips; rules")
+    p = sub.add_parser("credits", parents=[common], help="Markdown list of the shapes of a split with creator and licence")
+    p.add_argument("--split", default="train", help="split or group (default: train)")
+    p.add_argument("--out", default=None, help="write here (default: standard output)")
+    sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/)")
+    sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/targets.py)")
+    sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/show.py)")
+    return parser
+
+
+def main(argv: list[str] | None = None, prog: str = "genre data") -> int:
+    """Entry point of ``genre data``; returns a process exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    delegated = {"render": "training.render.scene", "targets": "training.data.targets", "show": "training.data.show"}
+    if argv and argv[0] in delegated:
+        import importlib
+
+        module = importlib.import_module(delegated[argv[0]])
+        return int(module.main(argv[1:], prog=f"{prog} {argv[0]}") or 0)
+    args = _parser(prog).parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("trimesh").setLevel(logging.ERROR)
+    from . import corpus
+
+    if args.command == "fetch":
+        root = corpus.data_dir(args.data_dir)
+        print(f"data folder: {root}")
+        status = corpus.fetch(args.packages, root)
+        for pkg, st in status.items():
+            print(f"  {pkg:<24} {st}")
+        return 0 if all(not s.startswith("failed") for s in status.values()) else 1
+
+    if args.command == "build":
+        if args.jobs < 1:
+            print(f"{prog} build: --jobs must be >= 1", file=sys.stderr)
+            return 2
+        extra = []
+        if args.shapenet:
+            extra.append(("shapenet", args.shapenet, {"front": args.shapenet_front}))
+        for folder in args.folder:
+            extra.append(("folder", folder, {"up": args.folder_up, "front": args.folder_front}))
+        sources = [] if args.no_debian else args.sources
+        root = corpus.data_dir(args.data_dir)
+        start = time.time()
+
+        def progress(done: int, total: int) -> None:
+            if done == total or done % 25 == 0:
+                rate = done / max(time.time() - start, 1e-9)
+                eta = (total - done) / max(rate, 1e-9)
+                print(f"\r  {done}/{total} models  ({rate:.1f}/s, ETA {eta:4.0f} s)", end="", file=sys.stderr, flush=True)
+
+        try:
+            manifest = corpus.build(root, sources=sources, extra_specs=extra, jobs=args.jobs, progress=progress)
+        except (ValueError, FileNotFoundError) as exc:
+            print(f"\n{prog} build: {exc}", file=sys.stderr)
+            return 1
+        print(file=sys.stderr)
+        print(f"wrote {root / 'corpus' / 'manifest.json'}: {len(manifest['shapes'])} shapes kept, "
+              f"{len(manifest['skipped'])} skipped, {time.time() - start:.0f} s")
+        return 0
+
+    try:  # stats and credits read the manifest
+        manifest = corpus.load_manifest(args.data_dir)
+    except FileNotFoundError as exc:
+        print(f"{prog} {args.command}: {exc}", file=sys.stderr)
+        return 1
+    if args.command == "stats":
+        print(format_stats(manifest))
+        return 0
+
+    if args.command == "credits":
+        try:
+            text = format_credits(manifest, args.split)
+        except ValueError as exc:
+            print(f"{prog} credits: {exc}", file=sys.stderr)
+            return 1
+        if args.out:
+            from pathlib import Path
+
+            Path(args.out).write_text(text)
+        else:
+            print(text, end="")
+        return 0
+    return 2  # pragma: no cover  (argparse rejects unknown commands)

@@ -1,0 +1,115 @@
+"""Training samples: rendered views with their ground-truth targets.
+
+A sample is one view written by :mod:`training.render.scene` plus its
+:mod:`training.data.targets` file.  Tensors (S = image size, H = spherical map
+size, N = voxel grid size):
+
+* ``rgb``         (3, S, S) float in [0, 1]
+* ``depth``       (S, S) float, planar depth, 0 outside the mask or where the Z pass saw nothing
+* ``mask``        (S, S) bool, the film alpha > 0.5 (the silhouette target)
+* ``full_sph``    (H, H) float, ``partial_sph`` (H, H) float
+* ``shell``       (N, N, N) float in {0, 1}
+
+Augmentation (training only) follows the original: brightness, contrast and
+saturation each scaled by U[0.6, 1.4] in random order, then PCA lighting noise.
+It is seeded per sample by the caller, so a resumed run sees the same pixels.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import torch
+
+from genre_backend.config import GenreConfig
+
+from .targets import load_targets
+from .views import ViewRef, find_views, view_paths
+
+__all__ = ["ViewRef", "ViewDataset", "find_views", "split_views", "augment_rgb"]
+
+# ImageNet RGB PCA (eigenvalues, eigenvectors as columns): the standard "lighting" noise
+_PCA_EIGVAL = torch.tensor([0.2175, 0.0188, 0.0045])
+_PCA_EIGVEC = torch.tensor([[-0.5675, 0.7192, 0.4009], [-0.5808, -0.0045, -0.8140], [-0.5836, -0.6948, 0.4203]])
+
+
+def _unit_hash(text: str) -> float:
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "big") / 2**64
+
+
+def split_views(refs: list[ViewRef], val_fraction: float) -> tuple[list[ViewRef], list[ViewRef]]:
+    """Deterministic train/validation split **by shape** (a salted hash of the shape id).
+
+    The salt keeps this split independent of the corpus's train/test split,
+    which thresholds the unsalted hash: without it every training shape
+    would hash above the test fraction and validation would be empty.
+    """
+    val_ids = {r.shape_id for r in refs if _unit_hash("validation:" + r.shape_id) < val_fraction}
+    train = [r for r in refs if r.shape_id not in val_ids]
+    val = [r for r in refs if r.shape_id in val_ids]
+    return train, val
+
+
+def augment_rgb(rgb: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Colour jitter (brightness, contrast, saturation ×U[0.6, 1.4], random order) + PCA lighting; (3, S, S) in [0, 1]."""
+    gray_w = torch.tensor([0.299, 0.587, 0.114]).view(3, 1, 1)
+    for op in torch.randperm(3, generator=gen).tolist():
+        f = 0.6 + 0.8 * torch.rand((), generator=gen)
+        if op == 0:
+            rgb = rgb * f
+        elif op == 1:
+            rgb = (rgb - (rgb * gray_w).sum(0).mean()) * f + (rgb * gray_w).sum(0).mean()
+        else:
+            gray = (rgb * gray_w).sum(0, keepdim=True)
+            rgb = (rgb - gray) * f + gray
+    alpha = torch.randn(3, generator=gen) * 0.1
+    rgb = rgb + (_PCA_EIGVEC @ (alpha * _PCA_EIGVAL)).view(3, 1, 1)
+    return rgb.clamp(0.0, 1.0)
+
+
+class ViewDataset(torch.utils.data.Dataset):
+    """Samples of a list of views; ``sample(i, seed)`` applies seeded augmentation when ``augment``."""
+
+    def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True):
+        if not refs:
+            raise ValueError("no complete views (render + targets) to train on")
+        self.refs = list(refs)
+        self.config = config
+        self.augment = augment
+        self.targets = targets  # False: only rgb, depth and mask (all the depth stage needs)
+
+    def __len__(self) -> int:
+        return len(self.refs)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        return self.sample(index, None)
+
+    def sample(self, index: int, seed: int | None) -> dict[str, torch.Tensor]:
+        from PIL import Image
+
+        ref = self.refs[index]
+        paths = view_paths(ref.shape_dir, ref.view)
+        size = self.config.geometry.image_size
+        meta = json.loads(paths["json"].read_text())
+        if int(meta["image_size"]) != size:
+            raise ValueError(f"{paths['json'].with_suffix('')}: rendered at {meta['image_size']}², the config wants {size}²")
+        with Image.open(paths["png"]) as im:
+            rgb = torch.from_numpy(np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()
+        with np.load(paths["npz"]) as z:
+            depth = torch.from_numpy(z["depth"].astype(np.float32))
+            mask = torch.from_numpy(z["mask"] > 0.5)
+        if self.augment and seed is not None:
+            rgb = augment_rgb(rgb, torch.Generator().manual_seed(seed))
+        sample = {
+            "rgb": rgb,
+            "depth": torch.where(mask, depth, torch.zeros_like(depth)),  # 0 where either says background
+            "mask": mask,
+        }
+        if self.targets:
+            t = load_targets(ref.shape_dir, ref.view, self.config.geometry.voxel_size)
+            sample["full_sph"] = torch.from_numpy(t["full_sph"])
+            sample["partial_sph"] = torch.from_numpy(t["partial_sph"])
+            sample["shell"] = torch.from_numpy(t["shell"]).float()
+        return sample

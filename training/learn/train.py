@@ -1,0 +1,563 @@
+"""``genre train STAGE``: staged and joint training of GenRe, resumable and data-parallel.
+
+Stages (``method.md``):
+
+``depth``    the depth net alone: MSE on planar depth inside the silhouette (×
+             ``depth_output_scale``) + BCE on the silhouette.  Adam lr 1e-3.
+``inpaint``  the inpainting net; its input is the partial spherical map of the
+             *predicted* depth (depth net frozen) inside the true mask; MSE
+             against the true full map over the periodically padded map.  lr 1e-4.
+``refine``   the refiner; both nets frozen; BCE-with-logits against the surface
+             shell + ``surface_weight`` × the BCE averaged over shell voxels.  lr 1e-4.
+``joint``    everything, through the differentiable projections: the refiner's
+             loss + the spherical MSE.  lr 1e-5.
+
+Baseline stages (:mod:`training.learn.baselines`; their weights are baseline files,
+``genre-baseline/1``, never GenRe's format):
+
+``completion``  the 3D Completion baseline: the depth net (frozen, from
+             ``--init``) → depth voxels → a completion net of the refiner's
+             architecture and size; the refiner's loss.  lr 1e-4.
+``onestep``  GenRe-1step's RGB → full spherical map U-ResNet (the depth net's
+             widths); MSE against the true full map over the padded map.  lr 1e-3.
+
+Each stage writes ``OUT/STAGE/``: ``best.safetensors`` (lowest validation
+loss) and ``final.safetensors`` (weights + config, no pickle), ``config.json``
+(the resolved training config), ``log.csv``, ``tb/`` (TensorBoard),
+``loss.png`` and ``checkpoint/`` (weights, optimiser state, step: written
+atomically every ``checkpoint_minutes``).  Running the same command again
+resumes from the checkpoint with the same step count and, on the CPU, the
+same numbers: the batch of step k and its augmentation depend only on
+(seed, k).
+
+Data-parallel: ``torchrun --nproc_per_node=N -m genre_backend.cli train …``
+(gloo on the CPU, NCCL on CUDA); each process takes its share of every
+global batch, rank 0 writes the files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from genre_backend.config import PRESETS, GenreConfig, get_preset
+from genre_backend.nets.model import GenRe, load_model, save_model
+from genre_backend.geometry.spherical import pad_sph
+
+from ..data.dataset import ViewDataset, find_views, split_views
+
+__all__ = ["STAGES", "TrainConfig", "StageModule", "train", "weights_digest", "main"]
+
+STAGES = ("depth", "inpaint", "refine", "joint", "completion", "onestep")
+BASELINE_STAGES = ("completion", "onestep")
+DEFAULT_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5, "completion": 1e-4, "onestep": 1e-3}
+
+
+@dataclass
+class TrainConfig:
+    """Everything one training stage needs; saved beside every checkpoint."""
+
+    stage: str
+    data: str  # folder of rendered views with targets
+    out: str  # run folder; the stage writes OUT/STAGE/
+    preset: str = "default"  # used only when not starting from --init weights
+    init: str | None = None  # weights to start from (the previous stage's best)
+    steps: int = 1000
+    batch_size: int = 4  # per process
+    lr: float | None = None  # None: the stage's default
+    beta1: float = 0.5
+    beta2: float = 0.9
+    surface_weight: float = 10.0
+    val_fraction: float = 0.05
+    val_every: int = 200
+    val_samples: int = 48
+    checkpoint_minutes: float = 3.0
+    checkpoint_every: int = 0  # also every this many steps (0: off)
+    log_every: int = 10
+    seed: int = 0
+    workers: int = 0
+    device: str = "cpu"
+    shapes: str | None = None  # optional file with one shape id per line (e.g. the seen-train split)
+    augment: bool = True
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.stage not in STAGES:
+            raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
+        if self.steps < 1 or self.batch_size < 1:
+            raise ValueError("steps and batch_size must be positive")
+
+    @property
+    def learning_rate(self) -> float:
+        return DEFAULT_LR[self.stage] if self.lr is None else self.lr
+
+
+class StageModule(nn.Module):
+    """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
+
+    def __init__(self, model: GenRe, stage: str, surface_weight: float):
+        super().__init__()
+        self.model, self.stage, self.surface_weight = model, stage, surface_weight
+        self.baseline = None
+        if stage in BASELINE_STAGES:
+            from .baselines import CompletionBaseline, OneStepNet
+
+            self.baseline = (CompletionBaseline if stage == "completion" else OneStepNet)(model.config)
+            if stage == "completion":  # the depth net it completes from: GenRe's (from --init), frozen
+                self.baseline.depth_net.load_state_dict(model.depth_net.state_dict())
+        trainable = {"depth": [model.depth_net], "inpaint": [model.inpaint_net], "refine": [model.refiner], "joint": [model],
+                     "completion": [], "onestep": []}[stage]
+        for p in model.parameters():
+            p.requires_grad_(False)
+        for part in trainable:
+            for p in part.parameters():
+                p.requires_grad_(True)
+        self.frozen = [m for m in (model.depth_net, model.inpaint_net, model.refiner) if not any(p.requires_grad for p in m.parameters())]
+        if stage == "completion":
+            for p in self.baseline.depth_net.parameters():
+                p.requires_grad_(False)
+            self.frozen.append(self.baseline.depth_net)
+
+    def checkpointed(self) -> tuple[str, nn.Module]:
+        """The key prefix and module a checkpoint keeps: GenRe's nets, or for a baseline stage the
+        baseline alone (so its checkpoint does not depend on GenRe's architecture)."""
+        return ("model", self.model) if self.baseline is None else ("baseline", self.baseline)
+
+    def save_weights(self, path: Path, extra: dict) -> None:
+        """The stage's weights file: GenRe's format, or the baseline's for a baseline stage."""
+        if self.baseline is None:
+            save_model(self.model, path, extra)
+        else:
+            from .baselines import save_baseline
+
+            save_baseline(self.baseline, path, extra)
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for m in self.frozen:
+            m.eval()  # frozen nets keep their batch-norm statistics
+        return self
+
+    # ---- losses -------------------------------------------------------------------------
+    def depth_loss(self, out, batch):
+        valid = batch["depth"] > 0
+        scale = self.model.config.network.depth_output_scale
+        err = ((out["depth"] - batch["depth"]) * scale) ** 2
+        l_depth = (err * valid).sum() / valid.sum().clamp(min=1)
+        l_sil = F.binary_cross_entropy_with_logits(out["silhouette_logits"], batch["mask"].float())
+        return l_depth + l_sil, {"depth_mse": l_depth, "silhouette_bce": l_sil}
+
+    def sph_loss(self, full_padded_pred, batch):
+        pad = self.model.config.geometry.sph_pad
+        target = pad_sph(batch["full_sph"][:, None], pad)
+        return F.mse_loss(full_padded_pred, target)
+
+    def shell_loss(self, logits, batch):
+        shell = batch["shell"][:, None]
+        bce = F.binary_cross_entropy_with_logits(logits, shell, reduction="none")
+        l_all = bce.mean()
+        l_surf = (bce * shell).sum() / shell.sum().clamp(min=1)
+        return l_all + self.surface_weight * l_surf, {"voxel_bce": l_all, "surface_bce": l_surf}
+
+    def forward(self, batch: dict[str, torch.Tensor]):
+        m = self.model
+        if self.stage == "depth":
+            return self.depth_loss(m.depth_net(batch["rgb"]), batch)
+        if self.stage == "onestep":
+            pad = m.config.geometry.sph_pad
+            loss = self.sph_loss(pad_sph(self.baseline(batch["rgb"])[:, None], pad), batch)
+            return loss, {"sph_mse": loss}
+        if self.stage == "completion":
+            b = self.baseline
+            with torch.no_grad():
+                depth = m.masked_depth(b.depth_net(batch["rgb"])["depth"], batch["mask"])
+                vox_depth = b.depth_voxels(depth)
+            return self.shell_loss(b.complete(vox_depth), batch)
+        with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
+            depth = m.masked_depth(m.depth_net(batch["rgb"])["depth"], batch["mask"])
+            partial = m.partial_sph(depth)
+        pad = m.config.geometry.sph_pad
+        if self.stage == "inpaint":
+            pred = m.inpaint_net.forward_padded(pad_sph(partial[:, None], pad))
+            loss = self.sph_loss(pred, batch)
+            return loss, {"sph_mse": loss}
+        with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
+            full_padded = m.inpaint_net.forward_padded(pad_sph(partial[:, None], pad))
+            full = full_padded[:, 0, pad:-pad, pad:-pad] if pad else full_padded[:, 0]
+            vox_sph, vox_depth = m.sph_voxels(full), m.depth_voxels(depth)
+        logits = m.refine(vox_sph, vox_depth)
+        loss, terms = self.shell_loss(logits, batch)
+        if self.stage == "joint":
+            l_sph = self.sph_loss(full_padded, batch)
+            terms["sph_mse"] = l_sph
+            loss = loss + l_sph
+        return loss, terms
+
+
+# ---- deterministic batches ---------------------------------------------------------------
+def _mix(*parts: int) -> int:
+    return int.from_bytes(hashlib.sha256(repr(parts).encode()).digest()[:8], "big") & ((1 << 63) - 1)
+
+
+class StepBatches(torch.utils.data.Dataset):
+    """Item k is this process's share of the global batch of step k (so workers may prefetch)."""
+
+    def __init__(self, data: ViewDataset, batch: int, rank: int, world: int, seed: int):
+        self.data, self.batch, self.rank, self.world, self.seed = data, batch, rank, world, seed
+        self._perms: dict[int, torch.Tensor] = {}
+
+    def __len__(self) -> int:
+        return 1 << 40
+
+    def _index(self, g: int) -> int:
+        n = len(self.data)
+        epoch, pos = divmod(g, n)
+        if epoch not in self._perms:
+            self._perms = {epoch: torch.randperm(n, generator=torch.Generator().manual_seed(_mix(self.seed, epoch)))}
+        return int(self._perms[epoch][pos])
+
+    def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
+        first = (step * self.world + self.rank) * self.batch
+        samples = [self.data.sample(self._index(g), _mix(self.seed, g, 1)) for g in range(first, first + self.batch)]
+        return {k: torch.stack([s[k] for s in samples]) for k in samples[0]}
+
+
+def _to(batch, device):
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
+# ---- checkpoints -------------------------------------------------------------------------
+class CheckpointMismatch(ValueError):
+    """A stage's checkpoint does not fit the model being trained (architecture or stage changed)."""
+
+
+def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer, step: int, best: float, tcfg: TrainConfig) -> None:
+    from safetensors.torch import save_file
+
+    prefix, trained = module.checkpointed()
+    tensors = {f"{prefix}.{k}": v.detach().cpu().contiguous() for k, v in trained.state_dict().items()}
+    opt_state = opt.state_dict()
+    scalars = {}
+    for idx, st in opt_state["state"].items():
+        for name, val in st.items():
+            if torch.is_tensor(val):
+                tensors[f"opt.{idx}.{name}"] = val.detach().cpu().contiguous()
+            else:
+                scalars[f"{idx}.{name}"] = val
+    meta = {
+        "step": step,
+        "best_val": best,
+        "param_groups": opt_state["param_groups"],
+        "opt_scalars": scalars,
+        "model_config": module.model.config.to_dict(),
+        "train_config": dataclasses.asdict(tcfg),
+    }
+    tmp = stage_dir / f"checkpoint.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    save_file(tensors, str(tmp / "state.safetensors"))
+    (tmp / "state.json").write_text(json.dumps(meta))
+    final = stage_dir / "checkpoint"
+    old = stage_dir / f"checkpoint.old-{os.getpid()}"
+    if final.exists():
+        os.replace(final, old)
+    os.replace(tmp, final)  # the checkpoint is either the old or the new one, never half
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer) -> tuple[int, float]:
+    from safetensors.torch import load_file
+
+    ck = stage_dir / "checkpoint"
+    if not (ck / "state.json").is_file():
+        old = sorted(stage_dir.glob("checkpoint.old-*"))  # killed between the two renames
+        if not old:
+            return 0, math.inf
+        ck = old[-1]
+    meta = json.loads((ck / "state.json").read_text())
+    tensors = load_file(str(ck / "state.safetensors"))
+    prefix, trained = module.checkpointed()  # older baseline checkpoints also hold "model." tensors: ignored
+    try:
+        trained.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")})
+        _load_optimizer(opt, tensors, meta)
+    except (RuntimeError, ValueError, KeyError) as exc:
+        why = " ".join(str(exc).split())[:300] or type(exc).__name__
+        raise CheckpointMismatch(
+            f"{ck} was written for a different model or optimiser than this run's ({why}); "
+            f"to train the {module.stage} stage afresh, delete {ck} (or pass another --out)"
+        ) from exc
+    return int(meta["step"]), float(meta["best_val"])
+
+
+def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    state: dict[int, dict] = {}
+    for k, v in tensors.items():
+        if k.startswith("opt."):
+            _, idx, name = k.split(".", 2)
+            state.setdefault(int(idx), {})[name] = v
+    for k, v in meta["opt_scalars"].items():
+        idx, name = k.split(".", 1)
+        state.setdefault(int(idx), {})[name] = v
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def _plot_losses(csv_path: Path, png_path: Path, stage: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = list(csv.DictReader(csv_path.open()))
+    if not rows:
+        return
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for split, style in (("train", "-"), ("val", "o-")):
+        pts = [(int(r["step"]), float(r["loss"])) for r in rows if r["split"] == split]
+        if pts:
+            ax.plot(*zip(*pts), style, label=split, markersize=3)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_title(f"GenRe training: {stage} stage")
+    ax.legend()
+    fig.tight_layout()
+    tmp = png_path.with_name(png_path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    os.replace(tmp, png_path)
+
+
+# ---- the loop ----------------------------------------------------------------------------
+def _dist_info() -> tuple[int, int]:
+    return int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
+    """Run (or resume) one stage; returns a summary with timings and losses."""
+    rank, world = _dist_info()
+    device = torch.device(tcfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available")
+    if world > 1:
+        import torch.distributed as dist
+
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        if device.type == "cpu":
+            torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+        elif device.index is None:
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    torch.manual_seed(tcfg.seed)
+    if tcfg.init:
+        model = load_model(tcfg.init).train()
+    else:
+        model = GenRe(model_config or get_preset(tcfg.preset))
+    config = model.config
+    module = StageModule(model, tcfg.stage, tcfg.surface_weight).to(device)
+    params = [p for p in module.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
+
+    stage_dir = Path(tcfg.out) / tcfg.stage
+    if rank == 0:
+        stage_dir.mkdir(parents=True, exist_ok=True)
+        (stage_dir / "config.json").write_text(json.dumps({"train": dataclasses.asdict(tcfg), "model": config.to_dict()}, indent=2))
+    start, best = _load_checkpoint(stage_dir, module, opt) if (stage_dir / "checkpoint").exists() or list(stage_dir.glob("checkpoint.old-*")) else (0, math.inf)
+
+    shape_ids = None
+    if tcfg.shapes:
+        shape_ids = {line.strip() for line in Path(tcfg.shapes).read_text().splitlines() if line.strip()}
+    need_targets = tcfg.stage != "depth"  # the depth stage needs only the renders
+    refs = find_views(Path(tcfg.data), shape_ids, targets=need_targets)
+    train_refs, val_refs = split_views(refs, tcfg.val_fraction)
+    train_set = ViewDataset(train_refs, config, augment=tcfg.augment and tcfg.stage == "depth", targets=need_targets)
+    val_set = ViewDataset(val_refs, config, targets=need_targets) if val_refs else None
+
+    net = module
+    if world > 1:
+        net = nn.parallel.DistributedDataParallel(module, device_ids=[device.index] if device.type == "cuda" else None)
+    loader = torch.utils.data.DataLoader(
+        StepBatches(train_set, tcfg.batch_size, rank, world, tcfg.seed),
+        batch_size=None,
+        sampler=range(start, tcfg.steps),
+        num_workers=tcfg.workers,
+    )
+    writer = None
+    log = None
+    if rank == 0:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(stage_dir / "tb"), purge_step=start)
+        new_log = not (stage_dir / "log.csv").exists() or start == 0
+        log = (stage_dir / "log.csv").open("w" if new_log else "a", newline="")
+        fields = ["step", "split", "loss", "terms", "lr", "s_per_step", "samples_per_s"]
+        log_writer = csv.DictWriter(log, fieldnames=fields)
+        if new_log:
+            log_writer.writeheader()
+    from tqdm import tqdm
+
+    bar = tqdm(total=tcfg.steps, initial=start, desc=f"train {tcfg.stage}", unit="step", disable=rank != 0 or not tcfg.progress, dynamic_ncols=True)
+    last_ckpt = time.monotonic()
+    window_t, window_n = time.perf_counter(), 0
+    step_times = []
+    first_loss = last_loss = None
+
+    def validate() -> float:
+        module.eval()
+        total, count = 0.0, 0
+        with torch.no_grad():
+            for i in range(min(len(val_set), tcfg.val_samples)):
+                b = {k: v[None].to(device) for k, v in val_set.sample(i, None).items()}
+                total += float(module(b)[0])
+                count += 1
+        module.train()
+        return total / max(count, 1)
+
+    module.train()
+    step = start
+    for step, batch in zip(range(start, tcfg.steps), loader):
+        t0 = time.perf_counter()
+        batch = _to(batch, device)
+        loss, terms = net(batch)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        lv = float(loss.detach())
+        if not math.isfinite(lv):
+            raise FloatingPointError(f"loss became {lv} at step {step}; lower the learning rate")
+        first_loss = lv if first_loss is None else first_loss
+        last_loss = lv
+        step_times.append(time.perf_counter() - t0)
+        window_n += 1
+        done = step + 1
+        if rank == 0:
+            bar.update(1)
+            bar.set_postfix(loss=f"{lv:.4g}")
+            if done % tcfg.log_every == 0 or done == tcfg.steps:
+                dt = (time.perf_counter() - window_t) / window_n
+                log_writer.writerow(
+                    {"step": done, "split": "train", "loss": f"{lv:.6g}", "terms": json.dumps({k: round(float(v.detach()), 6) for k, v in terms.items()}),
+                     "lr": tcfg.learning_rate, "s_per_step": f"{dt:.4f}", "samples_per_s": f"{tcfg.batch_size * world / dt:.3f}"}
+                )
+                log.flush()
+                writer.add_scalar(f"{tcfg.stage}/train_loss", lv, done)
+                for k, v in terms.items():
+                    writer.add_scalar(f"{tcfg.stage}/{k}", float(v.detach()), done)
+                window_t, window_n = time.perf_counter(), 0
+            if val_set is not None and (done % tcfg.val_every == 0 or done == tcfg.steps):
+                v = validate()
+                log_writer.writerow({"step": done, "split": "val", "loss": f"{v:.6g}", "terms": "{}", "lr": tcfg.learning_rate, "s_per_step": "", "samples_per_s": ""})
+                log.flush()
+                writer.add_scalar(f"{tcfg.stage}/val_loss", v, done)
+                if v < best:
+                    best = v
+                    module.save_weights(stage_dir / "best.safetensors", {"stage": tcfg.stage, "step": done, "val_loss": v})
+            due = time.monotonic() - last_ckpt > 60 * tcfg.checkpoint_minutes
+            if due or (tcfg.checkpoint_every and done % tcfg.checkpoint_every == 0) or done == tcfg.steps:
+                _save_checkpoint(stage_dir, module, opt, done, best, tcfg)
+                _plot_losses(stage_dir / "log.csv", stage_dir / "loss.png", tcfg.stage)
+                last_ckpt = time.monotonic()
+    bar.close()
+    summary = {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": start, "world_size": world}
+    if rank == 0:
+        module.save_weights(stage_dir / "final.safetensors", {"stage": tcfg.stage, "step": tcfg.steps})
+        if val_set is None:  # no held-out shapes: the final weights are the best we know
+            shutil.copyfile(stage_dir / "final.safetensors", stage_dir / "best.safetensors")
+            shutil.copyfile(stage_dir / "final.json", stage_dir / "best.json")
+        writer.close()
+        log.close()
+        _plot_losses(stage_dir / "log.csv", stage_dir / "loss.png", tcfg.stage)
+        if step_times:
+            med = sorted(step_times)[len(step_times) // 2]
+            summary.update(
+                s_per_step=round(med, 4),
+                samples_per_s=round(tcfg.batch_size * world / med, 2),
+                first_loss=first_loss,
+                last_loss=last_loss,
+                best_val=None if math.isinf(best) else best,
+                train_views=len(train_set),
+                val_views=len(val_set) if val_set else 0,
+            )
+        (stage_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    if world > 1:
+        import torch.distributed as dist
+
+        # parameters agree by construction (all-reduced gradients); batch-norm running
+        # statistics are per process, so every rank takes rank 0's (the saved ones)
+        net_saved = model if module.baseline is None else module.baseline
+        param_digests = [None] * world
+        dist.all_gather_object(param_digests, weights_digest(net_saved, buffers=False))
+        summary["rank_param_digests"] = param_digests
+        for buf in net_saved.buffers():
+            dist.broadcast(buf, 0)
+        digests = [None] * world
+        dist.all_gather_object(digests, weights_digest(net_saved))
+        summary["rank_digests"] = digests
+        if rank == 0:
+            (stage_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        dist.barrier()
+    return summary
+
+
+def weights_digest(model: nn.Module, buffers: bool = True) -> str:
+    """SHA-256 of every parameter (and buffer), to compare the weights of processes."""
+    h = hashlib.sha256()
+    items = model.state_dict().items() if buffers else model.named_parameters()
+    for name, t in sorted(items):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically).")
+    parser.add_argument("stage", choices=STAGES)
+    parser.add_argument("--data", required=True, help="folder of rendered views with targets ('genre data render' + 'genre data targets')")
+    parser.add_argument("--out", required=True, help="run folder; this stage writes OUT/STAGE/")
+    parser.add_argument("--init", help="weights to start from (e.g. OUT/depth/best.safetensors); default: fresh weights of --preset")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
+    parser.add_argument("--model-config", help="JSON file of a model config (GenreConfig.to_dict) instead of --preset")
+    parser.add_argument("--shapes", help="file listing the shape ids to train on (default: every shape in --data)")
+    for f in dataclasses.fields(TrainConfig):
+        if f.name in ("stage", "data", "out", "init", "preset", "shapes", "augment", "progress"):
+            continue
+        kind = float if f.type in ("float", "float | None") else (int if f.type == "int" else str)
+        parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default)
+    parser.add_argument("--no-augment", action="store_true")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if f.name not in ("augment", "progress")}
+    tcfg = TrainConfig(**values, augment=not args.no_augment, progress=not args.no_progress)
+    if tcfg.init and not Path(tcfg.init).is_file():
+        parser.error(f"--init: no such weights file: {tcfg.init}")
+    model_config = None
+    if args.model_config:
+        try:
+            model_config = GenreConfig.from_dict(json.loads(Path(args.model_config).read_text()))
+        except (OSError, ValueError) as exc:
+            parser.error(f"--model-config: {exc}")
+    try:
+        summary = train(tcfg, model_config)
+    except CheckpointMismatch as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    if _dist_info()[0] == 0:
+        print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
