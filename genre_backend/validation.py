@@ -1,4 +1,4 @@
-"""Up-front input checks shared by the geometry core.
+"""Up-front input checks shared by the whole backend.
 
 Every public geometry function validates its inputs with these helpers and
 raises :class:`ValueError` with a message that names the argument, the shape
@@ -70,6 +70,17 @@ def check_positive_int(name: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
         raise ValueError(f"{name}: expected a positive int, got {value!r}")
     return value
+
+
+def check_threshold(name: str, value) -> float:
+    """An isosurface level / probability threshold: a real number strictly inside (0, 1), returned as float.
+
+    The one check of every threshold in the project (CLI options, server
+    requests, weights metadata, marching cubes); bools, NaN and strings are refused.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) < 1.0:
+        raise ValueError(f"{name}: expected a number in (0, 1), got {value!r}")
+    return float(value)
 
 
 def _fmt(shape: Sequence[int | str | None]) -> str:
