@@ -1,30 +1,87 @@
 """The ``genre`` console entry point.
 
-Each subcommand lives in its own module with a ``main(argv, prog) -> int``
-function; this file only dispatches, importing the module on demand so that
+Subcommands are :class:`Command` records: a name, a one-line summary and a
+loader that imports the command's module only when it runs, so that
 ``genre --version`` and ``genre --help`` stay instant (torch and bpy load only
-when a command needs them).
+when a command needs them).  The backend registers its own commands here
+(``reconstruct``, ``serve``, ``bench``); other packages add theirs through the
+``genre.commands`` entry-point group (the training side registers ``data``,
+``train`` and ``eval`` in ``training/commands.py``, named in pyproject.toml).
+The backend never imports the training side.
 """
 
 from __future__ import annotations
 
-import importlib
 import sys
+from dataclasses import dataclass
+from typing import Callable
 
 from . import __version__
 
-# name -> (module, one-line summary)
-COMMANDS: dict[str, tuple[str | None, str]] = {
-    "data": ("training.data.cli", "fetch, build, render and inspect the training corpus"),
-    "train": ("training.learn.train", "train the networks stage by stage"),
-    "eval": ("training.eval.runner", "evaluate a trained model over a split"),
-    "reconstruct": ("genre_backend.inference.reconstruct_cli", "turn photos into meshes"),
-    "serve": ("genre_backend.inference.server", "run the JSON-over-stdio reconstruction server"),
-    "bench": ("genre_backend.inference.bench", "print speed figures (geometry, inference)"),
-}
+__all__ = ["Command", "ENTRY_POINT_GROUP", "backend_commands", "commands", "main"]
+
+ENTRY_POINT_GROUP = "genre.commands"
+MainFn = Callable[..., int]
 
 
-def _usage() -> str:
+@dataclass(frozen=True)
+class Command:
+    """One ``genre`` subcommand: ``load()`` imports its module and returns its ``main(argv, prog) -> int``."""
+
+    name: str
+    summary: str
+    load: Callable[[], MainFn]
+
+
+def _reconstruct() -> MainFn:
+    from .inference import reconstruct_cli
+
+    return reconstruct_cli.main
+
+
+def _serve() -> MainFn:
+    from .inference import server
+
+    return server.main
+
+
+def _bench() -> MainFn:
+    from .inference import bench
+
+    return bench.main
+
+
+def backend_commands() -> list[Command]:
+    return [
+        Command("reconstruct", "turn photos into meshes", _reconstruct),
+        Command("serve", "run the JSON-over-stdio reconstruction server", _serve),
+        Command("bench", "print speed figures (geometry, inference)", _bench),
+    ]
+
+
+def _plugin_commands() -> list[Command]:
+    """Commands registered by installed packages under the ``genre.commands`` entry-point group."""
+    from importlib.metadata import entry_points
+
+    found: list[Command] = []
+    for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+        try:
+            registered = ep.load()
+        except ImportError:  # a package that is listed but no longer importable
+            continue
+        found.extend(c for c in registered if isinstance(c, Command))
+    return found
+
+
+def commands() -> dict[str, Command]:
+    """Every available subcommand by name: the registered ones (data, train, eval), then the backend's."""
+    out: dict[str, Command] = {}
+    for cmd in _plugin_commands() + backend_commands():
+        out.setdefault(cmd.name, cmd)
+    return out
+
+
+def _usage(available: dict[str, Command]) -> str:
     lines = [
         "usage: genre [--version] [--help] COMMAND [ARGS...]",
         "",
@@ -32,30 +89,29 @@ def _usage() -> str:
         "",
         "commands:",
     ]
-    for name, (module, summary) in COMMANDS.items():
-        lines.append(f"  {name:<12} {summary}{'' if module else '  (not available in this version)'}")
+    for name, cmd in available.items():
+        lines.append(f"  {name:<12} {cmd.summary}")
     lines += ["", "Run 'genre COMMAND --help' for a command's options."]
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help", "help"):
-        print(_usage())
-        return 0 if argv else 2
-    if argv[0] in ("-V", "--version"):
+    if argv[:1] in (["-V"], ["--version"]):
         print(f"genre {__version__}")
         return 0
+    available = commands()
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(_usage(available))
+        return 0 if argv else 2
     name = argv[0]
-    if name not in COMMANDS:
-        print(f"genre: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+    if name not in available:
+        hint = ""
+        if name in ("data", "train", "eval"):
+            hint = " (the training commands come with the 'training' package: install the project with 'pip install -e .')"
+        print(f"genre: unknown command {name!r}{hint}\n\n{_usage(available)}", file=sys.stderr)
         return 2
-    module_name = COMMANDS[name][0]
-    if module_name is None:
-        print(f"genre {name}: not available in genre {__version__} yet", file=sys.stderr)
-        return 2
-    module = importlib.import_module(module_name)
-    return int(module.main(argv[1:], prog=f"genre {name}") or 0)
+    return int(available[name].load()(argv[1:], prog=f"genre {name}") or 0)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -7,6 +7,7 @@ it expected and what it got.
 
 from __future__ import annotations
 
+import numbers
 from typing import Sequence
 
 import torch
@@ -78,7 +79,7 @@ def check_threshold(name: str, value) -> float:
     The one check of every threshold in the project (CLI options, server
     requests, weights metadata, marching cubes); bools, NaN and strings are refused.
     """
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) < 1.0:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 < float(value) < 1.0:
         raise ValueError(f"{name}: expected a number in (0, 1), got {value!r}")
     return float(value)
 

@@ -483,16 +483,6 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
 
 
 # ------------------------------------------------------------------ against a real `genre serve`
-def _server_missing() -> str:
-    if not (REPO / "genre_backend" / "server.py").is_file():
-        return "genre_backend/server.py (genre serve) does not exist yet"
-    cli = (REPO / "genre_backend" / "cli.py").read_text()
-    if '"serve": (None' in cli:
-        return "genre serve is not wired into genre_backend/cli.py yet"
-    return ""
-
-
-needs_server = pytest.mark.skipif(bool(_server_missing()), reason=_server_missing() or "server present")
 
 
 def make_weights(root: Path, steps: tuple[int, int, int] = (3, 3, 3), lr: float | None = None) -> Path:
@@ -547,7 +537,6 @@ def trained(tmp_path_factory):
     return weights, make_photo(root)
 
 
-@needs_server
 def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     weights, photo = trained
     r = run_scenario("reconstruct", {"zip": str(built["legacy"]), "weights": str(weights), "photo": str(photo)}, tmp_path)
@@ -587,7 +576,6 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert r["backend_exit_after_disable"] is not None
 
 
-@needs_server
 def test_failures_leave_nothing_behind_and_say_why(built, trained, tmp_path):
     weights, photo = trained
     corrupt = tmp_path / "corrupt.png"

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..validation import check_positive_int, check_tensor
+from ..validation import check_positive_int, check_tensor, check_threshold
 
 __all__ = [
     "surface_lattice",
@@ -132,8 +132,7 @@ def voxels_to_mesh(grid, threshold: float) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"grid: expected a cubic (N, N, N) array, got shape {g.shape}")
     if not np.issubdtype(g.dtype, np.floating) or not np.isfinite(g).all():
         raise ValueError("grid: expected finite floating-point values")
-    if not 0.0 < threshold < 1.0:
-        raise ValueError(f"threshold: expected a value in (0, 1), got {threshold}")
+    threshold = check_threshold("threshold", threshold)
     from skimage.measure import marching_cubes
 
     n = g.shape[0]

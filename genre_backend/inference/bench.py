@@ -30,6 +30,7 @@ import torch
 
 from ..geometry.analytic import sphere_depth
 from ..config import PRESETS, get_preset
+from ..validation import check_threshold
 
 __all__ = ["main", "geometry_benchmark", "inference_benchmark"]
 
@@ -148,7 +149,7 @@ def _bench_image(folder: Path) -> Path:
     return path
 
 
-def _inference_worker(preset: str, device: str, repeats: int, threshold: float) -> dict:
+def _inference_worker(preset: str, device: str, repeats: int, threshold: float | None) -> dict:
     """Run in a fresh process: time the pipeline of one preset; returns a JSON-able summary."""
     import tempfile
     import threading
@@ -233,14 +234,19 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float) 
     }
 
 
-def inference_benchmark(preset: str, device: str = "cpu", repeats: int = 5, threshold: float = 0.5, threads: int | None = None) -> dict:
-    """Time the pipeline of ``preset`` in a fresh subprocess (so its peak memory is its own)."""
+def inference_benchmark(preset: str, device: str = "cpu", repeats: int = 5, threshold: float | None = None, threads: int | None = None) -> dict:
+    """Time the pipeline of ``preset`` in a fresh subprocess (so its peak memory is its own).
+
+    ``threshold`` None: the preset's ``geometry.default_threshold``.
+    """
     import json
     import subprocess
     import sys
 
     cmd = [sys.executable, "-m", "genre_backend.cli", "bench", "_inference-worker", "--preset", preset, "--device", device,
-           "--repeats", str(repeats), "--threshold", str(threshold)]
+           "--repeats", str(repeats)]
+    if threshold is not None:
+        cmd += ["--threshold", str(threshold)]
     if threads:
         cmd += ["--threads", str(threads)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -284,14 +290,14 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     inf.add_argument("--preset", choices=[*PRESETS, "all"], default="all")
     inf.add_argument("--device", choices=["cpu", "cuda", "all"], default="all", help="all: the CPU, and CUDA when present")
     inf.add_argument("--repeats", type=int, default=5, help="timed runs per preset after one warm-up (median reported)")
-    inf.add_argument("--threshold", type=float, default=0.5)
+    inf.add_argument("--threshold", type=float, default=None, help="isosurface level (default: the preset's default_threshold)")
     inf.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     inf.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
     worker = sub.add_parser("_inference-worker")  # internal: one preset in a fresh process
     worker.add_argument("--preset", required=True)
     worker.add_argument("--device", required=True)
     worker.add_argument("--repeats", type=int, required=True)
-    worker.add_argument("--threshold", type=float, required=True)
+    worker.add_argument("--threshold", type=float, default=None)
     worker.add_argument("--threads", type=int, default=None)
     args = parser.parse_args(argv)
     if args.threads:
@@ -306,8 +312,11 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     if args.what == "inference":
         import json
 
-        if not 0.0 < args.threshold < 1.0:
-            parser.error("--threshold must lie in (0, 1)")
+        if args.threshold is not None:
+            try:
+                check_threshold("--threshold", args.threshold)
+            except ValueError as exc:
+                parser.error(str(exc))
         devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
         if "cuda" in devices and not torch.cuda.is_available():
             if args.device == "cuda":

@@ -33,6 +33,7 @@ import torch
 
 from ..config import GenreConfig
 from ..io import atomic_write_bytes
+from ..validation import check_threshold
 from ..geometry.mesh_voxels import voxels_to_mesh
 from ..nets.model import GenRe, WeightsError, load_model
 from .preprocess import ImageError, MIN_OBJECT_PIXELS, Preprocessed, load_image, preprocess
@@ -368,9 +369,7 @@ class Reconstructor:
         g = self.config.geometry
         if threshold is None:
             threshold = g.default_threshold
-        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 < float(threshold) < 1.0:
-            raise ValueError(f"threshold: expected a number in (0, 1), got {threshold!r}")
-        threshold = float(threshold)
+        threshold = check_threshold("threshold", threshold)
         timings: dict[str, float] = {}
         state = {"stage": None, "t0": 0.0}
 

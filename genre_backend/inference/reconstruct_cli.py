@@ -60,8 +60,13 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     images = [Path(p) for p in args.images]
     if args.mask and len(images) > 1:
         parser.error("--mask applies to one image; give one image per call")
-    if args.threshold is not None and not 0.0 < args.threshold < 1.0:
-        parser.error(f"--threshold must lie in (0, 1), got {args.threshold}")
+    if args.threshold is not None:
+        from ..validation import check_threshold  # (torch loads only once a command runs)
+
+        try:
+            check_threshold("--threshold", args.threshold)
+        except ValueError as exc:
+            parser.error(str(exc))
     fmt = args.format
     single_file = len(images) == 1 and args.output and not Path(args.output).is_dir() and not args.output.endswith(os.sep)
     if single_file:

@@ -142,8 +142,13 @@ class Server:
         if unknown:
             raise RequestError("bad_field", f"unknown option(s) {', '.join(map(repr, unknown))}; known: {', '.join(_OPTION_KEYS)}", rid)
         threshold = options.get("threshold")
-        if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0.0 < threshold < 1.0):
-            raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {json.dumps(threshold)}", rid)
+        if threshold is not None:
+            from ..validation import check_threshold
+
+            try:
+                check_threshold("threshold", threshold)
+            except ValueError:
+                raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {json.dumps(threshold)}", rid) from None
         fmt = options.get("format")
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
             raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {json.dumps(fmt)}", rid)

@@ -1,0 +1,37 @@
+"""The training side's ``genre`` subcommands, registered with the backend's CLI.
+
+Named in pyproject.toml under the ``genre.commands`` entry-point group, so
+``genre data|train|eval`` exist while the backend never imports ``training``.
+Importing this module is cheap: each loader imports its command on demand.
+"""
+
+from __future__ import annotations
+
+from genre_backend.cli import Command
+
+__all__ = ["COMMANDS"]
+
+
+def _data():
+    from .data import cli
+
+    return cli.main
+
+
+def _train():
+    from .learn import train
+
+    return train.main
+
+
+def _eval():
+    from .eval import runner
+
+    return runner.main
+
+
+COMMANDS = [
+    Command("data", "fetch, build, render and inspect the training corpus", _data),
+    Command("train", "train the networks stage by stage", _train),
+    Command("eval", "evaluate a trained model over a split", _eval),
+]
