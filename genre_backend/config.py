@@ -20,6 +20,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from .validation import check_threshold
+
 __all__ = [
     "CameraConfig",
     "GeometryConfig",
@@ -91,6 +93,19 @@ class GeometryConfig:
     # box/table test renders; canonical renders (diagonal 1 at distance 2.2) span 0.45-0.7.
     object_fraction: float = 0.5
 
+    def __post_init__(self):
+        for name in ("image_size", "sph_size", "voxel_size", "sph_supersample", "chamfer_points"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"geometry.{name}: expected a positive int, got {getattr(self, name)!r}")
+        if self.sph_pad < 0 or self.shell_dilation < 0:
+            raise ValueError("geometry.sph_pad and geometry.shell_dilation must be >= 0")
+        for name in ("default_threshold", "threshold_min", "threshold_max"):
+            check_threshold(f"geometry.{name}", getattr(self, name))
+        if not (self.threshold_min <= self.threshold_max and self.threshold_step > 0):
+            raise ValueError(f"geometry: threshold sweep {self.threshold_min}..{self.threshold_max} step {self.threshold_step} is empty")
+        if not 0.0 < self.object_fraction <= 1.0:
+            raise ValueError(f"geometry.object_fraction: expected a number in (0, 1], got {self.object_fraction!r}")
+
     @property
     def voxel_pitch(self) -> float:
         """Edge length of one voxel in world units (the cube has edge 1)."""
@@ -158,13 +173,36 @@ def _from_dict(cls: type, data: Any, where: str):
         sub = _DATACLASS_TYPES.get(ftype)
         if sub:
             value = _from_dict(sub, value, f"{where}.{name}")
-        elif ftype.startswith("tuple") and isinstance(value, list):
-            value = tuple(value)  # JSON has no tuples
+        else:
+            if ftype.startswith("tuple") and isinstance(value, list):
+                value = tuple(value)  # JSON has no tuples
+            _check_type(f"{where}.{name}", ftype, value)
         kwargs[name] = value
     try:
         return cls(**kwargs)
     except TypeError as exc:
         raise ValueError(f"{where}: {exc}") from None
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _check_type(where: str, ftype: str, value: Any) -> None:
+    """Refuse a stored value whose JSON type is not the field's (``"64"`` for an int, ``null`` for widths, NaN)."""
+    if ftype == "int":
+        ok = _is_int(value)
+    elif ftype == "float":
+        ok = (_is_int(value) or isinstance(value, float)) and math.isfinite(value)
+    elif ftype == "str":
+        ok = isinstance(value, str)
+    elif ftype.startswith("tuple[int"):
+        ok = isinstance(value, tuple) and len(value) == ftype.count("int") and all(_is_int(v) and v > 0 for v in value)
+    else:  # pragma: no cover  (a field type this reader does not know yet)
+        raise TypeError(f"{where}: no JSON check for field type {ftype!r}")
+    if not ok:
+        shown = repr(value)
+        raise ValueError(f"{where}: expected {ftype}, got {shown if len(shown) <= 80 else shown[:80] + '…'}")
 
 
 _DATACLASS_TYPES: dict[str, type] = {

@@ -20,6 +20,8 @@ from typing import Any, BinaryIO, Callable
 __all__ = [
     "WeightsError",
     "atomic_write",
+    "remove_dead_temporaries",
+    "tmp_prefix",
     "atomic_write_bytes",
     "atomic_write_text",
     "atomic_write_json",
@@ -42,15 +44,49 @@ def tmp_prefix(path: Path) -> str:
     return f".{path.name}.tmp-{os.getpid()}-"
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # (EPERM: alive, another user's)
+        return True
+    return True
+
+
+def remove_dead_temporaries(path: str | os.PathLike) -> int:
+    """Delete ``path``'s temporary files left by processes that no longer run (killed mid-write); returns how many."""
+    path = Path(path)
+    head = f".{path.name}.tmp-"
+    removed = 0
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return 0
+    for entry in entries:
+        if not entry.name.startswith(head):
+            continue
+        pid_text = entry.name[len(head):].split("-", 1)[0]
+        if pid_text.isdigit() and int(pid_text) != os.getpid() and not _pid_alive(int(pid_text)):
+            try:
+                os.unlink(entry.path)
+                removed += 1
+            except OSError:
+                pass
+    return removed
+
+
 def atomic_write(path: str | os.PathLike, writer: Callable[[BinaryIO], Any]) -> Path:
     """Call ``writer(binary_file)`` on a new temporary file beside ``path``, then rename it to ``path``.
 
     The temporary file is created with ``O_CREAT | O_EXCL`` (never follows a
     planted link) in the target's folder (so the rename is atomic), and is
     removed if ``writer`` or the rename fails; the error propagates.
+    Temporary files of ``path`` left by dead processes are removed first.
     Returns ``path`` as a :class:`~pathlib.Path`.
     """
     path = Path(path)
+    remove_dead_temporaries(path)
     fd, tmp_name = tempfile.mkstemp(prefix=tmp_prefix(path), dir=path.parent)
     tmp = Path(tmp_name)
     try:
@@ -151,7 +187,21 @@ def stored_config(path: str | os.PathLike, meta: dict[str, str]):
 
 
 def load_state_strict(module, state: dict, path: str | os.PathLike) -> None:
-    """``module.load_state_dict(state, strict=True)``; a mismatch becomes a one-line :class:`WeightsError`."""
+    """``module.load_state_dict(state, strict=True)``; a mismatch becomes a one-line :class:`WeightsError`.
+
+    The message names the first tensor that is missing, unexpected, or of
+    another shape (with both shapes).
+    """
+    wanted = module.state_dict()
+    for name, tensor in wanted.items():
+        if name not in state:
+            raise WeightsError(f"{path}: weights do not match the stored config (tensor {name} is missing from the file)")
+        if tuple(state[name].shape) != tuple(tensor.shape):
+            raise WeightsError(f"{path}: weights do not match the stored config (tensor {name} has shape "
+                               f"{tuple(state[name].shape)} in the file, the model wants {tuple(tensor.shape)})")
+    extra = sorted(set(state) - set(wanted))
+    if extra:
+        raise WeightsError(f"{path}: weights do not match the stored config (unexpected tensor {extra[0]} in the file)")
     try:
         module.load_state_dict(state, strict=True)
     except RuntimeError as exc:

@@ -10,9 +10,8 @@ from __future__ import annotations
 import numbers
 from typing import Sequence
 
-import torch
-
-FLOAT_DTYPES = (torch.float32, torch.float64)
+# torch is imported inside the tensor checks, so that the config (which uses the
+# scalar checks) stays importable without it.
 
 
 def check_tensor(
@@ -29,6 +28,8 @@ def check_tensor(
     (a named size that must agree across all its occurrences in this call).
     A leading ``"..."`` entry accepts any number of leading dimensions.
     """
+    import torch
+
     if not isinstance(x, torch.Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
     pattern = list(shape)
@@ -49,15 +50,17 @@ def check_tensor(
                 raise ValueError(f"{name}: dimension {want} must be consistent, got shape {tuple(x.shape)}")
         elif want != got:
             raise ValueError(f"{name}: expected shape {_fmt(shape)}, got {tuple(x.shape)}")
-    if floating and x.dtype not in FLOAT_DTYPES:
+    if floating and x.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"{name}: expected float32 or float64, got {x.dtype}")
     if finite and x.dtype.is_floating_point and not bool(torch.isfinite(x).all()):
         raise ValueError(f"{name}: contains NaN or infinite values")
     return x
 
 
-def check_mask(name: str, mask, like: torch.Tensor) -> torch.Tensor:
-    """Validate a boolean mask with exactly the shape of ``like``."""
+def check_mask(name: str, mask, like):
+    """Validate a boolean mask (a torch.Tensor) with exactly the shape of ``like``."""
+    import torch
+
     if not isinstance(mask, torch.Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor, got {type(mask).__name__}")
     if mask.dtype != torch.bool:

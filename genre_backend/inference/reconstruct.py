@@ -26,13 +26,13 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
 from ..config import GenreConfig
-from ..io import atomic_write_bytes
+from ..io import atomic_write_bytes, tmp_prefix
 from ..validation import check_threshold
 from ..geometry.mesh_voxels import voxels_to_mesh
 from ..nets.model import GenRe, WeightsError, load_model
@@ -105,18 +105,52 @@ def resolve_device(device: str | torch.device) -> torch.device:
     return dev
 
 
-def check_output_path(path: str | os.PathLike) -> Path:
-    """Fail early (``OutputError``) if a file cannot be created at ``path``."""
+MAX_ECHO = 300  # characters of a user's path quoted back in a message
+
+
+def short(value: object, limit: int = MAX_ECHO) -> str:
+    """``str(value)`` cut to ``limit`` characters (a message never echoes a 10 MB path back)."""
+    text = str(value)
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output_path(path: str | os.PathLike, inputs: Sequence[str | os.PathLike | None] = ()) -> Path:
+    """Fail early (``OutputError``) if a mesh cannot or must not be written at ``path``.
+
+    Refused: a folder, a missing or unwritable folder, a read-only file, an
+    existing path that is not a regular file (a device, a FIFO, a socket:
+    replacing ``/dev/null`` with a mesh is never what was meant), an
+    over-long name, and any of ``inputs`` (the photo, the mask): an input is
+    never overwritten.
+    """
     path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
-    if path.is_dir():
-        raise OutputError(f"{path}: output path is a directory")
-    if not parent.is_dir():
-        raise OutputError(f"{path}: cannot write here: folder {parent} does not exist")
-    if path.exists() and not os.access(path, os.W_OK):
-        raise OutputError(f"{path}: cannot write here: file is read-only")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputError(f"{path}: cannot write here: folder {parent} is not writable")
+    try:
+        if path.is_dir():
+            raise OutputError(f"{short(path)}: output path is a directory")
+        if not parent.is_dir():
+            raise OutputError(f"{short(path)}: cannot write here: folder {short(parent)} does not exist")
+        if path.exists() and not path.is_file():
+            raise OutputError(f"{short(path)}: exists and is not a regular file (a device, FIFO or socket); choose another output")
+        for inp in inputs:
+            if inp is not None and _same_file(path, Path(inp)):
+                raise OutputError(f"{short(path)}: is an input of this job; an input is never overwritten")
+        if path.exists() and not os.access(path, os.W_OK):
+            raise OutputError(f"{short(path)}: cannot write here: file is read-only")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise OutputError(f"{short(path)}: cannot write here: folder {short(parent)} is not writable")
+        os.stat(parent / (tmp_prefix(path) + "x" * 8))  # a name too long for the file system fails here, not after the work
+    except FileNotFoundError:
+        pass  # (the expected answer of the last line)
+    except OSError as exc:
+        raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
     return path
 
 
@@ -200,6 +234,12 @@ class Reconstruction:
     config: GenreConfig
     intermediates: dict[str, torch.Tensor] = field(repr=False)
     notes: list[str] = field(default_factory=list)
+    mask_path: Path | None = None
+
+    @property
+    def inputs(self) -> tuple[Path, ...]:
+        """The files this result was made from (never overwritten by its own outputs)."""
+        return (self.image,) if self.mask_path is None else (self.image, self.mask_path)
 
     def camera(self) -> dict:
         """The view the mesh is posed for (protocol ``camera`` object).
@@ -221,6 +261,7 @@ class Reconstruction:
     def save_mesh(self, path: str | os.PathLike, fmt: str | None = None) -> tuple[Path, str]:
         """Write the mesh atomically (obj, ply or glb; default from the extension); times the ``write`` stage."""
         t0 = time.perf_counter()
+        check_output_path(path, self.inputs)
         out = write_mesh(path, self.vertices, self.faces, fmt)
         self.timings["write"] = time.perf_counter() - t0
         return out
@@ -238,11 +279,14 @@ class Reconstruction:
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise OutputError(f"{folder}: cannot create the intermediates folder: {exc.strerror or exc}") from None
+            raise OutputError(f"{short(folder)}: cannot create the intermediates folder: {exc.strerror or exc}") from None
         if not os.access(folder, os.W_OK | os.X_OK):
-            raise OutputError(f"{folder}: intermediates folder is not writable")
+            raise OutputError(f"{short(folder)}: intermediates folder is not writable")
+        images = self.intermediate_images()
+        for name in images:  # all checks before the first write
+            check_output_path(folder / f"{name}.png", self.inputs)
         paths = []
-        for name, img in self.intermediate_images().items():
+        for name, img in images.items():
             p = folder / f"{name}.png"
             _png(p, _upscale(img))
             paths.append(p)
@@ -253,7 +297,7 @@ class Reconstruction:
         from .preview import preview_image
 
         path = Path(path)
-        check_output_path(path)
+        check_output_path(path, self.inputs)
         t0 = time.perf_counter()
         _png(path, preview_image(self, samples=samples))
         self.timings["preview"] = time.perf_counter() - t0
@@ -439,4 +483,5 @@ class Reconstructor:
             config=self.config,
             intermediates=inter,
             notes=pre.notes,
+            mask_path=None if mask_path is None else Path(mask_path),
         )

@@ -36,9 +36,10 @@ def output_paths(images: list[Path], out: str | None, fmt: str) -> list[Path]:
     return paths
 
 
-def _one_line(exc: BaseException) -> str:
+def _one_line(exc: BaseException, limit: int = 2000) -> str:
     text = str(exc).strip().splitlines()
-    return text[0] if text else exc.__class__.__name__
+    line = text[0] if text else exc.__class__.__name__
+    return line if len(line) <= limit else f"{line[:limit]}… ({len(line):,} characters)"
 
 
 def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     failed = 0
     for image, out in zip(images, outputs):
         try:
-            check_output_path(out)
+            check_output_path(out, (image, args.mask))
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold)
             path, used = result.save_mesh(out, fmt)
             if args.save_intermediates:

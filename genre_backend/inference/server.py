@@ -61,9 +61,16 @@ def _key(req_id: Any) -> str:
     return json.dumps(req_id)
 
 
+MAX_MESSAGE = 2000  # characters of an error message (never a client's 10 MB value echoed back)
+
+
+def _cap(text: str, limit: int = MAX_MESSAGE) -> str:
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
+
+
 def _one_line(exc: BaseException) -> str:
     lines = str(exc).strip().splitlines()
-    return lines[0] if lines else exc.__class__.__name__
+    return _cap(lines[0] if lines else exc.__class__.__name__)
 
 
 class Server:
@@ -83,7 +90,9 @@ class Server:
 
     # ---- output -------------------------------------------------------------------------
     def emit(self, event: dict) -> None:
-        line = json.dumps(event, ensure_ascii=False, allow_nan=False)
+        # ASCII-only JSON: a lone surrogate (a non-UTF-8 file name, or "\ud800" sent by a client)
+        # goes out as its \u escape, never as text the UTF-8 stream cannot encode.
+        line = json.dumps(event, ensure_ascii=True, allow_nan=False)
         with self.lock:
             if self.broken.is_set():
                 return
@@ -95,7 +104,7 @@ class Server:
 
     def error(self, req_id: Any, code: str, message: str) -> None:
         log.info("error %s %s: %s", req_id, code, message)
-        self.emit({"type": "error", "id": req_id, "code": code, "message": message})
+        self.emit({"type": "error", "id": req_id, "code": code, "message": _cap(message)})
 
     def info(self) -> dict:
         return {
@@ -159,8 +168,8 @@ class Server:
         """Answer one input line; returns False when the server should stop reading."""
         try:
             msg = json.loads(line)
-        except (json.JSONDecodeError, RecursionError) as exc:
-            self.error(None, "bad_json", f"not valid JSON: {exc}")
+        except (ValueError, RecursionError) as exc:  # (ValueError: also integers past Python's digit limit)
+            self.error(None, "bad_json", f"not valid JSON: {_one_line(exc)}")
             return True
         if not isinstance(msg, dict):
             self.error(None, "bad_json", f"expected a JSON object, got {type(msg).__name__}")
@@ -256,7 +265,7 @@ class Server:
             return
         log.info("job %s: %s -> %s", job.id, job.image, job.output)
         try:
-            check_output_path(job.output)
+            check_output_path(job.output, (job.image, job.mask))
             if job.save_intermediates and Path(job.save_intermediates).exists() and not Path(job.save_intermediates).is_dir():
                 raise RequestError("output_unwritable", f"{job.save_intermediates}: intermediates path is a file, not a folder", job.id)
             result = self.rec.run(
@@ -277,7 +286,7 @@ class Server:
             self._end(job, {"type": "cancelled", "id": job.id})
             return
         except RequestError as exc:
-            self._end(job, {"type": "error", "id": job.id, "code": exc.code, "message": str(exc)})
+            self._end(job, {"type": "error", "id": job.id, "code": exc.code, "message": _cap(str(exc))})
             return
         except Exception as exc:  # every failure is reported; the server keeps serving
             code = error_code(exc)
