@@ -23,7 +23,7 @@ __all__ = ["main", "output_paths"]
 
 def output_paths(images: list[Path], out: str | None, fmt: str) -> list[Path]:
     """The mesh path of every image; names that would collide get ``-2``, ``-3``… appended."""
-    if len(images) == 1 and out is not None and not Path(out).is_dir() and not out.endswith(os.sep):
+    if len(images) == 1 and out is not None and not _is_dir(out) and not out.endswith(os.sep):
         return [Path(out)]
     folder = Path(out) if out is not None else Path(".")
     seen: dict[str, int] = {}
@@ -34,6 +34,14 @@ def output_paths(images: list[Path], out: str | None, fmt: str) -> list[Path]:
         seen[stem] = n
         paths.append(folder / (f"{stem}.{fmt}" if n == 1 else f"{stem}-{n}.{fmt}"))
     return paths
+
+
+def _is_dir(path: str | os.PathLike) -> bool:
+    """``Path.is_dir`` that answers False for a name the OS refuses (too long, …) instead of raising."""
+    try:
+        return Path(path).is_dir()
+    except OSError:
+        return False
 
 
 def _one_line(exc: BaseException, limit: int = 2000) -> str:
@@ -69,7 +77,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
         except ValueError as exc:
             parser.error(str(exc))
     fmt = args.format
-    single_file = len(images) == 1 and args.output and not Path(args.output).is_dir() and not args.output.endswith(os.sep)
+    single_file = len(images) == 1 and args.output and not _is_dir(args.output) and not args.output.endswith(os.sep)
     if single_file:
         ext = Path(args.output).suffix.lower().lstrip(".")
         if fmt is None:
@@ -79,7 +87,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     fmt = fmt or "obj"
     if len(images) > 1 and args.output:
         out_dir = Path(args.output)
-        if out_dir.exists() and not out_dir.is_dir():
+        if os.path.exists(out_dir) and not _is_dir(out_dir):
             print(f"{prog}: error: {out_dir}: with several images, -o must be a folder [output_unwritable]", file=sys.stderr)
             return 1
         try:

@@ -103,7 +103,7 @@ class Server:
                 self.broken.set()
 
     def error(self, req_id: Any, code: str, message: str) -> None:
-        log.info("error %s %s: %s", req_id, code, message)
+        log.info("error %s %s: %s", _cap(json.dumps(req_id), 300), code, _cap(message, 300))
         self.emit({"type": "error", "id": req_id, "code": code, "message": _cap(message)})
 
     def info(self) -> dict:
@@ -190,7 +190,7 @@ class Server:
                     if _key(job.id) in self.pending:
                         raise RequestError("bad_field", f"a job with id {json.dumps(job.id)} is already queued or running", job.id)
                     self.pending[_key(job.id)] = job
-                log.info("queued job %s: %s", job.id, job.image)
+                log.info("queued job %s: %s", _cap(_key(job.id), 300), _cap(job.image, 300))
                 self.jobs.put(job)
             elif kind == "cancel":
                 target = self._id(msg, required=True)
@@ -210,7 +210,7 @@ class Server:
             if job is None:
                 raise RequestError("unknown_job", f"no queued or running job with id {json.dumps(rid)}", rid)
             self._cancel_locked(job)
-        log.info("cancel requested for job %s", rid)
+        log.info("cancel requested for job %s", _cap(json.dumps(rid), 300))
 
     def _cancel_locked(self, job: Job) -> None:
         """Flag ``job``; a queued job is answered now, the running one at its next stage boundary."""
@@ -254,7 +254,7 @@ class Server:
             self.pending.pop(_key(job.id), None)
             self.running = None
         if event["type"] == "error":
-            log.info("error %s %s: %s", job.id, event["code"], event["message"])
+            log.info("error %s %s: %s", _cap(_key(job.id), 300), event["code"], _cap(event["message"], 300))
         self.emit(event)
 
     def _run(self, job: Job) -> None:
@@ -263,7 +263,7 @@ class Server:
         if job.cancel.is_set():
             self._end(job, {"type": "cancelled", "id": job.id})
             return
-        log.info("job %s: %s -> %s", job.id, job.image, job.output)
+        log.info("job %s: %s -> %s", _cap(_key(job.id), 300), _cap(job.image, 300), _cap(job.output, 300))
         try:
             check_output_path(job.output, (job.image, job.mask))
             if job.save_intermediates and Path(job.save_intermediates).exists() and not Path(job.save_intermediates).is_dir():
@@ -282,7 +282,7 @@ class Server:
             if job.save_intermediates:
                 result.save_intermediates(job.save_intermediates)
         except Cancelled:
-            log.info("job %s cancelled", job.id)
+            log.info("job %s cancelled", _cap(_key(job.id), 300))
             self._end(job, {"type": "cancelled", "id": job.id})
             return
         except RequestError as exc:
@@ -291,7 +291,7 @@ class Server:
         except Exception as exc:  # every failure is reported; the server keeps serving
             code = error_code(exc)
             if code == "internal":
-                log.exception("job %s: internal error", job.id)
+                log.exception("job %s: internal error", _cap(_key(job.id), 300))
                 message = f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
             else:
                 message = _one_line(exc)
@@ -312,7 +312,7 @@ class Server:
                 "camera": result.camera(),
             }
         )
-        log.info("job %s done: %d faces in %.2f s", job.id, len(result.faces), sum(result.timings.values()))
+        log.info("job %s done: %d faces in %.2f s", _cap(_key(job.id), 300), len(result.faces), sum(result.timings.values()))
 
     # ---- the loop -----------------------------------------------------------------------
     def serve(self, stdin: TextIO) -> int:
