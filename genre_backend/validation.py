@@ -8,7 +8,10 @@ it expected and what it got.
 from __future__ import annotations
 
 import numbers
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
+
+if TYPE_CHECKING:
+    import torch
 
 # torch is imported inside the tensor checks, so that the config (which uses the
 # scalar checks) stays importable without it.

@@ -1,4 +1,4 @@
-"""Tests of the headless Blender renderer (training/render.py) with real bpy.
+"""Tests of the headless Blender renderer (training/render/) with real bpy.
 
 Geometry is checked against analytic shapes: a sphere's planar depth, disc
 silhouette and back-projected points; an off-centre box's image position,
@@ -22,6 +22,9 @@ trimesh = pytest.importorskip("trimesh")
 
 from genre_backend import frame  # noqa: E402
 from genre_backend.config import get_preset  # noqa: E402
+from training.data import views as view_files  # noqa: E402
+from training.render import backgrounds, randomness  # noqa: E402
+from training.render import cli as render_cli  # noqa: E402
 from training.render import scene as render  # noqa: E402
 
 CONFIG = get_preset("default")
@@ -159,12 +162,12 @@ def test_imported_formats_keep_stored_coordinates(active_renderer, box_paths, tm
 
 
 def test_background_varies_with_seed_and_mask_stays(active_renderer, box_paths, tmp_path):
-    shape = render.ShapeEntry("box", box_paths["glb"], "test", None)
+    shape = view_files.ShapeEntry("box", box_paths["glb"], "test", None)
     views = [(30.0, 20.0)]
     loaded = []
     for seed in (3, 4):
         assert render.render_shape(active_renderer, shape, views, tmp_path / f"s{seed}", seed) == 1
-        loaded.append(render.load_view(tmp_path / f"s{seed}" / "box", 0))
+        loaded.append(view_files.load_view(tmp_path / f"s{seed}" / "box", 0))
     a, b = loaded
     assert a["rgb"].shape == (SIZE, SIZE, 3) and a["rgb"].dtype == np.uint8
     assert a["depth"].dtype == np.float32 and a["mask"].dtype == np.float32
@@ -184,17 +187,17 @@ def test_background_varies_with_seed_and_mask_stays(active_renderer, box_paths, 
 
 
 def test_backgrounds_are_deterministic_and_varied():
-    imgs = [render.make_background(render.view_rng(7, "shape", k, 2), 32) for k in range(12)]
-    again = render.make_background(render.view_rng(7, "shape", 5, 2), 32)
+    imgs = [backgrounds.make_background(randomness.view_rng(7, "shape", k, 2), 32) for k in range(12)]
+    again = backgrounds.make_background(randomness.view_rng(7, "shape", 5, 2), 32)
     np.testing.assert_array_equal(imgs[5][0], again[0])
     assert {info["kind"] for _, info in imgs} == {"solid", "gradient", "noise"}
     for img, _ in imgs:
         assert img.shape == (32, 32, 3) and img.dtype == np.float32 and img.min() >= 0 and img.max() <= 1
-    views = render.sample_views("shape", 5, 0, CAM)
-    assert views[:3] == render.sample_views("shape", 3, 0, CAM)
+    views = randomness.sample_views("shape", 5, 0, CAM)
+    assert views[:3] == randomness.sample_views("shape", 3, 0, CAM)
     assert all(0 <= az < 360 and CAM.elevation_min_deg <= el <= CAM.elevation_max_deg for az, el in views)
     with pytest.raises(ValueError):
-        render.composite_over(np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4, 3)))
+        backgrounds.composite_over(np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4, 3)))
 
 
 def test_discover_shapes_from_manifest_and_folder(tmp_path):
@@ -202,23 +205,23 @@ def test_discover_shapes_from_manifest_and_folder(tmp_path):
     (corpus / "shapes").mkdir(parents=True)
     manifest = corpus / "manifest.json"
     manifest.write_text(json.dumps({"shapes": [{"id": "a1", "class": "chair", "split": "train"}]}))
-    (shape,) = render.discover_shapes(manifest)
+    (shape,) = view_files.read_shapes(manifest)
     assert shape.path == corpus / "shapes" / "a1.glb" and shape.cls == "chair" and shape.split == "train"
     folder = tmp_path / "meshes"
     (folder / "lamp").mkdir(parents=True)
     (folder / "lamp" / "x.obj").write_text("v 0 0 0\n")
     (folder / "notes.txt").write_text("no mesh")
-    (found,) = render.discover_shapes(folder)
+    (found,) = view_files.read_shapes(folder)
     assert found.id == "lamp__x" and found.cls == "lamp"
     manifest.write_text(json.dumps([{"class": "chair"}]))
     with pytest.raises(ValueError, match="id"):
-        render.discover_shapes(manifest)
+        view_files.read_shapes(manifest)
     with pytest.raises(ValueError):
-        render.discover_shapes(tmp_path / "missing")
+        view_files.read_shapes(tmp_path / "missing")
 
 
 def test_importing_render_does_not_import_bpy():
-    code = "import sys, training.render.scene; assert 'bpy' not in sys.modules"
+    code = "import sys, training.render.scene, training.render.cli; assert 'bpy' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
 
 
@@ -230,23 +233,23 @@ def test_cli_renders_resumes_and_records_failures(renderer, sphere_path, tmp_pat
     (shapes / "broken.obj").write_text("this is not an obj file\n")
     out = tmp_path / "out"
     argv = ["--shapes", str(shapes), "--out", str(out), "--views", "2", "--seed", "5", "--no-progress"]
-    assert render.main(argv, "genre data render") == 1  # the broken shape is recorded
+    assert render_cli.main(argv, "genre data render") == 1  # the broken shape is recorded
     failures = json.loads((out / "render_failures.json").read_text())
     assert list(failures) == ["broken"]
     shape_dir = out / "ball__s"
-    assert all(render.view_is_complete(shape_dir, k) for k in range(2))
+    assert all(view_files.view_is_complete(shape_dir, k) for k in range(2))
     assert not [p for p in shape_dir.iterdir() if p.name.startswith(".")]  # no temporary files left
     kept = (shape_dir / "view_000.npz").stat().st_mtime_ns
-    first = render.load_view(shape_dir, 1)
+    first = view_files.load_view(shape_dir, 1)
     (shape_dir / "view_001.json").unlink()  # as if killed before the view's last file
-    assert render.main(argv, "genre data render") == 0  # the broken shape is skipped, not retried
+    assert render_cli.main(argv, "genre data render") == 0  # the broken shape is skipped, not retried
     assert (shape_dir / "view_000.npz").stat().st_mtime_ns == kept
-    again = render.load_view(shape_dir, 1)
+    again = view_files.load_view(shape_dir, 1)
     np.testing.assert_array_equal(first["depth"], again["depth"])
     assert first["camera"]["azimuth_deg"] == again["camera"]["azimuth_deg"]
     assert "rendered 1 views" in capsys.readouterr().out
     # Other settings into the same folder are refused.
-    assert render.main(argv[:-3] + ["--seed", "6", "--no-progress"], "genre data render") == 2
+    assert render_cli.main(argv[:-3] + ["--seed", "6", "--no-progress"], "genre data render") == 2
 
 
 def test_render_killed_mid_run_resumes_without_corrupt_views(sphere_path, tmp_path):
@@ -260,7 +263,7 @@ def test_render_killed_mid_run_resumes_without_corrupt_views(sphere_path, tmp_pa
         (shapes / f"{name}.ply").write_bytes(Path(sphere_path).read_bytes())
     out = tmp_path / "out"
     code = (
-        "import sys; from training.render.scene import main; "
+        "import sys; from training.render.cli import main; "
         f"sys.exit(main(['--shapes', {str(shapes)!r}, '--out', {str(out)!r}, '--views', '3', '--no-progress'], 'r'))"
     )
     root = Path(__file__).resolve().parents[1]
@@ -275,12 +278,12 @@ def test_render_killed_mid_run_resumes_without_corrupt_views(sphere_path, tmp_pa
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.wait()
-    assert not all(render.view_is_complete(out / s, k) for s in ("a", "b") for k in range(3))
+    assert not all(view_files.view_is_complete(out / s, k) for s in ("a", "b") for k in range(3))
     subprocess.run([sys.executable, "-c", code], cwd=root, env=env, check=True, stdout=subprocess.DEVNULL)
     for s in ("a", "b"):
         names = sorted(p.name for p in (out / s).iterdir())
         assert names == [f"view_{k:03d}.{ext}" for k in range(3) for ext in ("json", "npz", "png")]
         for k in range(3):
-            view = render.load_view(out / s, k)
+            view = view_files.load_view(out / s, k)
             assert view["rgb"].shape == (SIZE, SIZE, 3) and (view["depth"] > 0).sum() > 100
     assert json.loads((out / ".render_inflight.json").read_text()) == {}

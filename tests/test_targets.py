@@ -80,7 +80,8 @@ def test_targets_resume_and_skip(tiny_views):
 
 
 def test_sphere_full_map_is_one_minus_r(tmp_path):
-    from training.render.scene import BlenderRenderer, ShapeEntry, render_shape
+    from training.data.views import ShapeEntry
+    from training.render.scene import BlenderRenderer, render_shape
 
     r = 0.35
     path = tmp_path / "sphere.ply"
@@ -97,7 +98,8 @@ def test_sphere_full_map_is_one_minus_r(tmp_path):
 def test_a_real_sweet_home_3d_model(tmp_path):
     """One real catalogue chair, fetched from Debian's archive (120 MB, cached under data/)."""
     from training.data import corpus
-    from training.render.scene import BlenderRenderer, ShapeEntry, render_shape
+    from training.data.views import ShapeEntry
+    from training.render.scene import BlenderRenderer, render_shape
     from training.data.sources import sweethome3d
 
     root = corpus.data_dir()

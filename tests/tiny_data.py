@@ -25,7 +25,8 @@ def _normalised(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 def make_tiny_views(root: Path, config: GenreConfig = TINY, views_per_shape: int = 2) -> Path:
     """Render a box and a table-like shape (views_per_shape views each) and build their targets under root/views."""
-    from training.render.scene import BlenderRenderer, ShapeEntry, render_shape
+    from training.data.views import ShapeEntry
+    from training.render.scene import BlenderRenderer, render_shape
     from training.data.targets import build_targets
 
     meshes = root / "meshes"

@@ -12,10 +12,19 @@ from genre_backend.cli import Command
 __all__ = ["COMMANDS"]
 
 
+def _render_main():
+    from .render import cli
+
+    return cli.main
+
+
 def _data():
     from .data import cli
 
-    return cli.main
+    def main(argv, prog="genre data"):
+        return cli.main(argv, prog, delegated={"render": _render_main})
+
+    return main
 
 
 def _train():

@@ -60,7 +60,8 @@ def suzanne_mesh() -> tuple[np.ndarray, np.ndarray]:
 def run(out: Path, preset: str, azimuth: float, elevation: float) -> dict:
     import trimesh
 
-    from training.render.scene import BlenderRenderer, ShapeEntry, load_view, render_shape
+    from training.data.views import ShapeEntry, load_view
+    from training.render.scene import BlenderRenderer, render_shape
 
     cfg = get_preset(preset)
     g, cam = cfg.geometry, cfg.camera

@@ -124,7 +124,7 @@ def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, 
     from PIL import Image
 
     out = []
-    tmp = Path(tempfile.gettempdir()) / f"genre_preview_{os.getpid()}.png"
+    tmp = Path(tempfile.gettempdir()) / f"genre_mesh_render_{os.getpid()}.png"
     try:
         for verts, faces in meshes:
             me = bpy.data.meshes.new("m")

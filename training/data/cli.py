@@ -4,9 +4,9 @@
     genre data build  [--data-dir D] [--sources S ...] [--shapenet DIR] [--folder DIR] [--jobs N]
     genre data stats  [--data-dir D]
     genre data credits [--split S] [--out F]
-    genre data render ...   (see training/render/)
-    genre data targets ...  (see training/targets.py)
-    genre data show ...     (see training/show.py)
+    genre data render ...   (see training/render/cli.py)
+    genre data targets ...  (see training/data/targets.py)
+    genre data show ...     (see training/data/show.py)
 """
 
 from __future__ import annotations
@@ -148,21 +148,35 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p = sub.add_parser("credits", parents=[common], help="Markdown list of the shapes of a split with creator and licence")
     p.add_argument("--split", default="train", help="split or group (default: train)")
     p.add_argument("--out", default=None, help="write here (default: standard output)")
-    sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/)")
-    sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/targets.py)")
-    sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/show.py)")
+    sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/cli.py)")
+    sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")
+    sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/data/show.py)")
     return parser
 
 
-def main(argv: list[str] | None = None, prog: str = "genre data") -> int:
-    """Entry point of ``genre data``; returns a process exit code."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    delegated = {"render": "training.render.scene", "targets": "training.data.targets", "show": "training.data.show"}
-    if argv and argv[0] in delegated:
-        import importlib
+def _targets_main():
+    from . import targets
 
-        module = importlib.import_module(delegated[argv[0]])
-        return int(module.main(argv[1:], prog=f"{prog} {argv[0]}") or 0)
+    return targets.main
+
+
+def _show_main():
+    from . import show
+
+    return show.main
+
+
+def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dict | None = None) -> int:
+    """Entry point of ``genre data``; returns a process exit code.
+
+    ``delegated``: more subcommands (name → loader returning ``main(argv, prog)``)
+    from later layers; ``training/commands.py`` adds ``render`` this way, so
+    the data layer does not import the renderer.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    loaders = {"targets": _targets_main, "show": _show_main, **(delegated or {})}
+    if argv and argv[0] in loaders:
+        return int(loaders[argv[0]]()(argv[1:], prog=f"{prog} {argv[0]}") or 0)
     args = _parser(prog).parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")

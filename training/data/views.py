@@ -50,6 +50,7 @@ __all__ = [
     "remove_stale_temporaries",
     "find_views",
     "render_failures_path",
+    "inflight_path",
     "read_render_settings",
     "write_render_settings",
     "recorded_preset",
@@ -191,6 +192,12 @@ def render_failures_path(views_root: str | os.PathLike, shard: tuple[int, int] =
     """The failures file of one render shard (parallel shards never write the same file)."""
     tag = "" if shard[1] == 1 else f".shard{shard[0]}of{shard[1]}"
     return Path(views_root) / f"render_failures{tag}.json"
+
+
+def inflight_path(views_root: str | os.PathLike, shard: tuple[int, int] = (0, 1)) -> Path:
+    """The hidden file of one render shard that counts interrupted attempts per shape."""
+    tag = "" if shard[1] == 1 else f".shard{shard[0]}of{shard[1]}"
+    return Path(views_root) / f".render_inflight{tag}.json"
 
 
 def read_render_settings(views_root: str | os.PathLike) -> dict | None:

@@ -88,7 +88,8 @@ def depth_vs_dissimilarity(per_class: list[dict], dissimilarity: dict[str, float
 # ---- viewpoint heatmap (Figure 7) ---------------------------------------------------------
 def viewpoint_heatmap(out: Path, models, views, choice, args) -> str:
     """Render shapes of one class on an elevation × azimuth grid, run GenRe, plot the median CD per cell."""
-    from training.render.scene import BlenderRenderer, RenderSettings, ShapeEntry, render_shape
+    from training.data.views import ShapeEntry
+    from training.render.scene import BlenderRenderer, RenderSettings, render_shape
     from training.data.targets import build_targets
 
     from .runner import POINTS_SMALL, EvalView, Target, Truth, _resolve_mesh, predict, score_grid
@@ -162,9 +163,9 @@ def render_meshes(meshes, size: int = 160, samples: int = 16):
     """:func:`genre_backend.inference.blender.render_meshes`, after forgetting any training renderer (its scene is reset)."""
     from genre_backend.inference.blender import render_meshes as render
 
-    from training.render import scene as render_mod
+    from training.render.scene import release_active_renderer
 
-    render_mod._ACTIVE_RENDERER = None
+    release_active_renderer()
     return render(meshes, size=size, samples=samples)
 
 

@@ -1,23 +1,11 @@
-"""Headless Blender renderer of the training views (``genre data render``).
+"""The Blender scene that renders training views (Cycles on the CPU, Z-pass depth, film alpha).
 
-One bpy process (Cycles on the CPU) renders many shapes and views without
-restarting Blender.  For every view of a shape it writes, into
-``OUT/<shape id>/``:
-
-* ``view_KKK.png``  -- RGB, 8-bit, (H, W, 3): the object rendered over a
-  transparent film, then composited over a random background (solid colour,
-  gradient or smooth noise), so the true mask survives;
-* ``view_KKK.npz``  -- ``depth`` float32 (H, W): planar Z-pass depth encoded
-  with :func:`genre_backend.frame.encode_raw_depth` (background = 0), and
-  ``mask`` float32 (H, W): the film alpha (object coverage) in [0, 1];
-* ``view_KKK.json`` -- camera parameters (azimuth, elevation, distance, focal,
-  the camera-to-object rotation (3, 3) of :func:`frame.camera_rotation`, the
-  camera centre), the lighting and background used, and the shape's metadata.
-  The JSON is written last: a view is complete iff its JSON exists.
-
-Every file is written to a temporary name in the same folder and renamed, so
-a process killed at any moment leaves no half-written file under a final
-name; re-running skips complete views.
+One bpy process renders many shapes and views without restarting Blender.
+:func:`render_shape` writes each view through :mod:`training.data.views`
+(RGB composited over a random background, planar depth encoded with
+:func:`genre_backend.frame.encode_raw_depth`, the film alpha as mask, and the
+camera JSON last, so a view is complete iff its JSON exists); re-running
+skips complete views.
 
 Frame and camera come from :mod:`genre_backend.frame` and
 :class:`genre_backend.config.CameraConfig` only: the camera sits at
@@ -34,21 +22,16 @@ and for glTF/GLB the importer's Y-up → Z-up conversion is undone.
 Lighting is seeded per (seed, shape, view): one of Blender's bundled world
 HDRIs (``datafiles/studiolights/world``) at a random rotation and strength,
 plus zero to two random sun lights; without the HDRIs, a grey world and one
-to three suns.  Backgrounds are seeded the same way, on their own stream.
+to three suns.
 
 ``bpy`` is imported only inside functions, so importing this module is cheap.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
-import sys
 import tempfile
-import time
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -57,137 +40,20 @@ import numpy as np
 
 from genre_backend.inference.blender import import_bpy, prepare_blender_environment, quiet_stdout
 
+from ..data.views import MESH_SUFFIXES, ShapeEntry, remove_stale_temporaries, view_is_complete, write_view
+from .backgrounds import composite_over, make_background
+from .randomness import STREAM_BACKGROUND, STREAM_LIGHT, view_rng
+
 __all__ = [
-    "MESH_SUFFIXES",
     "RenderSettings",
-    "ShapeEntry",
     "BlenderRenderer",
     "prepare_blender_environment",
-    "view_rng",
-    "sample_views",
-    "make_background",
-    "composite_over",
+    "release_active_renderer",
     "render_shape",
-    "view_is_complete",
-    "load_view",
-    "discover_shapes",
-    "main",
 ]
 
-MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply")
-
-# Streams of the per-(shape, view) random generator.
-_STREAM_VIEW, _STREAM_LIGHT, _STREAM_BACKGROUND = 0, 1, 2
 # glTF (x, y, z) is imported as Blender (x, -z, y); this rotation (-90° about X) undoes it.
 _GLTF_UNDO = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
-# Per shard, so that parallel workers (--shard I/N) into one folder never write the same file;
-# failures are read back from all shards' files.
-_FAILURES_GLOB = "render_failures*.json"
-_SETTINGS_FILE = "render_settings.json"
-# A shape whose render was interrupted this many times (e.g. Blender crashed) is given up.
-MAX_ATTEMPTS = 2
-
-
-# --------------------------------------------------------------------------- environment
-
-
-# --------------------------------------------------------------------------- randomness
-
-
-def _shape_key(shape_id: str) -> int:
-    return zlib.crc32(shape_id.encode("utf-8"))
-
-
-def view_rng(seed: int, shape_id: str, view_index: int, stream: int) -> np.random.Generator:
-    """The random generator of one (seed, shape, view, stream); deterministic across runs and machines."""
-    if view_index < 0:
-        raise ValueError(f"view_index must be >= 0, got {view_index}")
-    return np.random.default_rng([int(seed) & 0xFFFFFFFF, _shape_key(shape_id), int(view_index), int(stream)])
-
-
-def sample_views(shape_id: str, n_views: int, seed: int, camera) -> list[tuple[float, float]]:
-    """``n_views`` random (azimuth, elevation) pairs in degrees for one shape.
-
-    Azimuth is uniform in [0, 360); elevation uniform in the camera config's
-    ``[elevation_min_deg, elevation_max_deg]``.  View k depends only on
-    (seed, shape_id, k), so asking for more views later keeps the first ones.
-    """
-    if n_views < 0:
-        raise ValueError(f"n_views must be >= 0, got {n_views}")
-    lo, hi = float(camera.elevation_min_deg), float(camera.elevation_max_deg)
-    if not (-90.0 < lo <= hi < 90.0):
-        raise ValueError(f"camera elevation range must lie in (-90, 90), got [{lo}, {hi}]")
-    views = []
-    for k in range(n_views):
-        rng = view_rng(seed, shape_id, k, _STREAM_VIEW)
-        views.append((float(rng.uniform(0.0, 360.0)), float(rng.uniform(lo, hi))))
-    return views
-
-
-# --------------------------------------------------------------------------- backgrounds
-
-
-def _smooth_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
-    """Value noise (size, size, 3) in [0, 1]: a random (cells+1)² colour grid, bilinearly upsampled."""
-    grid = rng.random((cells + 1, cells + 1, 3))
-    t = (np.arange(size) + 0.5) / size * cells
-    i0 = np.minimum(t.astype(int), cells - 1)
-    f = (t - i0)[:, None]
-    rows = grid[i0] * (1 - f)[:, :, None] + grid[i0 + 1] * f[:, :, None]  # (size, cells+1, 3)
-    out = rows[:, i0] * (1 - f.T)[:, :, None] + rows[:, i0 + 1] * f.T[:, :, None]
-    return out
-
-
-def make_background(rng: np.random.Generator, size: int) -> tuple[np.ndarray, dict[str, Any]]:
-    """A random background image (size, size, 3) float32 in [0, 1] and a description.
-
-    Kinds: ``solid`` (one colour), ``gradient`` (two colours along a random
-    direction) and ``noise`` (two to three octaves of smooth value noise).
-    """
-    if size <= 0:
-        raise ValueError(f"background size must be positive, got {size}")
-    kind = str(rng.choice(["solid", "gradient", "noise"]))
-    if kind == "solid":
-        colour = rng.random(3)
-        img = np.broadcast_to(colour, (size, size, 3)).copy()
-        info = {"kind": kind, "colour": [round(float(c), 4) for c in colour]}
-    elif kind == "gradient":
-        a, b = rng.random(3), rng.random(3)
-        angle = float(rng.uniform(0.0, 2.0 * math.pi))
-        coords = (np.arange(size) + 0.5) / size - 0.5
-        proj = coords[None, :] * math.cos(angle) - coords[:, None] * math.sin(angle)  # (H, W)
-        t = np.clip(proj / math.sqrt(0.5) + 0.5, 0.0, 1.0)[:, :, None]
-        img = a * (1 - t) + b * t
-        info = {"kind": kind, "angle_deg": round(math.degrees(angle), 2)}
-    else:
-        octaves = int(rng.integers(2, 4))
-        img = np.zeros((size, size, 3))
-        weight_sum = 0.0
-        for o in range(octaves):
-            w = 0.5**o
-            img += w * _smooth_noise(rng, size, int(rng.integers(2, 5)) * 2**o)
-            weight_sum += w
-        img /= weight_sum
-        # Stretch the contrast so noise backgrounds are not all mid-grey.
-        lo, hi = img.min(), img.max()
-        img = (img - lo) / max(hi - lo, 1e-6)
-        info = {"kind": kind, "octaves": octaves}
-    return img.astype(np.float32), info
-
-
-def composite_over(rgba: np.ndarray, background: np.ndarray) -> np.ndarray:
-    """Straight-alpha ``rgba`` (H, W, 4) uint8 over ``background`` (H, W, 3) float in [0, 1] → (H, W, 3) uint8."""
-    if rgba.ndim != 3 or rgba.shape[2] != 4 or rgba.dtype != np.uint8:
-        raise ValueError(f"rgba: expected (H, W, 4) uint8, got {rgba.shape} {rgba.dtype}")
-    if background.shape != rgba.shape[:2] + (3,):
-        raise ValueError(f"background: expected {rgba.shape[:2] + (3,)}, got {background.shape}")
-    fg = rgba[..., :3].astype(np.float32) / 255.0
-    a = rgba[..., 3:].astype(np.float32) / 255.0
-    out = fg * a + background.astype(np.float32) * (1.0 - a)
-    return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
-
-
-# --------------------------------------------------------------------------- renderer
 
 
 @dataclass(frozen=True)
@@ -608,61 +474,11 @@ _CLEARED_COLLECTIONS = (
 )
 
 
-# --------------------------------------------------------------------------- files
-
-
-def _atomic_write(path: Path, writer) -> None:
-    """Call ``writer(file_object)`` on a temporary file beside ``path``, then rename it to ``path``."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as fh:
-            writer(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def _write_json(path: Path, data: Any) -> None:
-    _atomic_write(path, lambda fh: fh.write((json.dumps(data, indent=1) + "\n").encode("utf-8")))
-
-
-def _view_paths(shape_dir: Path, k: int) -> dict[str, Path]:
-    stem = f"view_{k:03d}"
-    return {"png": shape_dir / f"{stem}.png", "npz": shape_dir / f"{stem}.npz", "json": shape_dir / f"{stem}.json"}
-
-
-def view_is_complete(shape_dir: str | os.PathLike, k: int) -> bool:
-    """True iff view ``k`` of the shape folder has all three files (the JSON is written last)."""
-    return all(p.is_file() for p in _view_paths(Path(shape_dir), k).values())
-
-
-def load_view(shape_dir: str | os.PathLike, k: int) -> dict[str, Any]:
-    """Read back view ``k``: ``rgb`` (H, W, 3) uint8, ``depth`` (H, W) float32, ``mask`` (H, W) float32, ``camera`` dict."""
-    paths = _view_paths(Path(shape_dir), k)
-    if not view_is_complete(shape_dir, k):
-        raise ValueError(f"{shape_dir}: view {k} is not complete")
-    from PIL import Image  # noqa: PLC0415
-
-    with Image.open(paths["png"]) as im:
-        rgb = np.asarray(im.convert("RGB"), dtype=np.uint8).copy()
-    with np.load(paths["npz"]) as z:
-        depth, mask = z["depth"].copy(), z["mask"].copy()
-    camera = json.loads(paths["json"].read_text())
-    return {"rgb": rgb, "depth": depth, "mask": mask, "camera": camera}
-
-
-@dataclass(frozen=True)
-class ShapeEntry:
-    """One shape to render: its id (also the output sub-folder), mesh path, optional class/split/groups."""
-
-    id: str
-    path: Path
-    cls: str | None = None
-    split: str | None = None
-    groups: tuple[str, ...] = ()
+def release_active_renderer() -> None:
+    """Forget the active renderer: call before other code resets Blender's scene (e.g.
+    :func:`genre_backend.inference.blender.render_meshes`); the next render builds its scene anew."""
+    global _ACTIVE_RENDERER
+    _ACTIVE_RENDERER = None
 
 
 def render_shape(
@@ -676,7 +492,7 @@ def render_shape(
     """Render the missing views of one shape into ``out_dir/<shape.id>/``; returns how many were rendered.
 
     ``views``: (azimuth, elevation) pairs in degrees; view k is stored as
-    ``view_KKK.*``.  Complete views are skipped (the mesh is not even loaded
+    view ``k`` of :mod:`training.data.views`.  Complete views are skipped (the mesh is not even loaded
     when all are complete).  ``on_view(k)`` is called after each view,
     rendered or skipped.
     """
@@ -696,22 +512,16 @@ def render_shape(
     renderer.load_shape(shape.path)
     shape_dir.mkdir(parents=True, exist_ok=True)
     # Temporary files of a killed earlier run (one process renders a shape at a time).
-    for stale in shape_dir.glob(".view_*.tmp-*"):
-        stale.unlink(missing_ok=True)
+    remove_stale_temporaries(shape_dir)
     cam = renderer.config.camera
     size = renderer.size
     for k in todo:
         az, el = (float(v) for v in views[k])
-        out = renderer.render_view(az, el, view_rng(seed, shape.id, k, _STREAM_LIGHT))
-        background, bg_info = make_background(view_rng(seed, shape.id, k, _STREAM_BACKGROUND), size)
+        out = renderer.render_view(az, el, view_rng(seed, shape.id, k, STREAM_LIGHT))
+        background, bg_info = make_background(view_rng(seed, shape.id, k, STREAM_BACKGROUND), size)
         rgb = composite_over(out["rgba"], background)
         depth = frame.encode_raw_depth(torch.from_numpy(out["raw_depth"])).numpy().astype(np.float32)
         mask = out["rgba"][..., 3].astype(np.float32) / 255.0
-        paths = _view_paths(shape_dir, k)
-        from PIL import Image  # noqa: PLC0415
-
-        _atomic_write(paths["png"], lambda fh: Image.fromarray(rgb, "RGB").save(fh, format="PNG"))
-        _atomic_write(paths["npz"], lambda fh: np.savez_compressed(fh, depth=depth, mask=mask))
         rot = out["rotation"]
         meta = {
             "shape_id": shape.id,
@@ -736,229 +546,7 @@ def render_shape(
             "lighting": out["lighting"],
             "background": bg_info,
         }
-        _write_json(paths["json"], meta)
+        write_view(shape_dir, k, rgb, depth, mask, meta)
         if on_view:
             on_view(k)
     return len(todo)
-
-
-# --------------------------------------------------------------------------- shape lists
-
-
-def _entry_list(data: Any, where: str) -> list[dict]:
-    if isinstance(data, list):
-        entries = data
-    elif isinstance(data, dict):
-        for key in ("shapes", "entries", "items"):
-            if isinstance(data.get(key), list):
-                entries = data[key]
-                break
-        else:
-            raise ValueError(f"{where}: expected a list of shapes or an object with a 'shapes' list")
-    else:
-        raise ValueError(f"{where}: expected a list or an object, got {type(data).__name__}")
-    for i, e in enumerate(entries):
-        if not isinstance(e, dict) or not isinstance(e.get("id"), str) or not e["id"]:
-            raise ValueError(f"{where}: entry {i} has no string 'id'")
-    return entries
-
-
-def discover_shapes(source: str | os.PathLike) -> list[ShapeEntry]:
-    """The shapes named by a manifest JSON or found in a folder, in a stable order.
-
-    Manifest: a list (or ``{"shapes": [...]}``) of entries with ``id`` and
-    optionally ``class``, ``split``, ``groups`` and ``mesh`` (relative to the
-    manifest's folder); without ``mesh`` the mesh is
-    ``<manifest folder>/shapes/<id>.glb``.  Folder: every mesh file under it
-    (recursively); the id is the relative path without suffix with ``/``
-    replaced by ``__``, the class is the first sub-folder (if any).
-    """
-    src = Path(source)
-    if src.is_file():
-        try:
-            data = json.loads(src.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{src}: not a readable JSON manifest ({exc})") from None
-        base = src.parent
-        shapes = []
-        seen = set()
-        for e in _entry_list(data, str(src)):
-            # ("path" in corpus manifests is the *source* file, never the normalised mesh.)
-            rel = e.get("mesh")
-            path = (base / rel) if rel else base / "shapes" / f"{e['id']}.glb"
-            if e["id"] in seen:
-                raise ValueError(f"{src}: duplicate shape id {e['id']!r}")
-            seen.add(e["id"])
-            groups = tuple(str(g) for g in e.get("groups") or ())
-            shapes.append(ShapeEntry(e["id"], path, e.get("class"), e.get("split"), groups))
-        return shapes
-    if src.is_dir():
-        shapes = []
-        for p in sorted(src.rglob("*")):
-            if p.is_file() and p.suffix.lower() in MESH_SUFFIXES and not p.name.startswith("."):
-                rel = p.relative_to(src)
-                sid = "__".join(rel.with_suffix("").parts)
-                cls = rel.parts[0] if len(rel.parts) > 1 else None
-                shapes.append(ShapeEntry(sid, p, cls, None))
-        return shapes
-    raise ValueError(f"{src}: neither a manifest file nor a folder")
-
-
-# --------------------------------------------------------------------------- CLI
-
-
-def _parse_shard(text: str) -> tuple[int, int]:
-    try:
-        i, n = (int(t) for t in text.split("/"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--shard expects I/N, got {text!r}") from None
-    if n < 1 or not 0 <= i < n:
-        raise argparse.ArgumentTypeError(f"--shard I/N needs 0 <= I < N, got {text!r}")
-    return i, n
-
-
-def _positive(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return v
-
-
-def _build_parser(prog: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog=prog,
-        description="Render RGB, planar depth, mask and camera JSON for every shape (Blender Cycles, CPU).",
-    )
-    p.add_argument("--shapes", required=True, help="a manifest JSON (data/corpus/manifest.json) or a folder of meshes")
-    p.add_argument("--out", required=True, help="output folder (one sub-folder per shape)")
-    p.add_argument("--views", type=_positive, default=20, help="random views per shape (default 20)")
-    p.add_argument("--preset", choices=["default", "paper"], default="default", help="image size preset")
-    p.add_argument("--seed", type=int, default=0, help="seed of views, lighting and backgrounds")
-    p.add_argument("--limit", type=_positive, default=None, help="render only the first K shapes")
-    p.add_argument("--shard", type=_parse_shard, default=(0, 1), metavar="I/N", help="render every N-th shape from I")
-    p.add_argument("--split", default=None, help="only manifest shapes of this split or group (e.g. train, unseen)")
-    p.add_argument("--samples", type=_positive, default=RenderSettings.samples, help="Cycles samples per pixel")
-    p.add_argument("--threads", type=_positive, default=RenderSettings.threads, help="Cycles CPU threads")
-    p.add_argument("--no-denoise", dest="denoise", action="store_false", help="turn off the fast OIDN denoiser")
-    p.add_argument("--retry-failed", action="store_true", help="try again shapes recorded as failed")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return p
-
-
-def _read_json(path: Path, default):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return default
-
-
-def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> int:
-    """``genre data render``: render every shape's views.
-
-    Returns 0 when every shape is complete or was already recorded as failed,
-    1 when a shape failed in this run (recorded in ``render_failures*.json``
-    and skipped by later runs unless ``--retry-failed``), 2 on a usage error.
-    A shape whose rendering was interrupted ``MAX_ATTEMPTS`` times (Blender
-    crashed or the process was killed while on it) is recorded as failed.
-    """
-    args = _build_parser(prog).parse_args(list(sys.argv[1:] if argv is None else argv))
-    from genre_backend.config import get_preset  # noqa: PLC0415
-
-    try:
-        config = get_preset(args.preset)
-        shapes = discover_shapes(args.shapes)
-    except ValueError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
-    if args.split is not None:
-        shapes = [s for s in shapes if s.split == args.split or args.split in s.groups]
-    shapes = shapes[args.shard[0]::args.shard[1]]
-    if args.limit is not None:
-        shapes = shapes[: args.limit]
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    settings = RenderSettings(samples=args.samples, threads=args.threads, denoise=args.denoise)
-    run_settings = {"preset": args.preset, "seed": args.seed, "image_size": config.geometry.image_size,
-                    "camera": config.to_dict()["camera"]}
-    previous = _read_json(out / _SETTINGS_FILE, None)
-    if previous is not None and previous != run_settings:
-        print(f"{prog}: error: {out} was rendered with other settings {previous}; use another --out", file=sys.stderr)
-        return 2
-    if previous is None:
-        _write_json(out / _SETTINGS_FILE, run_settings)
-
-    shard_tag = "" if args.shard[1] == 1 else f".shard{args.shard[0]}of{args.shard[1]}"
-    failures_file = out / f"render_failures{shard_tag}.json"
-    inflight_file = out / f".render_inflight{shard_tag}.json"
-    failures: dict[str, str] = {}
-    for path in sorted(out.glob(_FAILURES_GLOB)):
-        failures.update(_read_json(path, {}))
-    inflight: dict[str, int] = _read_json(inflight_file, {})
-    if args.retry_failed:
-        for path in out.glob(_FAILURES_GLOB):
-            path.unlink(missing_ok=True)
-        failures, inflight = {}, {}
-    total_views = len(shapes) * args.views
-    from tqdm import tqdm  # noqa: PLC0415
-
-    bar = tqdm(total=total_views, unit="view", desc="render", disable=args.no_progress, dynamic_ncols=True)
-    renderer = None
-    rendered = 0
-    new_failures = 0
-    t0 = time.perf_counter()
-    try:
-        for shape in shapes:
-            views = sample_views(shape.id, args.views, args.seed, config.camera)
-            if shape.id in failures:
-                bar.update(args.views)
-                continue
-            attempts = int(inflight.get(shape.id, 0))
-            if attempts >= MAX_ATTEMPTS:
-                failures[shape.id] = f"rendering was interrupted {attempts} times (Blender crashed or was killed)"
-                _write_json(failures_file, failures)
-                new_failures += 1
-                bar.update(args.views)
-                continue
-            shape_dir = out / shape.id
-            if all(view_is_complete(shape_dir, k) for k in range(args.views)):
-                bar.update(args.views)
-                continue
-            inflight[shape.id] = attempts + 1
-            _write_json(inflight_file, inflight)
-            reported = [0]
-
-            def on_view(k, reported=reported):
-                reported[0] += 1
-                bar.update(1)
-
-            if renderer is None:  # started only when there is work; a failure here is fatal, not the shape's
-                try:
-                    renderer = BlenderRenderer(config, settings)
-                except Exception as exc:  # noqa: BLE001
-                    tqdm.write(f"{prog}: error: could not set up Blender: {type(exc).__name__}: {exc}", file=sys.stderr)
-                    return 2
-            try:
-                rendered += render_shape(renderer, shape, views, out, args.seed, on_view=on_view)
-            except Exception as exc:  # noqa: BLE001  (one bad shape must not stop the corpus)
-                failures[shape.id] = f"{type(exc).__name__}: {exc}"
-                _write_json(failures_file, failures)
-                new_failures += 1
-                tqdm.write(f"{prog}: skipped {shape.id}: {failures[shape.id]}", file=sys.stderr)
-                bar.update(args.views - reported[0])
-            inflight.pop(shape.id, None)
-            _write_json(inflight_file, inflight)
-    finally:
-        bar.close()
-        if renderer is not None:
-            renderer.close()
-    dt = time.perf_counter() - t0
-    rate = f", {dt / rendered:.3f} s/view including start-up" if rendered else ""
-    summary = f"rendered {rendered} views of {len(shapes)} shapes in {dt:.1f} s{rate}"
-    if failures:
-        summary += f"; {len(failures)} failed shapes are listed in {out / 'render_failures*.json'}"
-    print(summary)
-    return 1 if new_failures else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
