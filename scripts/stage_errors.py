@@ -33,7 +33,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
-from training.eval.runner import POINTS_SMALL, Target, Truth, find_eval_views, score_grid  # noqa: E402
+from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
+from training.eval.protocol import POINTS_SMALL, find_eval_views  # noqa: E402
+from training.eval.runner import Truth, score_grid  # noqa: E402
 
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
 
@@ -65,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         for i, view in enumerate(views):
             s = data.sample(i, None)
             gt, _ = truth.posed(view)
-            target = Target(gt[:POINTS_SMALL], gt)
+            target = CloudScorer(gt[:POINTS_SMALL], gt)
             rgb, mask, depth, full = s["rgb"][None], s["mask"][None], s["depth"][None], s["full_sph"][None]
             shell_fraction.append(float(s["shell"].mean()))
             add("true shell, marching cubes", score_grid(s["shell"], [0.5], target))

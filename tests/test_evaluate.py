@@ -13,7 +13,11 @@ import trimesh
 from genre_backend import frame
 from genre_backend.geometry.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
 from tiny_data import TINY, make_tiny_views
-from training.eval.runner import FLOOR, ROWS, EvalView, Target, Truth, aggregate, choose_thresholds, cloud_metrics, main, mesh_metrics
+from genre_backend.geometry.metrics import CloudScorer
+from training.eval.cli import main
+from training.eval.protocol import FLOOR, ROWS, EvalView
+from training.eval.runner import Truth, mesh_metrics
+from training.eval.statistics import aggregate, choose_thresholds
 from training.learn.train import TrainConfig, train
 
 
@@ -33,7 +37,7 @@ def test_the_evaluation_metrics_are_the_library_ones():
     gen = torch.Generator().manual_seed(1)
     a, b = torch.rand(1024, 3, generator=gen), torch.rand(1024, 3, generator=gen) * torch.tensor([1.0, 0.5, 0.8])
     A, B = torch.rand(3000, 3, generator=gen), torch.rand(2500, 3, generator=gen) * torch.tensor([1.0, 0.5, 0.8])
-    m = cloud_metrics(a, A, b, B)
+    m = CloudScorer(b, B).metrics(a, A)
     na, nb, nA, nB = (normalize_points(x) for x in (a, b, A, B))
     assert m["cd1k"] == pytest.approx(float(chamfer_distance(na, nb)), rel=1e-5)
     assert m["cd10k"] == pytest.approx(float(chamfer_distance(nA, nB)), rel=1e-5)
@@ -60,7 +64,7 @@ def test_a_shifted_shape_gives_the_expected_cd():
     bent = pts.clone()
     bent[interior, 0] += d
     expect = 2 * d * int(interior.sum()) / len(pts)
-    m = cloud_metrics(bent, bent, pts, pts)
+    m = CloudScorer(pts, pts).metrics(bent, bent)
     assert m["cd1k"] == pytest.approx(expect, rel=1e-4)
     assert m["f1"] == pytest.approx(1 - int(interior.sum()) / len(pts), abs=1e-6)  # moved points are 0.015 away: out at 1 %, in at 2 %
     assert m["f2"] == 1.0
@@ -102,15 +106,15 @@ def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     meta = json.loads((views / "table" / "view_000.json").read_text())
     view = EvalView(views / "table", 0, "table", ("unseen",), meta)
     gt, again = Truth().posed(view)
-    same = cloud_metrics(gt[:1024], gt, gt[:1024], gt)
+    same = CloudScorer(gt[:1024], gt).metrics(gt[:1024], gt)
     assert same["cd1k"] == 0.0 and same["cd10k"] == 0.0 and same["f1"] == 1.0 and same["f2"] == 1.0
-    floor = cloud_metrics(again[:1024], again, gt[:1024], gt)
+    floor = CloudScorer(gt[:1024], gt).metrics(again[:1024], again)
     assert 0.0 < floor["cd1k"] < 0.1 and floor["cd10k"] < floor["cd1k"]
     # the true mesh itself, posed, scored as a prediction: at the floor
     mesh = trimesh.load(meta["mesh"], force="mesh", process=False)
     rot = torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)[None]
     verts = frame.object_to_view(torch.tensor(mesh.vertices)[None], rot)[0].numpy()
-    perfect = mesh_metrics(verts, np.asarray(mesh.faces), Target(gt[:1024], gt))
+    perfect = mesh_metrics(verts, np.asarray(mesh.faces), CloudScorer(gt[:1024], gt))
     assert perfect["cd1k"] == pytest.approx(floor["cd1k"], rel=0.25)
     assert perfect["f2"] > 0.95
 
@@ -203,3 +207,25 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
     shell_cd = float(lines["true shell, marching cubes"].split(": ")[1])
     sph_cd = float(lines["true spherical map, projected"].split(": ")[1])
     assert 0.0 < shell_cd < 0.25 and 0.0 < sph_cd < 0.25
+
+
+def test_score_grid_sweeps_the_configured_range():
+    import trimesh
+
+    from genre_backend.config import get_preset
+    from genre_backend.geometry.mesh_voxels import mesh_to_shell
+    from genre_backend.geometry.metrics import sample_surface
+    from training.eval.protocol import EMPTY_CD
+    from training.eval.runner import score_grid
+
+    g = get_preset("default").geometry
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.35)
+    shell = mesh_to_shell(torch.tensor(sphere.vertices), torch.tensor(sphere.faces), 32, 1).float()
+    prob = shell * 0.9 + 0.05  # 0.95 on the shell, 0.05 elsewhere
+    gt = sample_surface(sphere.vertices, sphere.faces, 10_000, seed=3)
+    scorer = CloudScorer(gt[:1024], gt)
+    result = {t: m["cd10k"] for t, m in score_grid(prob, g.thresholds(), scorer).items()}
+    assert list(result) == g.thresholds()
+    # each cloud is normalised on its own, so the shell's two sheets score alike at every level
+    assert all(0.0 < v < 0.1 for v in result.values())
+    assert score_grid(torch.zeros(8, 8, 8), [0.5], scorer)[0.5]["cd1k"] == EMPTY_CD

@@ -34,9 +34,9 @@ def _train():
 
 
 def _eval():
-    from .eval import runner
+    from .eval import cli
 
-    return runner.main
+    return cli.main
 
 
 COMMANDS = [

@@ -15,7 +15,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .mesh_voxels import voxels_to_mesh
 from ..validation import check_positive_int, check_tensor
 
 __all__ = [
@@ -24,7 +23,7 @@ __all__ = [
     "chamfer_distance",
     "chamfer_distance_reference",
     "mesh_chamfer",
-    "sweep_thresholds",
+    "CloudScorer",
     "fscore",
     "fscore_reference",
 ]
@@ -186,15 +185,37 @@ def mesh_chamfer(pred, gt, count: int = 1024, *, normalize: bool = True, seed: i
     return float(chamfer_distance(pa, pb))
 
 
-def sweep_thresholds(prob_grid, gt_mesh, thresholds, count: int = 1024, *, normalize: bool = True, seed: int = 0) -> dict[float, float]:
-    """Chamfer distance of the marching-cubes mesh at each isosurface threshold.
+class CloudScorer:
+    """The scorer of ``genre eval``: one truth cloud normalised once, with a k-d tree of its large cloud.
 
-    prob_grid: (N, N, N) probabilities; gt_mesh: ``(vertices, faces)`` in the
-    view frame; thresholds: e.g. ``GeometryConfig.thresholds()`` (0.30–0.90
-    step 0.05 in the default preset).  Returns ``{threshold: CD}``, ``inf`` where no surface exists.
+    ``gt_small`` (1024, 3) and ``gt_large`` (10000, 3) points; reused for every
+    row and threshold of a view.  :meth:`metrics` gives CD at the small count
+    (:func:`chamfer_distance`) and, from one pair of k-d tree queries at the
+    large count, CD and the F-scores at ``fscore_at`` (equal to
+    :func:`fscore`, whose loop reference is :func:`fscore_reference`).
     """
-    out: dict[float, float] = {}
-    for t in thresholds:
-        verts, faces = voxels_to_mesh(prob_grid, float(t))
-        out[float(t)] = float("inf") if faces.shape[0] == 0 else mesh_chamfer((verts, faces), gt_mesh, count, normalize=normalize, seed=seed)
-    return out
+
+    def __init__(self, gt_small: torch.Tensor, gt_large: torch.Tensor, fscore_at: tuple[float, float] = (0.01, 0.02)):
+        from scipy.spatial import cKDTree
+
+        check_tensor("gt_small", gt_small, ("N", 3))
+        check_tensor("gt_large", gt_large, ("M", 3))
+        self.fscore_at = tuple(fscore_at)
+        self.small = normalize_points(gt_small.float())
+        self.large = normalize_points(gt_large.float()).double().numpy()
+        self.tree = cKDTree(self.large)
+
+    def metrics(self, pred_small: torch.Tensor, pred_large: torch.Tensor) -> dict[str, float]:
+        """``cd1k``, ``cd10k``, ``f1``, ``f2`` and ``empty`` (0) of a predicted cloud pair, normalised the same way."""
+        from scipy.spatial import cKDTree
+
+        a = normalize_points(pred_small.float())
+        big = normalize_points(pred_large.float()).double().numpy()
+        d_pg = self.tree.query(big)[0]
+        d_gp = cKDTree(big).query(self.large)[0]
+        out = {"cd1k": float(chamfer_distance(a, self.small)), "cd10k": float(d_pg.mean() + d_gp.mean())}
+        for name, t in zip(("f1", "f2"), self.fscore_at):
+            p, r = float((d_pg <= t).mean()), float((d_gp <= t).mean())
+            out[name] = 0.0 if p + r == 0 else 2 * p * r / (p + r)
+        out["empty"] = 0.0
+        return out

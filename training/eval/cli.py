@@ -1,0 +1,214 @@
+"""``genre eval``: the paper's Table 1 on our data, with its baselines, oracles and figures.
+
+Output ``OUT/``: ``per_view.csv`` (resumable), ``per_shape.csv``,
+``per_class.csv``, ``thresholds.json``, ``table.md`` and the figures
+(:mod:`training.eval.figures`, :mod:`training.eval.heatmap`).  Without
+seen-test views in the run, pass the ``thresholds.json`` of a seen-test run
+with ``--thresholds-from``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from genre_backend.io import atomic_write_text
+from genre_backend.nets.model import WeightsError, load_model
+
+from .protocol import GROUPS, ROWS, find_eval_views
+from .rows import Models
+from .runner import evaluate_views
+from .statistics import aggregate, choose_thresholds
+from .report import format_table, write_csv
+
+__all__ = ['HINTS', 'main']
+
+
+def _digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:16]
+
+
+def _weights_paths(args) -> dict[str, Path | None]:
+    run = Path(args.run) if args.run else None
+
+    def pick(explicit, *candidates):
+        if explicit:
+            return Path(explicit)
+        if run is None:
+            return None
+        for c in candidates:
+            if (run / c).is_file():
+                return run / c
+        return run / candidates[0]
+
+    return {
+        "genre": pick(args.weights, "joint/best.safetensors", "refine/best.safetensors"),
+        "completion": pick(args.completion, "completion/best.safetensors"),
+        "onestep": pick(args.onestep, "onestep/best.safetensors"),
+    }
+
+
+HINTS = {
+    "genre": "train it with 'genre train depth|inpaint|refine|joint --out RUN …' or pass --weights",
+    "completion": "train it with 'genre train completion --init RUN/depth/best.safetensors --out RUN …', pass --completion, or leave the row out with --rows",
+    "onestep": "train it with 'genre train onestep --out RUN …', pass --onestep, or leave the row out with --rows",
+}
+
+
+def _parser(prog: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="Evaluate GenRe, its oracles and baselines over seen-test and unseen views (the paper's Table 1).")
+    p.add_argument("--data", nargs="+", required=True, help="folders of rendered eval views with targets ('genre data render --split test|unseen' + 'genre data targets')")
+    p.add_argument("--run", help="training run folder (weights RUN/joint|refine/best.safetensors, RUN/completion/…, RUN/onestep/…)")
+    p.add_argument("--weights", help="GenRe weights (default: RUN/joint/best.safetensors, else RUN/refine/best.safetensors)")
+    p.add_argument("--completion", help="3D Completion baseline weights (default RUN/completion/best.safetensors)")
+    p.add_argument("--onestep", help="GenRe-1step weights (default RUN/onestep/best.safetensors)")
+    p.add_argument("--train-views", nargs="*", default=[], help="training views (nearest-shape baseline and class dissimilarity)")
+    p.add_argument("--train-shapes", help="file of training shape ids (default: every shape in --train-views)")
+    p.add_argument("--manifest", help="manifest JSON for classes and splits (default data/corpus/manifest.json if present)")
+    p.add_argument("--out", help="results folder (default results/<run name>)")
+    p.add_argument("--groups", default=",".join(GROUPS), help="groups to evaluate: test (seen-test), unseen, unseen-pix3d")
+    p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
+    p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
+    p.add_argument("--thresholds-from", help="thresholds.json of a run on seen-test data (when this run has none)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--gallery", type=int, default=3, help="shapes per group in the Blender gallery (0: none)")
+    p.add_argument("--heatmap-class", default="table", help="class of the viewpoint heatmap (Figure 7)")
+    p.add_argument("--heatmap-shapes", type=int, default=0, help="shapes rendered on the elevation × azimuth grid (0: no heatmap)")
+    p.add_argument("--heatmap-elevations", default="-10,5,20,35", help="elevations (degrees) of the grid")
+    p.add_argument("--heatmap-azimuths", type=int, default=8, help="azimuths of the grid (evenly spaced)")
+    p.add_argument("--render-samples", type=int, default=16, help="Cycles samples of grid views and gallery images")
+    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def _fail(prog: str, message: str) -> int:
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
+    args = _parser(prog).parse_args(argv)
+    t_start = time.perf_counter()
+    rows_wanted = [r.strip() for r in args.rows.split(",")] if args.rows else list(ROWS)
+    unknown = [r for r in rows_wanted if r not in ROWS]
+    if unknown:
+        return _fail(prog, f"--rows: unknown {unknown}; choose from {list(ROWS)}")
+    groups = tuple(g.strip() for g in args.groups.split(","))
+    if any(g not in GROUPS for g in groups):
+        return _fail(prog, f"--groups: choose from {list(GROUPS)}")
+    if not args.run and not args.weights:
+        return _fail(prog, "give the training run (--run RUN) or the GenRe weights (--weights FILE)")
+    paths = _weights_paths(args)
+    need = {"genre": True, "completion": "3D Completion" in rows_wanted, "onestep": "GenRe-1step" in rows_wanted}
+    missing = [f"{k} weights not found: {paths[k]} ({HINTS[k]})" for k, needed in need.items() if needed and (paths[k] is None or not paths[k].is_file())]
+    if "Nearest training shape" in rows_wanted and not args.train_views:
+        missing.append("the nearest-training-shape row needs the training views: pass --train-views DIR (or leave the row out with --rows)")
+    if missing:
+        return _fail(prog, "; ".join(missing))
+    manifest = None
+    if args.manifest:
+        manifest = json.loads(Path(args.manifest).read_text())
+    else:
+        try:
+            from training.data.corpus import load_manifest
+
+            manifest = load_manifest()
+        except FileNotFoundError:
+            manifest = None
+    try:
+        views = find_eval_views([Path(d) for d in args.data], manifest, groups, args.max_views)
+    except FileNotFoundError as exc:
+        return _fail(prog, str(exc))
+    if not views:
+        return _fail(prog, f"no complete eval views (render + targets + surface_points.npz) of groups {list(groups)} under {args.data}; "
+                     "render them with 'genre data render --shapes data/corpus/manifest.json --split test|unseen --views 4 --out DIR' and 'genre data targets --views DIR'")
+    try:
+        genre = load_model(paths["genre"], args.device)
+        from ..learn.baselines import NearestIndex, build_nearest_index, load_baseline
+
+        completion = load_baseline(paths["completion"], "completion", args.device) if need["completion"] else None
+        onestep = load_baseline(paths["onestep"], "onestep", args.device) if need["onestep"] else None
+        models = Models(genre, completion, onestep, wanted=tuple(rows_wanted))
+        models.check()
+    except WeightsError as exc:
+        return _fail(prog, str(exc))
+    out = Path(args.out) if args.out else Path("results") / (Path(args.run).name if args.run else Path(args.weights).stem)
+    out.mkdir(parents=True, exist_ok=True)
+    train_ids = None
+    if args.train_shapes:
+        train_ids = {line.strip() for line in Path(args.train_shapes).read_text().splitlines() if line.strip()}
+    # the run's identity: the same weights and views, or a clear error instead of mixed results
+    ident = {"weights": {k: (str(v), _digest(v)) for k, v in paths.items() if need[k] and v is not None},
+             "preset": genre.config.preset, "rows": rows_wanted, "train_views": [str(p) for p in args.train_views]}
+    ident = json.loads(json.dumps(ident))  # as it reads back (lists, not tuples)
+    ident_path = out / "eval_config.json"
+    if ident_path.is_file() and json.loads(ident_path.read_text()) != ident:
+        if (out / "per_view.csv").is_file():
+            return _fail(prog, f"{out} holds results of other weights or rows ({ident_path}); use another --out or delete it")
+    ident_path.write_text(json.dumps(ident, indent=2))
+    if "Nearest training shape" in rows_wanted:
+        index_path = out / "nearest_index.safetensors"
+        try:
+            if index_path.is_file():
+                models.nearest = NearestIndex.load(index_path)
+            else:
+                parts = [build_nearest_index(d, genre.config, train_ids, progress=not args.no_progress) for d in args.train_views]
+                models.nearest = NearestIndex(torch.cat([p.thumbs for p in parts]), torch.cat([p.rotations for p in parts]),
+                                              sum((p.shape_dirs for p in parts), []), sum((p.views for p in parts), []))
+                models.nearest.save(index_path, genre.config)
+        except (FileNotFoundError, WeightsError) as exc:
+            return _fail(prog, str(exc))
+    # the gallery's views: the first view of the first shapes of each group
+    gallery_keys: list[str] = []
+    if args.gallery > 0 and not args.no_figures:
+        for g in groups:
+            firsts = {}
+            for v in views:
+                if g in v.groups and v.shape_dir.name not in firsts:
+                    firsts[v.shape_dir.name] = v.key
+            gallery_keys += [k for k in list(firsts.values())[: args.gallery] if k not in gallery_keys]
+    records = evaluate_views(models, views, out, device=args.device, progress=not args.no_progress, save_grids=set(gallery_keys))
+    thresholds = genre.config.geometry.thresholds()
+    fixed = None
+    if args.thresholds_from:
+        fixed = json.loads(Path(args.thresholds_from).read_text())["seen"]
+    choice = choose_thresholds(records, thresholds, genre.config.geometry.default_threshold, fixed)
+    per_shape, per_class, group_means = aggregate(records, choice)
+    (out / "thresholds.json").write_text(json.dumps(choice, indent=2))
+    write_csv(out / "per_shape.csv", per_shape)
+    write_csv(out / "per_class.csv", per_class)
+    n_shapes = len({v.shape_dir.name for v in views})
+    header = (f"# GenRe evaluation: {out.name}\n\n{len(views)} views of {n_shapes} shapes; preset {genre.config.preset}; "
+              f"weights {paths['genre']}.\n\nCommand: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n")
+    table = format_table(per_class, group_means, choice, models.rows(), header)
+    notes = []
+    if not args.no_figures:
+        from . import figures
+        from .heatmap import HeatmapSpec
+
+        heatmap = HeatmapSpec(args.heatmap_class, args.heatmap_shapes, tuple(float(e) for e in args.heatmap_elevations.split(",")),
+                              args.heatmap_azimuths, args.render_samples)
+        notes += figures.make_all(out, per_class, models, views, choice, train_views=[Path(p) for p in args.train_views or []],
+                                  train_ids=train_ids, gallery_keys=gallery_keys, render_samples=args.render_samples,
+                                  heatmap=heatmap, device=args.device, progress=not args.no_progress)
+    if notes:
+        table += "\n## Figures\n\n" + "\n".join(notes) + "\n"
+    atomic_write_text(out / "table.md", table)
+    print(table)
+    print(f"wrote {out}/ in {time.perf_counter() - t_start:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

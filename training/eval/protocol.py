@@ -1,0 +1,113 @@
+"""The evaluation protocol: Table 1's rows and groups, the point counts, and which views are scored.
+
+Every row runs on the same rendered views (``genre data render`` + ``genre
+data targets`` of the seen-test and unseen shapes); a view belongs to the
+groups of its shape's class and split (the manifest entry, else the view's
+JSON).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+
+from ..data.views import manifest_index
+
+__all__ = ['BASE_COLUMNS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'ROWS', 'find_eval_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
+
+
+ROWS = ("GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "GenRe-1step", "Nearest training shape")
+
+
+FLOOR = "Noise floor (truth resampled)"
+
+
+GROUPS = ("test", "unseen", "unseen-pix3d")
+
+
+GROUP_LABEL = {"test": "seen-test", "unseen": "unseen", "unseen-pix3d": "unseen-pix3d"}
+
+
+EMPTY_CD = 1.0  # the CD given to a threshold whose mesh is empty (normalised clouds: a large error)
+
+
+POINTS_SMALL = 1024
+
+
+POINTS_LARGE = 10_000
+
+
+FSCORE_AT = (0.01, 0.02)
+
+
+METRICS = ("cd1k", "cd10k", "f1", "f2")
+
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def threshold_key(t: float) -> str:
+    return f"{t:.2f}"
+
+
+def metric_columns(thresholds: list[float]) -> list[str]:
+    return [f"{m}@{threshold_key(t)}" for t in thresholds for m in (*METRICS, "empty")]
+
+
+BASE_COLUMNS = ["key", "shape", "view", "class", "groups", "azimuth", "elevation", "row", "depth_abs_err", "retrieved"]
+
+
+@dataclass(frozen=True)
+class EvalView:
+    shape_dir: Path
+    view: int
+    cls: str
+    groups: tuple[str, ...]
+    meta: dict
+
+    @property
+    def key(self) -> str:
+        return f"{self.shape_dir.name}/{self.view:03d}"
+
+
+def find_eval_views(roots: list[Path], manifest: dict | None, groups: tuple[str, ...], max_views: int | None = None) -> list[EvalView]:
+    """Every complete view (render + targets + surface points) of a shape in one of ``groups``.
+
+    The class and split come from the manifest entry of the shape (else from the view JSON).
+    """
+    from training.data.corpus import groups_of
+
+    from ..data.views import find_views, load_view_meta
+
+    index = manifest_index(manifest)
+    out = []
+    for root in roots:
+        if not Path(root).is_dir():
+            raise FileNotFoundError(f"--data: no such folder: {root} (render it with 'genre data render --split test|unseen …' and 'genre data targets')")
+        per_shape: dict[str, int] = defaultdict(int)
+        for ref in find_views(Path(root), surface_points=True):
+            meta = load_view_meta(ref.shape_dir, ref.view)
+            entry = index.get(ref.shape_id, {})
+            cls = entry.get("class") or meta.get("class")
+            split = entry.get("split") or meta.get("split")
+            if not cls or not split:
+                continue
+            gs = tuple(g for g in groups_of(cls, split) if g in groups)
+            if not gs:
+                continue
+            if max_views is not None and per_shape[ref.shape_id] >= max_views:
+                continue
+            per_shape[ref.shape_id] += 1
+            out.append(EvalView(ref.shape_dir, ref.view, cls, gs, meta))
+    return out
+
+
+def resolve_mesh(path: str) -> Path:
+    p = Path(path)
+    if p.is_file():
+        return p
+    if not p.is_absolute() and (REPO_ROOT / p).is_file():
+        return REPO_ROOT / p
+    raise FileNotFoundError(f"mesh {path} (from a view's JSON) not found")

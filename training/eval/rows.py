@@ -1,0 +1,91 @@
+"""The models behind Table 1's rows and what each predicts for one view.
+
+==========================  =====================================================================
+GenRe                       the full model (depth net → partial map → inpainting → voxels → refiner)
+GenRe-Oracle                the true depth (and mask) in place of the depth net
+GenRe-SphOracle             the true depth and the true full spherical map: the refiner's inputs
+                            all true (the paper's upper bound for the refiner, nested in Oracle)
+3D Completion               depth net → depth voxels → a completion net of the refiner's size
+GenRe-1step                 RGB → full spherical map in one U-ResNet → GenRe's projection and refiner
+                            (the depth channel from GenRe's depth net)
+Nearest training shape      the training view whose depth thumbnail is closest to the predicted
+                            masked depth; its shape posed as it appears in that view
+Noise floor                 the truth against itself resampled (the best any row can do)
+==========================  =====================================================================
+
+Every network gets the view's true mask (the film alpha), as the paper's
+evaluation did.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from genre_backend.config import GenreConfig
+from genre_backend.nets.model import GenRe, WeightsError
+
+from .protocol import ROWS
+
+__all__ = ['Models', 'predict']
+
+
+@dataclass
+class Models:
+    genre: GenRe
+    completion: torch.nn.Module | None = None
+    onestep: torch.nn.Module | None = None
+    nearest: object | None = None  # training.learn.baselines.NearestIndex
+    wanted: tuple[str, ...] = ROWS  # the rows to produce
+
+    @property
+    def config(self) -> GenreConfig:
+        return self.genre.config
+
+    def rows(self) -> list[str]:
+        rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle"]
+        if self.completion is not None:
+            rows.append("3D Completion")
+        if self.onestep is not None:
+            rows.append("GenRe-1step")
+        if self.nearest is not None:
+            rows.append("Nearest training shape")
+        return [r for r in rows if r in self.wanted]
+
+    def check(self) -> None:
+        g = self.config.geometry
+        for name, net in (("3D Completion", self.completion), ("GenRe-1step", self.onestep)):
+            if net is not None and (net.config.geometry.image_size, net.config.geometry.sph_size, net.config.geometry.voxel_size) != (g.image_size, g.sph_size, g.voxel_size):
+                raise WeightsError(f"{name}: its weights were made for another preset than GenRe's ({net.config.preset} vs {self.config.preset})")
+
+
+@torch.no_grad()
+def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str, dict]:
+    """Every row's prediction for one view: {row: {"prob": (N³) or "points": (P, 3)}, plus "depth"}."""
+    m = models.genre
+    rgb = sample["rgb"][None].to(device)
+    mask = sample["mask"][None].to(device)
+    depth = sample["depth"][None].to(device)
+    full = sample["full_sph"][None].to(device)
+    out: dict[str, dict] = {}
+    g = m(rgb, mask=mask)
+    out["GenRe"] = {"prob": torch.sigmoid(g["logits"])[0, 0].cpu()}
+    pred_depth = g["masked_depth"]
+    valid = mask & (depth > 0)
+    err = float(((g["depth"] - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
+    out["depth_abs_err"] = err
+    if "GenRe-Oracle" in models.wanted:
+        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu()}
+    if "GenRe-SphOracle" in models.wanted:
+        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full)["logits"])[0, 0].cpu()}
+    if models.completion is not None:
+        out["3D Completion"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask)["logits"])[0, 0].cpu()}
+    if models.onestep is not None:
+        sph = models.onestep(rgb).clamp(0.0, 1.0)
+        logits = m.refine(m.sph_voxels(sph), m.depth_voxels(pred_depth))
+        out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu()}
+    if models.nearest is not None:
+        i = models.nearest.query(pred_depth)[0]
+        out["Nearest training shape"] = {"points": models.nearest.view_points(i), "retrieved": f"{models.nearest.shape_id(i)}/{models.nearest.views[i]}"}
+    return out
