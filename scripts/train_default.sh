@@ -5,7 +5,8 @@
 # Every step resumes where it stopped: run this script again after an
 # interruption. Step counts can be raised to continue training (the
 # checkpoint's step count carries on). Timings go to data/logs/chain.log.
-# SKIP_TO=NAME starts at the step whose log name is NAME (e.g. SKIP_TO=eval).
+# SKIP_TO=NAME starts at the step whose log name is NAME (e.g. SKIP_TO=eval);
+# DRY_RUN=1 prints the steps (and the training settings) without running them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 G=.venv/bin/genre
@@ -16,22 +17,28 @@ RESULTS=${RESULTS:-results/default}
 TRAIN_VIEWS_PER_SHAPE=${TRAIN_VIEWS_PER_SHAPE:-20}
 EVAL_TEST_VIEWS=${EVAL_TEST_VIEWS:-3}      # per seen-test shape (they also choose the honest threshold)
 EVAL_UNSEEN_VIEWS=${EVAL_UNSEEN_VIEWS:-1}  # per unseen shape: every unseen shape, one random view
-DEPTH_STEPS=${DEPTH_STEPS:-6000}
-INPAINT_STEPS=${INPAINT_STEPS:-3000}
-REFINE_STEPS=${REFINE_STEPS:-3000}
-JOINT_STEPS=${JOINT_STEPS:-400}
-ONESTEP_STEPS=${ONESTEP_STEPS:-3000}
-# The voxel stages (refiner, joint, 3D Completion) depart from the paper's optimiser numbers
-# (lr 1e-4, surface weight 10); why: ARCHITECTURE.md, "Where we depart from the paper".
-REFINE_LR=${REFINE_LR:-1e-3}
-SURFACE_WEIGHT=${SURFACE_WEIGHT:-0.1}
+# The training recipe (learning rates, loss weights, step budgets of every stage) is the named
+# recipe in training/learn/recipe.py; the voxel stages depart from the paper's optimiser numbers
+# (why: ARCHITECTURE.md, "Where we depart from the paper").  Step budgets can be raised per
+# stage to continue training: DEPTH_STEPS, INPAINT_STEPS, REFINE_STEPS, JOINT_STEPS,
+# COMPLETION_STEPS, ONESTEP_STEPS (unset: the recipe's).
+RECIPE=${RECIPE:-shipped}
+steps() { local v="${1:-}"; [ -n "$v" ] && echo "--steps $v" || true; }
 SKIP_TO=${SKIP_TO:-}
-mkdir -p data/logs
-log() { echo "$(date -u +%FT%TZ) $*" | tee -a data/logs/chain.log; }
+# DRY_RUN=1: run nothing, write nothing; print each step's command, and for the training
+# steps the settings they resolve to (genre train --dry-run: one JSON line each).
+DRY_RUN=${DRY_RUN:-}
+[ -n "$DRY_RUN" ] || mkdir -p data/logs
+log() { if [ -n "$DRY_RUN" ]; then echo "$*"; else echo "$(date -u +%FT%TZ) $*" | tee -a data/logs/chain.log; fi; }
 step() {
   local name=$1; shift
   if [ -n "$SKIP_TO" ] && [ "$SKIP_TO" != "$name" ]; then log "skip: $name"; return; fi
   SKIP_TO=""
+  if [ -n "$DRY_RUN" ]; then
+    log "step $name: $*"
+    if [ "$1 $2" = "$G train" ]; then "$@" --dry-run; fi
+    return
+  fi
   local t0=$SECONDS; log "start: $name: $*"; "$@"; log "done in $((SECONDS - t0)) s: $name"
 }
 M=data/corpus/manifest.json
@@ -40,18 +47,19 @@ step fetch   $G data fetch
 step build   $G data build
 step render  $G data render --shapes $M --split train --out "$VIEWS" --views "$TRAIN_VIEWS_PER_SHAPE" --preset default --no-progress
 step targets $G data targets --views "$VIEWS" --preset default --no-progress
-step depth   $G train depth   --data "$VIEWS" --out "$RUN" --steps "$DEPTH_STEPS" --no-progress
-step inpaint $G train inpaint --data "$VIEWS" --out "$RUN" --steps "$INPAINT_STEPS" --init "$RUN/depth/best.safetensors" --no-progress
-step refine  $G train refine  --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/inpaint/best.safetensors" --lr "$REFINE_LR" --surface-weight "$SURFACE_WEIGHT" --no-progress
-step joint   $G train joint   --data "$VIEWS" --out "$RUN" --steps "$JOINT_STEPS" --init "$RUN/refine/best.safetensors" --surface-weight "$SURFACE_WEIGHT" --no-progress
+T=($G train --recipe "$RECIPE")
+step depth   "${T[@]}" depth   --data "$VIEWS" --out "$RUN" $(steps "${DEPTH_STEPS:-}") --no-progress
+step inpaint "${T[@]}" inpaint --data "$VIEWS" --out "$RUN" $(steps "${INPAINT_STEPS:-}") --init "$RUN/depth/best.safetensors" --no-progress
+step refine  "${T[@]}" refine  --data "$VIEWS" --out "$RUN" $(steps "${REFINE_STEPS:-}") --init "$RUN/inpaint/best.safetensors" --no-progress
+step joint   "${T[@]}" joint   --data "$VIEWS" --out "$RUN" $(steps "${JOINT_STEPS:-}") --init "$RUN/refine/best.safetensors" --no-progress
 # Evaluation views: seen-test and both unseen groups.
 step render_eval bash -c "$G data render --shapes $M --split test --out $EVAL_VIEWS --views $EVAL_TEST_VIEWS --preset default --seed 1 --no-progress &&
   for s in unseen unseen-pix3d; do $G data render --shapes $M --split \$s --out $EVAL_VIEWS --views $EVAL_UNSEEN_VIEWS --preset default --seed 1 --no-progress; done"
 step targets_eval $G data targets --views "$EVAL_VIEWS" --preset default --no-progress
-# Baselines, same data: the completion net gets the refiner's steps; 1-step gets half the
-# depth net's (ONESTEP_STEPS), to fit the CPU budget.
-step completion $G train completion --data "$VIEWS" --out "$RUN" --steps "$REFINE_STEPS" --init "$RUN/depth/best.safetensors" --lr "$REFINE_LR" --surface-weight "$SURFACE_WEIGHT" --no-progress
-step onestep    $G train onestep    --data "$VIEWS" --out "$RUN" --steps "$ONESTEP_STEPS" --no-progress
+# Baselines, same data and the recipe's budgets: the completion net gets the refiner's steps;
+# 1-step gets half the depth net's, to fit the CPU budget.
+step completion "${T[@]}" completion --data "$VIEWS" --out "$RUN" $(steps "${COMPLETION_STEPS:-${REFINE_STEPS:-}}") --init "$RUN/depth/best.safetensors" --no-progress
+step onestep    "${T[@]}" onestep    --data "$VIEWS" --out "$RUN" $(steps "${ONESTEP_STEPS:-}") --no-progress
 # Every seen-test shape and at most 8 shapes per unseen class, one view each, in two halves
 # that two single-threaded processes evaluate side by side; then one run over the whole
 # subset resumes from their rows, aggregates and draws the figures.

@@ -59,12 +59,11 @@ from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.geometry.spherical import pad_sph
 
 from ..data.dataset import ViewDataset, find_views, split_views
+from .recipe import RECIPES, STAGES, StageRecipe, get_recipe
 
 __all__ = ["STAGES", "TrainConfig", "StageModule", "train", "weights_digest", "main"]
 
-STAGES = ("depth", "inpaint", "refine", "joint", "completion", "onestep")
 BASELINE_STAGES = ("completion", "onestep")
-DEFAULT_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5, "completion": 1e-4, "onestep": 1e-3}
 
 
 @dataclass
@@ -74,14 +73,15 @@ class TrainConfig:
     stage: str
     data: str  # folder of rendered views with targets
     out: str  # run folder; the stage writes OUT/STAGE/
-    preset: str = "default"  # used only when not starting from --init weights
+    recipe: str = "paper"  # training/learn/recipe.py: every None below comes from it
+    preset: str | None = None  # used only when not starting from --init weights
     init: str | None = None  # weights to start from (the previous stage's best)
-    steps: int = 1000
-    batch_size: int = 4  # per process
-    lr: float | None = None  # None: the stage's default
-    beta1: float = 0.5
-    beta2: float = 0.9
-    surface_weight: float = 10.0
+    steps: int | None = None
+    batch_size: int | None = None  # per process
+    lr: float | None = None
+    beta1: float | None = None
+    beta2: float | None = None
+    surface_weight: float | None = None
     val_fraction: float = 0.05
     val_every: int = 200
     val_samples: int = 48
@@ -98,12 +98,17 @@ class TrainConfig:
     def __post_init__(self):
         if self.stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
-        if self.steps < 1 or self.batch_size < 1:
-            raise ValueError("steps and batch_size must be positive")
+        recipe = get_recipe(self.recipe)
+        if self.preset is None:
+            self.preset = recipe.preset
+        given = {k: getattr(self, k) for k in StageRecipe.keys() if getattr(self, k) is not None}
+        resolved = dataclasses.replace(recipe.stage(self.stage), **given)  # (validates the values)
+        for k in StageRecipe.keys():
+            setattr(self, k, getattr(resolved, k))
 
     @property
     def learning_rate(self) -> float:
-        return DEFAULT_LR[self.stage] if self.lr is None else self.lr
+        return self.lr
 
 
 class StageModule(nn.Module):
@@ -528,19 +533,29 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
     parser.add_argument("--data", required=True, help="folder of rendered views with targets ('genre data render' + 'genre data targets')")
     parser.add_argument("--out", required=True, help="run folder; this stage writes OUT/STAGE/")
     parser.add_argument("--init", help="weights to start from (e.g. OUT/depth/best.safetensors); default: fresh weights of --preset")
-    parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
+    parser.add_argument("--recipe", choices=sorted(RECIPES), default="paper",
+                        help="named training recipe (training/learn/recipe.py); the options below override its values")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default=None, help="model preset (default: the recipe's)")
     parser.add_argument("--model-config", help="JSON file of a model config (GenreConfig.to_dict) instead of --preset")
     parser.add_argument("--shapes", help="file listing the shape ids to train on (default: every shape in --data)")
     for f in dataclasses.fields(TrainConfig):
-        if f.name in ("stage", "data", "out", "init", "preset", "shapes", "augment", "progress"):
+        if f.name in ("stage", "data", "out", "recipe", "init", "preset", "shapes", "augment", "progress"):
             continue
-        kind = float if f.type in ("float", "float | None") else (int if f.type == "int" else str)
-        parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default)
+        kind = float if f.type in ("float", "float | None") else (int if f.type in ("int", "int | None") else str)
+        default = "the recipe's" if f.default is None and f.name in StageRecipe.keys() else f.default
+        parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default, help=f"default: {default}")
     parser.add_argument("--no-augment", action="store_true")
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--dry-run", action="store_true", help="print the resolved settings as JSON and exit (nothing is read or written)")
     args = parser.parse_args(argv)
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if f.name not in ("augment", "progress")}
-    tcfg = TrainConfig(**values, augment=not args.no_augment, progress=not args.no_progress)
+    try:
+        tcfg = TrainConfig(**values, augment=not args.no_augment, progress=not args.no_progress)
+    except ValueError as exc:
+        parser.error(str(exc))
+    if args.dry_run:
+        print(json.dumps(dataclasses.asdict(tcfg), sort_keys=True))
+        return 0
     if tcfg.init and not Path(tcfg.init).is_file():
         parser.error(f"--init: no such weights file: {tcfg.init}")
     model_config = None

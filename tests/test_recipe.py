@@ -1,0 +1,92 @@
+"""Training recipes: the named recipes reproduce the settings that trained the shipped weights."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from training.learn.recipe import RECIPES, STAGES, StageRecipe, get_recipe
+from training.learn.train import TrainConfig, main
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Before recipes existed, genre train's defaults were these (train.py's DEFAULT_LR, steps 1000,
+# batch 4, Adam betas (0.5, 0.9), surface weight 10) ...
+HISTORIC_DEFAULTS = {"steps": 1000, "batch_size": 4, "beta1": 0.5, "beta2": 0.9, "surface_weight": 10.0}
+HISTORIC_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5, "completion": 1e-4, "onestep": 1e-3}
+# ... and scripts/train_default.sh passed these flags to each stage (as of commit e91e108).
+HISTORIC_SCRIPT_FLAGS = {
+    "depth": ["--steps", "6000"],
+    "inpaint": ["--steps", "3000"],
+    "refine": ["--steps", "3000", "--lr", "1e-3", "--surface-weight", "0.1"],
+    "joint": ["--steps", "400", "--surface-weight", "0.1"],
+    "completion": ["--steps", "3000", "--lr", "1e-3", "--surface-weight", "0.1"],
+    "onestep": ["--steps", "3000"],
+}
+
+
+def _dry_run(capsys, *args) -> dict:
+    assert main([*args, "--dry-run"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    return json.loads(out[-1])
+
+
+@pytest.mark.parametrize("stage", STAGES)
+def test_paper_recipe_is_the_historic_default(stage, capsys):
+    got = _dry_run(capsys, stage, "--data", "d", "--out", "o")
+    assert {k: got[k] for k in HISTORIC_DEFAULTS} == HISTORIC_DEFAULTS
+    assert got["lr"] == HISTORIC_LR[stage] and got["recipe"] == "paper" and got["preset"] == "default"
+
+
+@pytest.mark.parametrize("stage", STAGES)
+def test_shipped_recipe_equals_the_scripts_historic_flags(stage, capsys):
+    historic = _dry_run(capsys, stage, "--data", "d", "--out", "o", *HISTORIC_SCRIPT_FLAGS[stage])
+    shipped = _dry_run(capsys, "--recipe", "shipped", stage, "--data", "d", "--out", "o")
+    historic.pop("recipe"), shipped.pop("recipe")
+    assert shipped == historic
+
+
+def test_explicit_options_override_the_recipe(capsys):
+    got = _dry_run(capsys, "--recipe", "shipped", "refine", "--data", "d", "--out", "o", "--lr", "5e-4", "--steps", "7")
+    assert (got["lr"], got["steps"], got["surface_weight"]) == (5e-4, 7, 0.1)
+
+
+def test_script_names_the_recipe_and_resolves_to_the_historic_settings():
+    env = {**os.environ, "DRY_RUN": "1"}
+    proc = subprocess.run(["bash", "scripts/train_default.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    resolved = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+    assert [r["stage"] for r in resolved] == ["depth", "inpaint", "refine", "joint", "completion", "onestep"]
+    train_lines = [line for line in proc.stdout.splitlines() if line.startswith("step ") and "genre train" in line]
+    assert len(train_lines) == 6
+    assert all("--recipe shipped" in line and "--lr" not in line and "--surface-weight" not in line for line in train_lines)
+    for r in resolved:
+        historic = dataclasses.asdict(TrainConfig(stage=r["stage"], data=r["data"], out=r["out"], init=r["init"], progress=False,
+                                                  **_flags_as_fields(HISTORIC_SCRIPT_FLAGS[r["stage"]])))
+        historic.pop("recipe"), r.pop("recipe")
+        assert r == historic
+    assert not (REPO / "data" / "logs" / "chain.log").exists() or "DRY" not in (REPO / "data" / "logs" / "chain.log").read_text()
+
+
+def _flags_as_fields(flags: list[str]) -> dict:
+    out = {}
+    for name, value in zip(flags[::2], flags[1::2]):
+        key = name[2:].replace("-", "_")
+        out[key] = int(value) if key == "steps" else float(value)
+    return out
+
+
+def test_recipes_validate_their_values():
+    assert set(RECIPES) == {"paper", "shipped"}
+    with pytest.raises(ValueError, match="unknown recipe"):
+        get_recipe("fast")
+    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}):
+        with pytest.raises(ValueError):
+            StageRecipe(**bad)
+    with pytest.raises(SystemExit):
+        main(["refine", "--data", "d", "--out", "o", "--lr", "-1", "--dry-run"])
