@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from test_addon import REPO, built, needs_server, trained  # noqa: F401  (fixtures)
+from test_addon import REPO, built, trained  # noqa: F401  (fixtures)
 
 _spec = importlib.util.spec_from_file_location("run_gui_e2e", REPO / "tests" / "e2e" / "run_gui_e2e.py")
 run_gui_e2e = importlib.util.module_from_spec(_spec)
@@ -24,7 +24,6 @@ _spec.loader.exec_module(run_gui_e2e)
 _missing = run_gui_e2e.missing_tools()
 
 
-@needs_server
 @pytest.mark.skipif(bool(_missing), reason=f"no GUI Blender here: {_missing}")
 def test_gui_blender_runs_the_modal_operator_end_to_end(built, trained, tmp_path):  # noqa: F811
     weights, photo = trained
