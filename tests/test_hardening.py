@@ -17,20 +17,9 @@ from genre_backend.inference import reconstruct_cli
 from genre_backend.inference.reconstruct import OutputError, check_output_path
 from genre_backend.io import WeightsError, atomic_write_bytes, remove_dead_temporaries, tmp_prefix
 from genre_backend.nets.model import WEIGHTS_FORMAT, load_model
-from test_reconstruct import trained_weights
-from test_server import ServerProcess
+from test_server import ServerProcess, trained  # noqa: F401  (trained: the tiny trained weights, a fixture)
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return trained_weights(tmp_path_factory)
-    finally:
-        torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

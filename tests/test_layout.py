@@ -85,26 +85,20 @@ def test_backend_never_imports_training():
     assert offenders == {}
 
 
-def test_backend_layers_point_downwards():
+def _upward_imports(package: str, layers: dict[str, int]) -> list[str]:
     wrong = []
-    for m in _modules("genre_backend"):
-        rank = _layer(m, BACKEND_LAYERS)
+    for m in _modules(package):
+        rank = _layer(m, layers)
         for imp in _imports(m):
-            target = _layer(imp, BACKEND_LAYERS)
+            target = _layer(imp, layers)
             if rank is not None and target is not None and target > rank:
                 wrong.append(f"{m} imports {imp}")
-    assert wrong == []
+    return wrong
 
 
-def test_training_layers_point_downwards():
-    wrong = []
-    for m in _modules("training"):
-        rank = _layer(m, TRAINING_LAYERS)
-        for imp in _imports(m):
-            target = _layer(imp, TRAINING_LAYERS)
-            if rank is not None and target is not None and target > rank:
-                wrong.append(f"{m} imports {imp}")
-    assert wrong == []
+@pytest.mark.parametrize("package, layers", [("genre_backend", BACKEND_LAYERS), ("training", TRAINING_LAYERS)])
+def test_layers_point_downwards(package, layers):
+    assert _upward_imports(package, layers) == []
 
 
 def test_addon_imports_neither_package():
