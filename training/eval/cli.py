@@ -118,7 +118,12 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
         return _fail(prog, "; ".join(missing))
     manifest = None
     if args.manifest:
-        manifest = json.loads(Path(args.manifest).read_text())
+        from ..data.views import read_manifest
+
+        try:
+            manifest = read_manifest(args.manifest)
+        except (FileNotFoundError, ValueError) as exc:
+            return _fail(prog, f"--manifest: {exc}")
     else:
         try:
             from training.data.corpus import load_manifest
