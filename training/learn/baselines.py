@@ -40,7 +40,7 @@ from genre_backend.nets.refiner import VoxelRefiner
 from genre_backend.nets.uresnet import ResNetEncoder, UDecoder
 from genre_backend.validation import check_tensor
 from genre_backend.geometry.voxels import points_to_voxels
-from genre_backend.io import WeightsError, load_state_strict, read_weights, save_weights, stored_config
+from genre_backend.io import WeightsError, atomic_write_bytes, load_state_strict, read_weights, save_weights, stored_config
 
 from ..data.views import find_views, load_view_meta, surface_points_path, view_paths
 
@@ -182,15 +182,12 @@ class NearestIndex:
         return Path(self.shape_dirs[i]).name
 
     def save(self, path: str | os.PathLike, config: GenreConfig) -> Path:
-        from safetensors.torch import save_file
+        from safetensors.torch import save
 
         path = Path(path)
         meta = {"format": BASELINE_FORMAT, "kind": self.kind, "config": json.dumps(config.to_dict()),
                 "shape_dirs": json.dumps(self.shape_dirs), "views": json.dumps(self.views)}
-        tmp = path.with_name(path.name + ".tmp")
-        save_file({"thumbs": self.thumbs.contiguous(), "rotations": self.rotations.contiguous()}, str(tmp), metadata=meta)
-        os.replace(tmp, path)
-        return path
+        return atomic_write_bytes(path, save({"thumbs": self.thumbs.contiguous(), "rotations": self.rotations.contiguous()}, metadata=meta))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "NearestIndex":

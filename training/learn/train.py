@@ -57,6 +57,7 @@ from torch import nn
 from genre_backend.config import PRESETS, GenreConfig, get_preset
 from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.geometry.spherical import pad_sph
+from genre_backend.io import atomic_write
 
 from ..data.dataset import ViewDataset, find_views, split_views
 from .recipe import RECIPES, STAGES, StageRecipe, get_recipe
@@ -340,10 +341,8 @@ def _plot_losses(csv_path: Path, png_path: Path, stage: str) -> None:
     ax.set_title(f"GenRe training: {stage} stage")
     ax.legend()
     fig.tight_layout()
-    tmp = png_path.with_name(png_path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=90)
+    atomic_write(png_path, lambda fh: fig.savefig(fh, format="png", dpi=90))
     plt.close(fig)
-    os.replace(tmp, png_path)
 
 
 # ---- the loop ----------------------------------------------------------------------------
