@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 __all__ = [
     "VIEW_TO_BLENDER_FRONT",
@@ -40,17 +40,34 @@ class MeshFileError(ValueError):
 
 @dataclass
 class MeshData:
+    """An OBJ's polygons: ``faces`` index ``vertices``; ``face_uvs`` (one tuple per face, or None when the
+    file has no texture coordinates) index ``uvs``."""
+
     vertices: list[tuple[float, float, float]]
     faces: list[tuple[int, ...]]
+    uvs: list[tuple[float, float]] = field(default_factory=list)
+    face_uvs: list[tuple[int, ...]] | None = None
+
+
+def _index(token: str, count: int, path, lineno: int) -> int:
+    """A 1-based (or negative, from the end) OBJ index → 0-based; a clear error for anything else."""
+    try:
+        i = int(token)
+    except ValueError:
+        raise MeshFileError(f"{path}:{lineno}: bad face line") from None
+    return i - 1 if i > 0 else count + i
 
 
 def read_obj(path: str | os.PathLike) -> MeshData:
-    """Vertices and faces of a Wavefront OBJ (``v`` and ``f`` lines; texture/normal indices and negative indices allowed).
+    """Vertices, faces and texture coordinates of a Wavefront OBJ (``v``, ``vt`` and ``f`` lines; negative indices allowed).
 
-    Everything else (normals, groups, materials) is ignored: the backend writes one object.
+    Everything else (normals, groups, materials) is ignored: the backend writes
+    one object.  ``face_uvs`` is set only when every face has ``v/vt`` indices.
     """
     vertices: list[tuple[float, float, float]] = []
+    uvs: list[tuple[float, float]] = []
     faces: list[tuple[int, ...]] = []
+    face_uvs: list[tuple[int, ...]] = []
     try:
         fh = open(path, "r", encoding="utf-8", errors="replace")
     except OSError as exc:
@@ -63,17 +80,23 @@ def read_obj(path: str | os.PathLike) -> MeshData:
                     vertices.append((float(parts[1]), float(parts[2]), float(parts[3])))
                 except (IndexError, ValueError):
                     raise MeshFileError(f"{path}:{lineno}: bad vertex line") from None
+            elif line.startswith("vt "):
+                parts = line.split()
+                try:
+                    uvs.append((float(parts[1]), float(parts[2]) if len(parts) > 2 else 0.0))
+                except (IndexError, ValueError):
+                    raise MeshFileError(f"{path}:{lineno}: bad texture coordinate line") from None
             elif line.startswith("f "):
-                idx = []
+                idx, tidx = [], []
                 for token in line.split()[1:]:
-                    try:
-                        i = int(token.split("/", 1)[0])
-                    except ValueError:
-                        raise MeshFileError(f"{path}:{lineno}: bad face line") from None
-                    idx.append(i - 1 if i > 0 else len(vertices) + i)
+                    fields = token.split("/")
+                    idx.append(_index(fields[0], len(vertices), path, lineno))
+                    if len(fields) > 1 and fields[1]:
+                        tidx.append(_index(fields[1], len(uvs), path, lineno))
                 if len(idx) < 3:
                     raise MeshFileError(f"{path}:{lineno}: a face needs at least 3 vertices")
                 faces.append(tuple(idx))
+                face_uvs.append(tuple(tidx))
     n = len(vertices)
     for face in faces:
         for i in face:
@@ -81,7 +104,10 @@ def read_obj(path: str | os.PathLike) -> MeshData:
                 raise MeshFileError(f"{path}: a face refers to vertex {i + 1}, but there are {n} vertices")
     if not vertices or not faces:
         raise MeshFileError(f"{path}: the mesh is empty ({n} vertices, {len(faces)} faces)")
-    return MeshData(vertices, faces)
+    textured = bool(uvs) and all(len(t) == len(f) for t, f in zip(face_uvs, faces))
+    if textured and any(not 0 <= i < len(uvs) for t in face_uvs for i in t):
+        raise MeshFileError(f"{path}: a face refers to a texture coordinate past the {len(uvs)} in the file")
+    return MeshData(vertices, faces, uvs if textured else [], face_uvs if textured else None)
 
 
 def to_blender_frame(vertices, rotation=VIEW_TO_BLENDER_FRONT) -> list[tuple[float, float, float]]:

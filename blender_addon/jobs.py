@@ -42,6 +42,8 @@ class JobSpec:
     smoothing: int = 0
     target_faces: int = 0
     add_camera: bool = True
+    colour_from_photo: bool = True
+    keep_all_parts: bool = False
     photo_image: str = ""  # name of an image datablock showing the photo (when chosen in Blender)
     photo_file: str = ""  # else: the photo's file, loaded as the camera's background when needed
 
@@ -55,6 +57,10 @@ class JobSpec:
             payload["mask"] = self.mask_path
         if self.threshold is not None:
             payload["options"]["threshold"] = float(self.threshold)
+        if self.colour_from_photo:
+            payload["options"]["texture"] = True
+        if self.keep_all_parts:
+            payload["options"]["all_parts"] = True
         return payload
 
 
@@ -150,6 +156,8 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     spec.smoothing = int(settings.smoothing)
     spec.target_faces = int(settings.target_faces)
     spec.add_camera = bool(settings.add_camera)
+    spec.colour_from_photo = bool(getattr(settings, "colour_from_photo", False))
+    spec.keep_all_parts = bool(getattr(settings, "keep_all_parts", False))
     return spec
 
 
@@ -251,6 +259,8 @@ def _remove(made: list) -> None:
                 bpy.data.cameras.remove(block)
             elif isinstance(block, bpy.types.Image):
                 bpy.data.images.remove(block)
+            elif isinstance(block, bpy.types.Material):
+                bpy.data.materials.remove(block)
             elif isinstance(block, bpy.types.Collection):
                 bpy.data.collections.remove(block)
         except ReferenceError:
@@ -280,6 +290,9 @@ def _add_result(scene, spec: JobSpec, result: dict, cursor_location, made: list)
     mesh = bpy.data.meshes.new(spec.name)
     made.append(mesh)
     mesh.from_pydata(to_blender_frame(data.vertices), [], data.faces)
+    if spec.colour_from_photo and data.face_uvs is not None:
+        texture = _texture_file(result, mesh_path)
+        _add_photo_material(mesh, data, texture, made)
     mesh.update()
     if hasattr(mesh, "shade_smooth"):  # Blender 4.1+
         mesh.shade_smooth()
@@ -303,6 +316,44 @@ def _add_result(scene, spec: JobSpec, result: dict, cursor_location, made: list)
     if spec.add_camera and isinstance(result.get("camera"), dict):
         cam_obj = _add_camera(scene, spec, result["camera"], obj, coll, made)
     return obj, cam_obj
+
+
+def _texture_file(result: dict, mesh_path: str) -> str:
+    """The texture image the backend wrote beside an OBJ (listed in the result's ``files``)."""
+    for path in result.get("files") or ():
+        if isinstance(path, str) and path.lower().endswith(".png"):
+            return path
+    return os.path.splitext(mesh_path)[0] + "_texture.png"
+
+
+def _add_photo_material(mesh, data, texture_path: str, made: list) -> None:
+    """UVs from the OBJ and a material showing the photo's texture through them (image packed into the .blend,
+    since the job's folder is removed afterwards)."""
+    if not os.path.isfile(texture_path):
+        raise MeshFileError(f"the backend's texture {texture_path} is missing")
+    layer = mesh.uv_layers.new(name="Photo")
+    flat = [c for face in data.face_uvs for i in face for c in data.uvs[i]]
+    layer.data.foreach_set("uv", flat)
+    image = bpy.data.images.load(texture_path)
+    made.append(image)
+    image.name = f"{mesh.name} photo"
+    image.pack()
+    mat = bpy.data.materials.new(f"{mesh.name} photo")
+    made.append(mat)
+    if mat.node_tree is None:  # Blender < 5 makes materials without nodes
+        mat.use_nodes = True
+    nodes = mat.node_tree.nodes
+    bsdf = nodes.get("Principled BSDF")
+    node = nodes.new("ShaderNodeTexImage")
+    node.image = image
+    node.extension = "EXTEND"
+    node.location = (-320.0, 260.0)
+    mat.node_tree.links.new(node.outputs["Color"], bsdf.inputs["Base Color"])
+    nodes.active = node  # what Workbench and Texture Paint show
+    rough = bsdf.inputs.get("Roughness")
+    if rough is not None:
+        rough.default_value = 0.8
+    mesh.materials.append(mat)
 
 
 def _photo_image(spec: JobSpec, made: list):

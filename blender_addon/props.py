@@ -42,6 +42,17 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         name="Target Faces", description="Decimate to about this many faces (a Decimate modifier; 0 keeps every face)",
         default=0, min=0, soft_max=200000,
     )
+    colour_from_photo: BoolProperty(
+        name="Colour from Photo",
+        description="Colour the mesh with the photo: UVs into the photo and a material with it as base colour "
+                    "(sides the photo does not show take the colour of the nearest surface it shows)",
+        default=True,
+    )
+    keep_all_parts: BoolProperty(
+        name="Keep All Parts",
+        description="Keep every separate piece of the mesh (off: pieces smaller than 5% of the largest are dropped)",
+        default=False,
+    )
     add_camera: BoolProperty(
         name="Add Matching Camera",
         description="Add a camera that sees the mesh as the photo saw the object, with the photo as its background",

@@ -40,6 +40,8 @@ class GENRE_PT_panel(bpy.types.Panel):
         sub.prop(settings, "threshold")
         box.prop(settings, "smoothing")
         box.prop(settings, "target_faces")
+        box.prop(settings, "colour_from_photo")
+        box.prop(settings, "keep_all_parts")
         box.prop(settings, "add_camera")
 
         if running:

@@ -83,7 +83,7 @@ def scenario_install(args: dict) -> dict:
 class _Snapshot:
     """The datablocks that a failed reconstruction must not leave behind."""
 
-    KINDS = ("objects", "meshes", "cameras", "collections", "images")
+    KINDS = ("objects", "meshes", "cameras", "collections", "images", "materials")
 
     def __init__(self, bpy):
         self.bpy = bpy
@@ -142,7 +142,22 @@ def _mesh_report(obj, bpy) -> dict:
         "z_range": [min(zs), max(zs)],
         "modifiers": [m.type for m in obj.modifiers],
         "camera": None,
+        "material": None,
     }
+    if mesh.materials and mesh.materials[0] is not None:
+        mat = mesh.materials[0]
+        bsdf = mat.node_tree.nodes["Principled BSDF"]
+        links = bsdf.inputs["Base Color"].links
+        image = links[0].from_node.image if links and links[0].from_node.type == "TEX_IMAGE" else None
+        layer = mesh.uv_layers.get("Photo")
+        loops = [(tuple(mesh.vertices[loop.vertex_index].co), tuple(layer.data[loop.index].uv)) for loop in mesh.loops] if layer else []
+        out["material"] = {
+            "name": mat.name,
+            "image": image.name if image else None,
+            "packed": bool(image and image.packed_file),
+            "image_size": list(image.size) if image else None,
+            "loops": loops,
+        }
     if cam is not None:
         out["camera"] = {
             "name": cam.name,
@@ -367,6 +382,7 @@ if __name__ == "__main__":
 # =====================================================================================
 # The tests (pytest side: no bpy in this process)
 # =====================================================================================
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 
@@ -439,6 +455,14 @@ def test_read_obj(tmp_path):
     p.write_text("# c\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvn 0 0 1\nf 1//1 2//1 3//1\nf -4 -3 -1\n")
     m = geometry.read_obj(p)
     assert len(m.vertices) == 4 and m.faces == [(0, 1, 2), (0, 1, 3)]
+    assert m.face_uvs is None and m.uvs == []
+    # texture coordinates, as the backend writes them with --texture
+    p.write_text("mtllib m.mtl\nusemtl photo\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0.25 0.5\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\nf 3/-1 2/-2 1/-3\n")
+    m = geometry.read_obj(p)
+    assert m.uvs == [(0.25, 0.5), (1.0, 0.0), (0.0, 1.0)] and m.face_uvs == [(0, 1, 2), (2, 1, 0)]
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/2 3/1\n")
+    with pytest.raises(geometry.MeshFileError, match="texture coordinate"):
+        geometry.read_obj(p)
     p.write_text("v 0 0 0\nf 1 2 3\n")
     with pytest.raises(geometry.MeshFileError, match="vertex 2"):
         geometry.read_obj(p)
@@ -562,7 +586,19 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert cam["forward"] == pytest.approx([0.0, 1.0, 0.0], abs=1e-6)  # looking along +Y at it
     assert cam["background"] == ["box.png"] and cam["shows_background"]
     assert r["added"] == {"objects": ["box", "box camera"], "meshes": ["box"], "cameras": ["box camera"],
-                          "collections": ["GenRe"], "images": ["box.png"]}
+                          "collections": ["GenRe"], "images": ["box photo", "box.png"], "materials": ["box photo"]}
+    # Colour from Photo (default on): the photo's texture packed into the file, UVs that are the vertices'
+    # own projections through the backend's camera for the part the photo sees
+    mat = mesh["material"]
+    assert mat["image"] == "box photo" and mat["packed"] and mat["image_size"][0] == mat["image_size"][1] > 0
+    k = ev["camera"]["lens_mm"] / ev["camera"]["sensor_mm"]  # focal length in units of the image side
+    co = np.array([c for c, _ in mat["loops"]])  # mesh coordinates (the object sits at the cursor)
+    uv = np.array([t for _, t in mat["loops"]])
+    x, y, z = co[:, 0], co[:, 2], -co[:, 1]  # Blender (Z up, camera on −Y) → view frame
+    proj = np.stack([0.5 + k * x / (dist - z), 0.5 + k * y / (dist - z)], axis=1)
+    own = np.abs(uv - proj).max(axis=1) < 1e-4
+    assert 0.1 < own.mean() < 0.9, own.mean()  # the front is projected, the back borrows
+    assert ((uv > -0.05) & (uv < 1.05)).all()
     assert r["status_after"]["running"] is False and not r["status_after"]["error"]
     assert f"{ev['vertices']:,} vertices" in r["status_after"]["message"]
     assert r["job_dirs_after"] == []  # temporary files removed

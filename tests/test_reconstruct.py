@@ -240,6 +240,29 @@ def test_cli_writes_each_format(trained, photos, tmp_path, capsys):
     assert (folder / "rgba.ply").is_file() and (tmp_path / "inter" / "full_sph.png").is_file()
 
 
+def test_cli_texture_and_parts(trained, photos, tmp_path, capsys):
+    code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "c.obj", "--texture", "--weights", trained[0])
+    assert code == 0, err
+    assert "coloured from the photo" in out and "watertight" in out
+    assert {p.name for p in tmp_path.iterdir()} == {"c.obj", "c.mtl", "c_texture.png"}
+    mesh = trimesh.load(tmp_path / "c.obj", process=False)
+    assert len(mesh.visual.uv) == len(mesh.vertices)
+    # the default drops small parts; --all-parts keeps them (never fewer parts than the default)
+    counts = {}
+    for flag in ((), ("--all-parts",)):
+        code, out, err = _cli(capsys, photos["rgb"], "-o", tmp_path / "p.ply", "--weights", trained[0], "--threshold", 0.3, *flag)
+        assert code == 0, err
+        counts[flag] = int(out.split(" part")[0].rsplit(", ", 1)[1])
+        assert counts[flag] == len(trimesh.load(tmp_path / "p.ply", process=False).split(only_watertight=False))
+    assert counts[()] <= counts[("--all-parts",)]
+    # an OBJ's texture must not replace the photo it is made from
+    photo = tmp_path / "q_texture.png"
+    photo.write_bytes(photos["rgba"].read_bytes())
+    code, out, err = _cli(capsys, photo, "-o", tmp_path / "q.obj", "--texture", "--weights", trained[0])
+    assert code == 1 and "input" in err and "[output_unwritable]" in err
+    assert photo.read_bytes() == photos["rgba"].read_bytes() and not (tmp_path / "q.obj").exists()
+
+
 BAD_INPUTS = {
     "text": ("bad_image", "not an image"),
     "zero": ("bad_image", "empty file (0 bytes)"),

@@ -151,6 +151,8 @@ def test_ping_and_version(server, trained):
         ('{"type": "reconstruct", "id": 9, "image": "a.png", "output": "b.obj", "options": {"format": "stl"}}', "bad_field", 9),
         ('{"type": "reconstruct", "id": 10, "image": "a.png", "output": "b.obj", "options": [1]}', "bad_field", 10),
         ('{"type": "reconstruct", "id": 11, "image": "a.png", "output": "b.obj", "options": {"thresh": 0.4}}', "bad_field", 11),
+        ('{"type": "reconstruct", "id": 12, "image": "a.png", "output": "b.obj", "options": {"texture": "yes"}}', "bad_field", 12),
+        ('{"type": "reconstruct", "id": 13, "image": "a.png", "output": "b.obj", "options": {"all_parts": 1}}', "bad_field", 13),
         ('{"type": "reconstruct", "id": true, "image": "a.png", "output": "b.obj"}', "bad_field", None),
         ('{"type": "cancel"}', "missing_field", None),
         ('{"type": "cancel", "id": "nobody"}', "unknown_job", "nobody"),
@@ -199,6 +201,17 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     server.send({"type": "reconstruct", "id": "job3", "image": str(files["rgba"]), "output": str(files["out"] / "a.obj")})
     r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
     assert r["mask_source"] == "alpha" and r["format"] == "obj"
+    assert r["files"] == [str(files["out"] / "a.obj")] and r["parts"] >= 1 and r["parts_dropped"] >= 0
+    mesh = trimesh.load(files["out"] / "a.obj", process=False)
+    assert r["watertight"] == bool(mesh.is_watertight and mesh.is_winding_consistent)
+    # colour from the photo: the OBJ's material and texture beside it, listed in the result
+    out = files["out"] / "col.obj"
+    server.send({"type": "reconstruct", "id": "job4", "image": str(files["rgba"]), "output": str(out), "options": {"texture": True, "all_parts": True}})
+    r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
+    assert r["type"] == "result", r
+    assert r["files"] == [str(out), str(out.with_suffix(".mtl")), str(files["out"] / "col_texture.png")]
+    back = trimesh.load(out, process=False)
+    assert len(back.visual.uv) == len(back.vertices) and back.visual.material.image is not None
 
 
 @pytest.mark.parametrize(

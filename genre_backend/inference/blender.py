@@ -19,7 +19,7 @@ import numpy as np
 
 from ..config import CameraConfig
 
-__all__ = ["prepare_blender_environment", "quiet_stdout", "import_bpy", "render_meshes"]
+__all__ = ["prepare_blender_environment", "quiet_stdout", "import_bpy", "render_meshes", "render_textured"]
 
 
 def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> Path:
@@ -148,3 +148,76 @@ def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, 
     finally:
         tmp.unlink(missing_ok=True)
     return out
+
+
+def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, texture: np.ndarray, size: int,
+                    camera: CameraConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Render a view-frame mesh with its texture, unlit, through the input camera (Workbench, flat, no anti-aliasing).
+
+    ``vertices`` (V, 3) float, ``faces`` (F, 3) int, ``uv`` (V, 2) float (v
+    up), ``texture`` (T, T, 3) uint8.  Returns ``(rgb (size, size, 3) uint8,
+    covered (size, size) bool)``: the texture colour each pixel shows, as
+    the photo would if the mesh and its UVs were exact, and where the mesh
+    covers the image.  The check that colour from the photo lines up with it.
+    Resets Blender to an empty factory scene first.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    uvs = np.asarray(uv, np.float64)
+    tex = np.asarray(texture)
+    if uvs.shape != (len(v), 2) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8 or size < 1:
+        raise ValueError(f"render_textured: expected uv (V, 2), texture (T, T, 3) uint8, size ≥ 1; got {uvs.shape}, {tex.shape} {tex.dtype}, {size}")
+    cam_cfg = camera or CameraConfig()
+    bpy = import_bpy()
+    with quiet_stdout(True):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.display.shading.light = "FLAT"
+    scene.display.shading.color_type = "TEXTURE"
+    scene.display.render_aa = "OFF"
+    scene.view_settings.view_transform = "Standard"
+    scene.render.resolution_x = scene.render.resolution_y = size
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    cam.data.lens, cam.data.sensor_width, cam.data.sensor_fit = cam_cfg.lens_mm, cam_cfg.sensor_mm, "HORIZONTAL"
+    cam.location = (0.0, 0.0, cam_cfg.distance)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    from PIL import Image
+
+    tmp = Path(tempfile.gettempdir()) / f"genre_textured_{os.getpid()}"
+    tex_path, out_path = tmp.with_suffix(".tex.png"), tmp.with_suffix(".png")
+    try:
+        Image.fromarray(tex).save(tex_path)
+        image = bpy.data.images.load(str(tex_path))
+        mat = bpy.data.materials.new("photo")
+        if mat.node_tree is None:
+            mat.use_nodes = True
+        node = mat.node_tree.nodes.new("ShaderNodeTexImage")
+        node.image = image
+        node.interpolation = "Linear"
+        node.extension = "EXTEND"
+        mat.node_tree.nodes.active = node
+        mat.node_tree.links.new(node.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+        me = bpy.data.meshes.new("m")
+        me.from_pydata(v.tolist(), [], f.tolist())
+        layer = me.uv_layers.new(name="photo")
+        loops = np.zeros(len(me.loops), np.int64)
+        me.loops.foreach_get("vertex_index", loops)
+        layer.data.foreach_set("uv", uvs[loops].astype(np.float32).ravel())
+        me.update()
+        me.materials.append(mat)
+        obj = bpy.data.objects.new("m", me)
+        scene.collection.objects.link(obj)
+        scene.render.filepath = str(out_path)
+        with quiet_stdout(True):
+            bpy.ops.render.render(write_still=True)
+        with Image.open(out_path) as im:
+            rgba = np.asarray(im.convert("RGBA"))
+    finally:
+        tex_path.unlink(missing_ok=True)
+        out_path.unlink(missing_ok=True)
+    return rgba[..., :3].copy(), rgba[..., 3] == 255

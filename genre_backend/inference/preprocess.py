@@ -55,6 +55,7 @@ __all__ = [
     "mask_bbox",
     "square_crop_box",
     "crop_resize",
+    "composite",
     "preprocess",
 ]
 
@@ -120,6 +121,7 @@ class Preprocessed:
     ``"file"``, ``"alpha"`` or ``"silhouette"``.  ``crop_box``: (x0, y0, x1, y1)
     the square crop in the original image's pixel coordinates (may extend past
     the image).  ``image_size``: (width, height) of the original image.
+    ``fill``: the RGB (uint8) that parts of the crop outside the photo got.
     """
 
     rgb: torch.Tensor
@@ -128,6 +130,7 @@ class Preprocessed:
     crop_box: tuple[float, float, float, float]
     image_size: tuple[int, int]
     notes: list[str]
+    fill: tuple[int, int, int]
 
 
 # ---------------------------------------------------------------------------------- decoding
@@ -319,7 +322,7 @@ def crop_resize(array: np.ndarray, box: tuple[float, float, float, float], size:
     return np.asarray(out)
 
 
-def _composite(image: LoadedImage) -> np.ndarray:
+def composite(image: LoadedImage) -> np.ndarray:
     """RGB (H, W, 3) uint8 of the image, RGBA composited over the neutral background."""
     if image.alpha is None:
         return image.rgb
@@ -353,7 +356,7 @@ def preprocess(
     """
     g = config.geometry
     size = g.image_size
-    rgb = _composite(image)
+    rgb = composite(image)
     h, w = rgb.shape[:2]
     notes = list(image.notes)
     inv = 1.0 / image.scale  # decoded pixels → original pixels
@@ -374,7 +377,7 @@ def preprocess(
         crop_mask = crop_resize(mask.astype(np.uint8) * 255, box, size, 0) >= 128
         if int(crop_mask.sum()) < MIN_OBJECT_PIXELS:
             raise ImageError("no_object", f"{image.path}: no object: the {source} mask is too small to see at {size}² pixels")
-        return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, original_box(box), image.original_size, notes)
+        return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, original_box(box), image.original_size, notes, fill)
 
     if silhouette is None:
         raise ValueError("preprocess: an image without mask file or transparency needs the silhouette function")
@@ -395,7 +398,7 @@ def preprocess(
         box = whole
         notes.append("already framed: first silhouette pass reused")
     crop = crop_resize(rgb, box, size, fill)
-    return Preprocessed(_to_tensor(crop), None, "silhouette", original_box(box), image.original_size, notes)
+    return Preprocessed(_to_tensor(crop), None, "silhouette", original_box(box), image.original_size, notes, fill)
 
 
 # a crop this close to the first pass's square is within the spread of training framings

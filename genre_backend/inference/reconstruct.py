@@ -26,17 +26,19 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 import torch
 
 from ..config import GenreConfig
-from ..io import atomic_write_bytes, tmp_prefix
 from ..validation import check_threshold
+from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
 from ..geometry.mesh_voxels import voxels_to_mesh
 from ..nets.model import GenRe, WeightsError, load_model
-from .preprocess import ImageError, MIN_OBJECT_PIXELS, Preprocessed, load_image, preprocess
+from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
+from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
+from .preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess
 
 __all__ = [
     "STAGES",
@@ -50,6 +52,7 @@ __all__ = [
     "resolve_device",
     "check_output_path",
     "write_mesh",
+    "short",
 ]
 
 STAGES = ("load", "preprocess", "depth", "partial_sph", "inpaint", "voxels", "refine", "mesh", "write")
@@ -62,7 +65,6 @@ for _s in STAGES:
     _acc += _STAGE_WEIGHT[_s]
 del _acc, _s
 
-MESH_FORMATS = ("obj", "ply", "glb")
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "default.safetensors"
 
 ProgressFn = Callable[[str, float], None]
@@ -70,12 +72,6 @@ ProgressFn = Callable[[str, float], None]
 
 class Cancelled(Exception):
     """The job was cancelled; raised at the next stage boundary."""
-
-
-class OutputError(ValueError):
-    """The mesh (or intermediates) cannot be written where asked; protocol code ``output_unwritable``."""
-
-    code = "output_unwritable"
 
 
 def error_code(exc: BaseException) -> str:
@@ -105,94 +101,6 @@ def resolve_device(device: str | torch.device) -> torch.device:
     return dev
 
 
-MAX_ECHO = 300  # characters of a user's path quoted back in a message
-
-
-def short(value: object, limit: int = MAX_ECHO) -> str:
-    """``str(value)`` cut to ``limit`` characters (a message never echoes a 10 MB path back)."""
-    text = str(value)
-    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    try:
-        return a.exists() and b.exists() and os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
-def check_output_path(path: str | os.PathLike, inputs: Sequence[str | os.PathLike | None] = ()) -> Path:
-    """Fail early (``OutputError``) if a mesh cannot or must not be written at ``path``.
-
-    Refused: a folder, a missing or unwritable folder, a read-only file, an
-    existing path that is not a regular file (a device, a FIFO, a socket:
-    replacing ``/dev/null`` with a mesh is never what was meant), an
-    over-long name, and any of ``inputs`` (the photo, the mask): an input is
-    never overwritten.
-    """
-    path = Path(path)
-    parent = path.parent if str(path.parent) else Path(".")
-    try:
-        if path.is_dir():
-            raise OutputError(f"{short(path)}: output path is a directory")
-        if not parent.is_dir():
-            raise OutputError(f"{short(path)}: cannot write here: folder {short(parent)} does not exist")
-        if path.exists() and not path.is_file():
-            raise OutputError(f"{short(path)}: exists and is not a regular file (a device, FIFO or socket); choose another output")
-        for inp in inputs:
-            if inp is not None and _same_file(path, Path(inp)):
-                raise OutputError(f"{short(path)}: is an input of this job; an input is never overwritten")
-        if path.exists() and not os.access(path, os.W_OK):
-            raise OutputError(f"{short(path)}: cannot write here: file is read-only")
-        if not os.access(parent, os.W_OK | os.X_OK):
-            raise OutputError(f"{short(path)}: cannot write here: folder {short(parent)} is not writable")
-        os.stat(parent / (tmp_prefix(path) + "x" * 8))  # a name too long for the file system fails here, not after the work
-    except FileNotFoundError:
-        pass  # (the expected answer of the last line)
-    except OSError as exc:
-        raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
-    return path
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    """:func:`genre_backend.io.atomic_write_bytes`, with an OS error as a one-line :class:`OutputError`."""
-    try:
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        raise OutputError(f"{path}: cannot write here: {exc.strerror or exc}") from None
-
-
-def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, fmt: str | None = None) -> tuple[Path, str]:
-    """Write a mesh atomically (temporary file + rename) as obj, ply or glb.
-
-    vertices: (V, 3) float32; faces: (F, 3) int64.  ``fmt`` None: from the
-    file's extension, else obj.  Returns (path, format).
-    """
-    import trimesh
-
-    path = Path(path)
-    if fmt is None:
-        ext = path.suffix.lower().lstrip(".")
-        fmt = ext if ext in MESH_FORMATS else "obj"
-    if fmt not in MESH_FORMATS:
-        raise ValueError(f"format: expected one of {', '.join(MESH_FORMATS)}, got {fmt!r}")
-    check_output_path(path)
-    mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces, np.int64), process=False)
-    data = mesh.export(file_type=fmt)
-    _atomic_write_bytes(path, data.encode() if isinstance(data, str) else data)
-    return path, fmt
-
-
-def _png(path: Path, array: np.ndarray) -> None:
-    from PIL import Image
-
-    import io
-
-    buf = io.BytesIO()
-    Image.fromarray(array).save(buf, format="PNG")
-    _atomic_write_bytes(path, buf.getvalue())
-
-
 def _colour(values: np.ndarray, valid: np.ndarray, lo: float, hi: float, cmap: str) -> np.ndarray:
     """(H, W) floats → (H, W, 3) uint8 colour map; invalid pixels black."""
     import matplotlib
@@ -220,7 +128,11 @@ class Reconstruction:
     (S, S) raw depth-net output, ``silhouette_logits`` (S, S), ``mask`` (S, S)
     bool, ``masked_depth`` (S, S), ``partial_sph`` (H, H), ``full_sph``
     (H, H), ``vox_sph`` (N, N, N), ``vox_depth`` (N, N, N), ``logits``
-    (N, N, N), ``probability`` (N, N, N).
+    (N, N, N), ``probability`` (N, N, N).  ``photo``: the decoded photo
+    (for :meth:`texture`), ``fill``: the colour the framing gave parts of
+    the crop outside it.  ``clean``: what the mesh clean-up did (parts
+    before/after, watertight), :func:`genre_backend.geometry.cleanup.clean_mesh`.
+    ``files``: every file the last :meth:`save_mesh` wrote.
     """
 
     image: Path
@@ -235,6 +147,11 @@ class Reconstruction:
     intermediates: dict[str, torch.Tensor] = field(repr=False)
     notes: list[str] = field(default_factory=list)
     mask_path: Path | None = None
+    photo: LoadedImage | None = field(default=None, repr=False)
+    fill: tuple[int, int, int] = (0, 0, 0)
+    clean: CleanReport | None = None
+    files: list[Path] = field(default_factory=list)
+    _texture: PhotoTexture | None = field(default=None, repr=False)
 
     @property
     def inputs(self) -> tuple[Path, ...]:
@@ -258,20 +175,45 @@ class Reconstruction:
             "image_size": [int(v) for v in self.image_size],
         }
 
-    def save_mesh(self, path: str | os.PathLike, fmt: str | None = None) -> tuple[Path, str]:
-        """Write the mesh atomically (obj, ply or glb; default from the extension); times the ``write`` stage."""
+    def texture(self) -> PhotoTexture:
+        """The mesh's colour from the photo (:mod:`.colour`): UVs into the photo's crop and the crop at up to 2,048 px.
+
+        Needs the decoded photo (``photo``); computed once and kept.
+        """
+        if self._texture is None:
+            if self.photo is None:
+                raise ValueError("this reconstruction keeps no photo to colour the mesh from")
+            x0, y0, x1, y1 = (v * self.photo.scale for v in self.crop_box)  # original → decoded pixels
+            side = int(np.clip(round(x1 - x0), self.config.geometry.image_size, MAX_TEXTURE_SIDE))
+            image = crop_resize(composite(self.photo), (x0, y0, x1, y1), side, self.fill)
+            from scipy.ndimage import binary_erosion
+
+            # one pixel in from the mask's edge, so no vertex takes the background's colour
+            mask = binary_erosion(self.intermediates["mask"].numpy().astype(bool), iterations=1)
+            tolerance = 1.5 / self.config.geometry.voxel_size  # a voxel and a half (the mesh is cut from voxels)
+            self._texture = photo_texture(self.vertices, self.faces, self.config.camera, mask, image, tolerance)
+        return self._texture
+
+    def save_mesh(self, path: str | os.PathLike, fmt: str | None = None, texture: bool = False) -> tuple[Path, str]:
+        """Write the mesh atomically (obj, ply or glb; default from the extension); times the ``write`` stage.
+
+        ``texture``: colour it from the photo (:meth:`texture`; an OBJ gets
+        its ``.mtl`` and ``_texture.png`` beside it, see
+        :mod:`.mesh_export`).  The files written are in ``files``.
+        """
         t0 = time.perf_counter()
         check_output_path(path, self.inputs)
-        out = write_mesh(path, self.vertices, self.faces, fmt)
+        tex = self.texture() if texture else None
+        out, used, self.files = write_mesh(path, self.vertices, self.faces, fmt, texture=tex, inputs=self.inputs)
         self.timings["write"] = time.perf_counter() - t0
-        return out
+        return out, used
 
     def save_intermediates(self, folder: str | os.PathLike) -> list[Path]:
         """Write PNGs a person can look at into ``folder`` (created); returns the paths.
 
         ``input.png`` (the framed image), ``mask.png``, ``depth.png`` (masked
         depth, near = bright; background black), ``silhouette.png``,
-        ``partial_sph.png`` and ``full_sph.png`` (near the centre = bright; no
+        ``partial_sph.png`` and ``full_sph.png`` (far from the centre = bright, on the partial map's scale; no
         hit black), ``vox_sph.png``, ``vox_depth.png`` and ``probability.png``
         (max-projections along view −z, −x and −y, side by side).
         """
@@ -288,7 +230,7 @@ class Reconstruction:
         paths = []
         for name, img in images.items():
             p = folder / f"{name}.png"
-            _png(p, _upscale(img))
+            write_png(p, _upscale(img))
             paths.append(p)
         return paths
 
@@ -299,7 +241,7 @@ class Reconstruction:
         path = Path(path)
         check_output_path(path, self.inputs)
         t0 = time.perf_counter()
-        _png(path, preview_image(self, samples=samples))
+        write_png(path, preview_image(self, samples=samples))
         self.timings["preview"] = time.perf_counter() - t0
         return path
 
@@ -318,10 +260,14 @@ class Reconstruction:
         valid = d > 0
         lo, hi = (float(d[valid].min()), float(d[valid].max())) if valid.any() else (0.0, 1.0)
         images["depth"] = _colour(hi + lo - d, valid, lo, hi, "magma")  # near = bright
+        # both maps on one colour scale, the partial map's range of hits (the inpainted map's
+        # values outside it are clipped), and one no-hit rule (black)
+        partial_hits = it["partial_sph"] < g.sph_nohit_min
+        near = 1.0 - it["partial_sph"][partial_hits]
+        lo, hi = (float(near.min()), float(near.max())) if near.size else (0.0, 1.0)
         for name in ("partial_sph", "full_sph"):
             s = it[name]
-            hit = s < g.sph_nohit_min
-            images[name] = _colour(1.0 - s, hit, 0.0, 1.0, "viridis")
+            images[name] = _colour(1.0 - s, s < g.sph_nohit_min, lo, hi, "viridis")
         for name in ("vox_sph", "vox_depth", "probability"):
             v = it[name]  # [x, y, z]
             front = v.max(axis=2).T[::-1]  # rows −y, cols +x (as seen from the camera)
@@ -400,6 +346,7 @@ class Reconstructor:
         threshold: float | None = None,
         progress: ProgressFn | None = None,
         should_cancel: Callable[[], bool] | None = None,
+        keep_fraction: float = DEFAULT_KEEP_FRACTION,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -407,13 +354,18 @@ class Reconstructor:
         (default: the config's ``default_threshold``).  ``progress(stage,
         fraction)`` is called as each stage starts (fraction of the whole job
         done so far).  ``should_cancel()`` is polled at every stage boundary;
-        when it returns True, :class:`Cancelled` is raised.  Raises
+        when it returns True, :class:`Cancelled` is raised.
+        ``keep_fraction``: parts of the mesh smaller (in area) than this
+        fraction of the largest are dropped (0 keeps every part; cavity walls
+        inside the object are always dropped).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
         if threshold is None:
             threshold = g.default_threshold
         threshold = check_threshold("threshold", threshold)
+        if isinstance(keep_fraction, bool) or not isinstance(keep_fraction, (int, float)) or not 0.0 <= keep_fraction <= 1.0:
+            raise ValueError(f"keep_fraction: expected a number in [0, 1], got {keep_fraction!r}")
         timings: dict[str, float] = {}
         state = {"stage": None, "t0": 0.0}
 
@@ -456,6 +408,7 @@ class Reconstructor:
             vertices, faces = voxels_to_mesh(prob, threshold)
             if len(faces) == 0:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
+            vertices, faces, clean = clean_mesh(vertices, faces, keep_fraction)
             stage("done")
         inter = {
             "rgb": pre.rgb,
@@ -484,4 +437,7 @@ class Reconstructor:
             intermediates=inter,
             notes=pre.notes,
             mask_path=None if mask_path is None else Path(mask_path),
+            photo=image,
+            fill=pre.fill,
+            clean=clean,
         )

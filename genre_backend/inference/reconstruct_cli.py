@@ -1,5 +1,5 @@
 """``genre reconstruct IMAGE… [-o OUT] [--mask M] [--threshold T] [--format obj|ply|glb]
-[--save-intermediates DIR] [--weights W] [--device cpu|cuda]``.
+[--texture] [--all-parts] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
 
 One image or many (a progress bar on stderr for many).  Each mesh is written
 atomically; every bad input gets one line on stderr naming the file and the
@@ -59,6 +59,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     parser.add_argument("--mask", metavar="M", help="mask file for the (single) image: white object on black, same size")
     parser.add_argument("--threshold", type=float, metavar="T", help="isosurface level in (0, 1) (default: the weights' config)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
+    parser.add_argument("--texture", action="store_true",
+                        help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
+    parser.add_argument("--all-parts", action="store_true",
+                        help="keep every part of the mesh (default: parts smaller than 5%% of the largest part's area are dropped)")
     parser.add_argument("--save-intermediates", metavar="DIR", help="write PNGs of depth, mask, spherical maps and voxels here")
     parser.add_argument("--preview", action="store_true",
                         help="also write MESH_preview.png beside each mesh: the photo, depth, spherical maps and the mesh rendered from the photo's viewpoint and the side (Blender)")
@@ -105,7 +109,9 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
         )
         return 1
 
+    from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
     from ..nets.model import WeightsError
+    from .mesh_export import mesh_files
     from .reconstruct import Reconstructor, check_output_path, error_code
 
     try:
@@ -132,16 +138,22 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     failed = 0
     for image, out in zip(images, outputs):
         try:
-            check_output_path(out, (image, args.mask))
-            result = rec.run(image, mask_path=args.mask, threshold=args.threshold)
-            path, used = result.save_mesh(out, fmt)
+            for p in mesh_files(out, fmt, args.texture):
+                check_output_path(p, (image, args.mask))
+            result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION)
+            path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
                 result.save_intermediates(folder)
             if args.preview:
                 result.save_preview(path.with_name(path.stem + "_preview.png"))
             total = sum(result.timings.values())
-            say(f"{image} -> {path} ({used}, {len(result.vertices)} vertices, {len(result.faces)} faces, mask: {result.mask_source}, {total:.2f} s)")
+            clean = result.clean
+            shape = f"{clean.parts} part{'s' if clean.parts != 1 else ''}{', watertight' if clean.watertight else ', not watertight'}"
+            if clean.parts_before != clean.parts:
+                shape += f"; {clean.parts_before - clean.parts} small or inner parts dropped"
+            colour = ", coloured from the photo" if args.texture else ""
+            say(f"{image} -> {path} ({used}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
         except Exception as exc:  # one bad input must not stop the others
             failed += 1
             code = error_code(exc)

@@ -31,7 +31,7 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "format", "save_intermediates")
+_OPTION_KEYS = ("threshold", "format", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
 
 
@@ -52,6 +52,8 @@ class Job:
     threshold: float | None
     format: str | None
     save_intermediates: str | None
+    texture: bool = False
+    all_parts: bool = False
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -162,7 +164,13 @@ class Server:
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
             raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {json.dumps(fmt)}", rid)
         inter = self._str(options, "save_intermediates", rid, False, "option")
-        return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter)
+        flags = {}
+        for name in ("texture", "all_parts"):
+            value = options.get(name, False)
+            if not isinstance(value, bool):
+                raise RequestError("bad_field", f"option '{name}' must be true or false, got {_cap(json.dumps(value), 300)}", rid)
+            flags[name] = value
+        return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags)
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -258,6 +266,8 @@ class Server:
         self.emit(event)
 
     def _run(self, job: Job) -> None:
+        from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
+        from .mesh_export import mesh_files
         from .reconstruct import STAGE_START, Cancelled, check_output_path, error_code
 
         if job.cancel.is_set():
@@ -265,7 +275,8 @@ class Server:
             return
         log.info("job %s: %s -> %s", _cap(_key(job.id), 300), _cap(job.image, 300), _cap(job.output, 300))
         try:
-            check_output_path(job.output, (job.image, job.mask))
+            for path in mesh_files(job.output, job.format, job.texture):
+                check_output_path(path, (job.image, job.mask))
             if job.save_intermediates and Path(job.save_intermediates).exists() and not Path(job.save_intermediates).is_dir():
                 raise RequestError("output_unwritable", f"{job.save_intermediates}: intermediates path is a file, not a folder", job.id)
             result = self.rec.run(
@@ -274,11 +285,12 @@ class Server:
                 threshold=job.threshold,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
+                keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
             )
             if job.cancel.is_set():
                 raise Cancelled("cancelled before stage write")
             self.emit({"type": "progress", "id": job.id, "stage": "write", "fraction": STAGE_START["write"]})
-            path, fmt = result.save_mesh(job.output, job.format)
+            path, fmt = result.save_mesh(job.output, job.format, texture=job.texture)
             if job.save_intermediates:
                 result.save_intermediates(job.save_intermediates)
         except Cancelled:
@@ -306,6 +318,10 @@ class Server:
                 "format": fmt,
                 "vertices": int(len(result.vertices)),
                 "faces": int(len(result.faces)),
+                "parts": result.clean.parts,
+                "parts_dropped": result.clean.parts_before - result.clean.parts,
+                "watertight": result.clean.watertight,
+                "files": [str(p) for p in result.files],
                 "mask_source": result.mask_source,
                 "threshold": result.threshold,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},

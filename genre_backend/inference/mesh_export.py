@@ -1,0 +1,199 @@
+"""The mesh files the backend writes, and the checks before writing anything.
+
+Formats (:data:`MESH_FORMATS`), each optionally coloured from the photo
+(:class:`~.colour.PhotoTexture`):
+
+=======  ==========================  =============================================
+format   plain                       with ``texture``
+=======  ==========================  =============================================
+``obj``  ``NAME.obj``                ``NAME.obj`` with ``vt`` UVs, ``NAME.mtl``
+                                     (``map_Kd``) and ``NAME_texture.png``
+``ply``  ``NAME.ply``                vertex colours (the texture sampled at each
+                                     vertex)
+``glb``  ``NAME.glb``                one file: UVs and the texture embedded as the
+                                     PBR base colour
+=======  ==========================  =============================================
+
+Every file is written atomically (temporary file in the same folder, then
+rename: :func:`genre_backend.io.atomic_write_bytes`), and every path is
+checked first (:func:`check_output_path`): an input is never overwritten,
+nor a device or FIFO.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..io import atomic_write_bytes, tmp_prefix
+
+__all__ = [
+    "MESH_FORMATS",
+    "MAX_ECHO",
+    "OutputError",
+    "short",
+    "check_output_path",
+    "mesh_files",
+    "write_mesh",
+    "write_png",
+    "png_bytes",
+]
+
+MESH_FORMATS = ("obj", "ply", "glb")
+MAX_ECHO = 300  # characters of a user's path quoted back in a message
+
+
+class OutputError(ValueError):
+    """The mesh (or intermediates) cannot be written where asked; protocol code ``output_unwritable``."""
+
+    code = "output_unwritable"
+
+
+def short(value: object, limit: int = MAX_ECHO) -> str:
+    """``str(value)`` cut to ``limit`` characters (a message never echoes a 10 MB path back)."""
+    text = str(value)
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output_path(path: str | os.PathLike, inputs: Sequence[str | os.PathLike | None] = ()) -> Path:
+    """Fail early (``OutputError``) if a file cannot or must not be written at ``path``.
+
+    Refused: a folder, a missing or unwritable folder, a read-only file, an
+    existing path that is not a regular file (a device, a FIFO, a socket:
+    replacing ``/dev/null`` with a mesh is never what was meant), an
+    over-long name, and any of ``inputs`` (the photo, the mask): an input is
+    never overwritten.
+    """
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    try:
+        if path.is_dir():
+            raise OutputError(f"{short(path)}: output path is a directory")
+        if not parent.is_dir():
+            raise OutputError(f"{short(path)}: cannot write here: folder {short(parent)} does not exist")
+        if path.exists() and not path.is_file():
+            raise OutputError(f"{short(path)}: exists and is not a regular file (a device, FIFO or socket); choose another output")
+        for inp in inputs:
+            if inp is not None and _same_file(path, Path(inp)):
+                raise OutputError(f"{short(path)}: is an input of this job; an input is never overwritten")
+        if path.exists() and not os.access(path, os.W_OK):
+            raise OutputError(f"{short(path)}: cannot write here: file is read-only")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise OutputError(f"{short(path)}: cannot write here: folder {short(parent)} is not writable")
+        os.stat(parent / (tmp_prefix(path) + "x" * 8))  # a name too long for the file system fails here, not after the work
+    except FileNotFoundError:
+        pass  # (the expected answer of the last line)
+    except OSError as exc:
+        raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
+    return path
+
+
+def _write(path: Path, data: bytes) -> None:
+    """:func:`genre_backend.io.atomic_write_bytes`, with an OS error as a one-line :class:`OutputError`."""
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
+
+
+def png_bytes(array: np.ndarray) -> bytes:
+    """(H, W) or (H, W, 3|4) uint8 → PNG file bytes."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def write_png(path: str | os.PathLike, array: np.ndarray) -> Path:
+    """Write an image (uint8 array) as PNG atomically."""
+    path = Path(path)
+    _write(path, png_bytes(array))
+    return path
+
+
+def _resolve_format(path: Path, fmt: str | None) -> str:
+    if fmt is None:
+        ext = path.suffix.lower().lstrip(".")
+        fmt = ext if ext in MESH_FORMATS else "obj"
+    if fmt not in MESH_FORMATS:
+        raise ValueError(f"format: expected one of {', '.join(MESH_FORMATS)}, got {fmt!r}")
+    return fmt
+
+
+def mesh_files(path: str | os.PathLike, fmt: str | None = None, textured: bool = False) -> list[Path]:
+    """Every file :func:`write_mesh` writes for ``path``: the mesh first, then an OBJ's material and texture."""
+    path = Path(path)
+    if _resolve_format(path, fmt) == "obj" and textured:
+        return [path, path.with_suffix(".mtl"), path.with_name(path.stem + "_texture.png")]
+    return [path]
+
+
+def _obj_text(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None, mtl_name: str | None) -> str:
+    lines = ["# GenRe mesh (view frame: +x right, +y up, +z toward the camera)"]
+    if mtl_name:
+        lines += [f"mtllib {mtl_name}", "usemtl photo"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(vertices, np.float64)]
+    f = np.asarray(faces, np.int64) + 1
+    if uv is not None:
+        lines += [f"vt {u:.6f} {v:.6f}" for u, v in np.asarray(uv, np.float64)]
+        lines += [f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in f]
+    else:
+        lines += [f"f {a} {b} {c}" for a, b, c in f]
+    return "\n".join(lines) + "\n"
+
+
+def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, fmt: str | None = None,
+               texture=None, inputs: Sequence[str | os.PathLike | None] = ()) -> tuple[Path, str, list[Path]]:
+    """Write a mesh atomically as obj, ply or glb, coloured from the photo when ``texture`` is given.
+
+    vertices: (V, 3) float; faces: (F, 3) int; ``fmt`` None: from the file's
+    extension, else obj; ``texture``: a :class:`~.colour.PhotoTexture` for
+    these vertices, or None; ``inputs``: files never to overwrite.  All paths
+    are checked before the first write.  Returns (mesh path, format, every
+    file written).
+    """
+    import trimesh
+
+    path = Path(path)
+    fmt = _resolve_format(path, fmt)
+    files = mesh_files(path, fmt, texture is not None)
+    for p in files:
+        check_output_path(p, inputs)
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if texture is not None and len(texture.uv) != len(v):
+        raise ValueError(f"texture: {len(texture.uv)} UVs for {len(v)} vertices")
+    if fmt == "obj":
+        if texture is None:
+            _write(path, _obj_text(v, f, None, None).encode())
+        else:
+            mtl, png = files[1], files[2]
+            _write(png, png_bytes(texture.image))
+            _write(mtl, f"newmtl photo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png.name}\n".encode())
+            _write(path, _obj_text(v, f, texture.uv, mtl.name).encode())
+        return path, fmt, files
+    mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
+    if texture is not None and fmt == "ply":
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=texture.vertex_colours())
+    elif texture is not None:  # glb
+        from PIL import Image
+
+        material = trimesh.visual.material.PBRMaterial(
+            name="photo", baseColorTexture=Image.fromarray(texture.image), metallicFactor=0.0, roughnessFactor=1.0,
+        )
+        mesh.visual = trimesh.visual.TextureVisuals(uv=np.asarray(texture.uv, np.float64), material=material)
+    data = mesh.export(file_type=fmt)
+    _write(path, data.encode() if isinstance(data, str) else data)
+    return path, fmt, files
