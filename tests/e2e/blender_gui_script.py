@@ -70,9 +70,13 @@ def setup():
         bpy.data.objects.remove(obj)
     scene = bpy.context.scene
     scene.genre.photo_path = ARGS["photo"]
+    scene.genre.mask_path = ARGS.get("mask") or ""
     scene.genre.smoothing = 1
     window, area, region, sidebar = view3d()
     area.spaces.active.show_region_ui = True
+    # show what an artist sees with Colour from Photo on: the material's image in solid shading
+    area.spaces.active.shading.type = "SOLID"
+    area.spaces.active.shading.color_type = "TEXTURE"
     log("add-on installed and enabled")
     bpy.app.timers.register(show_tab, first_interval=0.5)
 
@@ -187,6 +191,20 @@ def shoot_camera():
     with bpy.context.temp_override(window=window, area=area, region=region):
         bpy.ops.screen.screenshot(filepath=path)
     RESULT["camera_screenshot"] = path
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.view3d.view_axis(type="RIGHT")  # the side: how deep the mesh is, and the colour of its unseen side
+        bpy.ops.view3d.view_selected()
+    bpy.app.timers.register(shoot_side, first_interval=1.0)
+    return None
+
+
+@guarded
+def shoot_side():
+    window, area, region, sidebar = view3d()
+    path = os.path.join(OUT, "side.png")
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.screen.screenshot(filepath=path)
+    RESULT["side_screenshot"] = path
     finish(0)
     return None
 

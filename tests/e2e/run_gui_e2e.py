@@ -38,15 +38,16 @@ def missing_tools() -> str:
     return ""
 
 
-def run(out: Path, weights: Path, photo: Path, zip_path: Path, timeout: float = 300.0, event_simulate: bool = True) -> dict:
+def run(out: Path, weights: Path, photo: Path, zip_path: Path, timeout: float = 300.0, event_simulate: bool = True,
+        mask: Path | None = None) -> dict:
     """One GUI Blender session; returns blender_gui_script.py's result (see result.json)."""
     out.mkdir(parents=True, exist_ok=True)
-    for name in ("result.json", "viewport_with_panel.png", "through_camera.png", "panel_while_running.png"):
+    for name in ("result.json", "viewport_with_panel.png", "through_camera.png", "side.png", "panel_while_running.png"):
         (out / name).unlink(missing_ok=True)
     with tempfile.TemporaryDirectory(prefix="genre-e2e-") as tmp:
         tmp = Path(tmp)
         args = {"out": str(out), "zip": str(zip_path), "weights": str(weights), "photo": str(photo),
-                "backend_python": str(Path(sys.executable)), "timeout": timeout}
+                "backend_python": str(Path(sys.executable)), "timeout": timeout, "mask": str(mask) if mask else ""}
         args["event_simulate"] = event_simulate
         (tmp / "args.json").write_text(json.dumps(args))
         env = dict(os.environ)
@@ -83,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=str(REPO / "out" / "e2e"))
     parser.add_argument("--weights", help="weights file (default: the shipped default weights, else tiny test weights trained now)")
     parser.add_argument("--photo", help="photo (default: examples/sofa.png with the shipped weights, else the tiny data's box)")
+    parser.add_argument("--mask", help="mask file for the photo (white object on black)")
     parser.add_argument("--timeout", type=float, default=300.0)
     args = parser.parse_args(argv)
     why = missing_tools()
@@ -112,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
             weights = make_weights(data, steps=E2E_STEPS, lr=3e-3)
         photo = Path(args.photo) if args.photo else make_photo(data)
     prepared = time.monotonic() - t0
-    result = run(out, weights, photo, built["legacy"], args.timeout)
+    result = run(out, weights, photo, built["legacy"], args.timeout, mask=Path(args.mask) if args.mask else None)
     result["prepare_s"] = round(prepared, 2)
     (out / "result.json").write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k != "log"}, indent=2))
