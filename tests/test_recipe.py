@@ -82,10 +82,14 @@ def _flags_as_fields(flags: list[str]) -> dict:
 
 
 def test_recipes_validate_their_values():
-    assert set(RECIPES) == {"paper", "shipped"}
+    assert set(RECIPES) == {"paper", "shipped", "photo"}
+    # photo = shipped, except the depth stage continued on photo-composited samples
+    photo, shipped = RECIPES["photo"], RECIPES["shipped"]
+    assert {k: v for k, v in photo.stages.items() if k != "depth"} == {k: v for k, v in shipped.stages.items() if k != "depth"}
+    assert photo.stages["depth"].photo_fraction == 0.8 and all(s.photo_fraction == 0.0 for s in shipped.stages.values())
     with pytest.raises(ValueError, match="unknown recipe"):
         get_recipe("fast")
-    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}):
+    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}):
         with pytest.raises(ValueError):
             StageRecipe(**bad)
     with pytest.raises(SystemExit):

@@ -132,6 +132,13 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--packages", nargs="+", default=list(DEBIAN_PACKAGES), metavar="PKG",
                    help=f"packages (default: {' '.join(DEBIAN_PACKAGES)})")
 
+    from .photo_backgrounds import PACKAGES as BACKGROUND_PACKAGES
+
+    p = sub.add_parser("backgrounds", parents=[common],
+                       help="real photographs (Debian wallpaper packages) behind the objects: DATA/backgrounds/ with licences")
+    p.add_argument("--packages", nargs="+", default=list(BACKGROUND_PACKAGES), metavar="PKG",
+                   help=f"packages (default: {' '.join(BACKGROUND_PACKAGES)})")
+
     p = sub.add_parser("build", parents=[common], help="normalise, classify, split; write corpus/manifest.json")
     p.add_argument("--sources", nargs="+", choices=list(SOURCES), default=None, help="Debian sources to use (default: all)")
     p.add_argument("--no-debian", action="store_true", help="use only --shapenet/--folder sources")
@@ -190,6 +197,20 @@ def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dic
         for pkg, st in status.items():
             print(f"  {pkg:<24} {st}")
         return 0 if all(not s.startswith("failed") for s in status.values()) else 1
+
+    if args.command == "backgrounds":
+        from collections import Counter
+
+        from .photo_backgrounds import prepare_backgrounds
+
+        root = corpus.data_dir(args.data_dir)
+        start = time.time()
+        index = prepare_backgrounds(root, args.packages)
+        counts = Counter((b.package, b.licence) for b in index)
+        for (pkg, licence), n in sorted(counts.items()):
+            print(f"  {pkg:<28} {n:4d}  {licence}")
+        print(f"wrote {root / 'backgrounds' / 'index.json'}: {len(index)} photos from {len({b.package for b in index})} packages, {time.time() - start:.0f} s")
+        return 0 if index else 1
 
     if args.command == "build":
         if args.jobs < 1:

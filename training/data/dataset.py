@@ -13,6 +13,13 @@ size, N = voxel grid size):
 Augmentation (training only) follows the original: brightness, contrast and
 saturation each scaled by U[0.6, 1.4] in random order, then PCA lighting noise.
 It is seeded per sample by the caller, so a resumed run sees the same pixels.
+
+**Photo-like samples** (``backgrounds`` given, ``photo_fraction`` > 0): a
+share of the samples has the rendered object composited through its film
+alpha over a random crop of a real photograph
+(:class:`training.data.photo_backgrounds.BackgroundBank`), and every sample
+then goes through a camera's faults (:func:`photometric`: exposure, white
+balance, blur, sensor noise, JPEG).
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ from genre_backend.config import GenreConfig
 from .targets import load_targets
 from .views import ViewRef, find_views, view_paths
 
-__all__ = ["ViewRef", "ViewDataset", "find_views", "split_views", "augment_rgb"]
+__all__ = ["ViewRef", "ViewDataset", "find_views", "split_views", "augment_rgb", "photometric", "composite_alpha"]
 
 # ImageNet RGB PCA (eigenvalues, eigenvectors as columns): the standard "lighting" noise
 _PCA_EIGVAL = torch.tensor([0.2175, 0.0188, 0.0045])
@@ -69,16 +76,69 @@ def augment_rgb(rgb: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return rgb.clamp(0.0, 1.0)
 
 
+def composite_alpha(rgb: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """``rgb`` (3, S, S) over ``background`` (3, S, S) through ``alpha`` (S, S) in [0, 1]: rgb·α + bg·(1 − α).
+
+    The render's own background is already mixed into its edge pixels (by
+    1 − α); those few pixels keep a trace of it.
+    """
+    a = alpha.clamp(0.0, 1.0).unsqueeze(0)
+    return rgb * a + background * (1.0 - a)
+
+
+def _gaussian_blur(rgb: torch.Tensor, sigma: float) -> torch.Tensor:
+    radius = max(1, int(round(2.5 * sigma)))
+    x = torch.arange(-radius, radius + 1, dtype=rgb.dtype)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = k / k.sum()
+    img = rgb.unsqueeze(0)
+    img = torch.nn.functional.conv2d(torch.nn.functional.pad(img, (radius, radius, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(3, 1, 1, -1), groups=3)
+    img = torch.nn.functional.conv2d(torch.nn.functional.pad(img, (0, 0, radius, radius), mode="replicate"), k.view(1, 1, -1, 1).expand(3, 1, -1, 1), groups=3)
+    return img[0]
+
+
+def photometric(rgb: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """A camera's faults on (3, S, S) in [0, 1]: exposure ×2^U[−0.7, 0.7], white balance (per channel
+    ×U[0.85, 1.15]), Gaussian blur (σ U[0.3, 1.2] px, 30 %), sensor noise (σ U[0, 0.03], 50 %) and
+    JPEG compression (quality 35–95, 40 %)."""
+    u = torch.rand(9, generator=gen)
+    rgb = rgb * float(2.0 ** (1.4 * u[0] - 0.7))
+    rgb = rgb * (0.85 + 0.3 * torch.rand(3, generator=gen)).view(3, 1, 1)
+    if u[1] < 0.3:
+        rgb = _gaussian_blur(rgb, 0.3 + 0.9 * float(u[2]))
+    if u[3] < 0.5:
+        rgb = rgb + torch.randn(rgb.shape, generator=gen) * (0.03 * float(u[4]))
+    rgb = rgb.clamp(0.0, 1.0)
+    if u[5] < 0.4:
+        import io
+
+        from PIL import Image
+
+        buf = io.BytesIO()
+        Image.fromarray((rgb.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)).save(buf, format="JPEG", quality=int(35 + 60 * float(u[6])))
+        buf.seek(0)
+        with Image.open(buf) as im:
+            rgb = torch.from_numpy(np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()
+    return rgb
+
+
 class ViewDataset(torch.utils.data.Dataset):
     """Samples of a list of views; ``sample(i, seed)`` applies seeded augmentation when ``augment``."""
 
-    def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True):
+    def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True,
+                 backgrounds=None, photo_fraction: float = 0.0):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
+        if not 0.0 <= photo_fraction <= 1.0:
+            raise ValueError(f"photo_fraction: expected a value in [0, 1], got {photo_fraction}")
+        if photo_fraction > 0 and backgrounds is None:
+            raise ValueError("photo_fraction > 0 needs backgrounds (a BackgroundBank of 'genre data backgrounds')")
         self.refs = list(refs)
         self.config = config
         self.augment = augment
         self.targets = targets  # False: only rgb, depth and mask (all the depth stage needs)
+        self.backgrounds = backgrounds if photo_fraction > 0 else None
+        self.photo_fraction = photo_fraction
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -99,9 +159,16 @@ class ViewDataset(torch.utils.data.Dataset):
             rgb = torch.from_numpy(np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()
         with np.load(paths["npz"]) as z:
             depth = torch.from_numpy(z["depth"].astype(np.float32))
-            mask = torch.from_numpy(z["mask"] > 0.5)
+            alpha = torch.from_numpy(z["mask"].astype(np.float32))
+            mask = alpha > 0.5
         if self.augment and seed is not None:
-            rgb = augment_rgb(rgb, torch.Generator().manual_seed(seed))
+            gen = torch.Generator().manual_seed(seed)
+            if self.backgrounds is None:
+                rgb = augment_rgb(rgb, gen)
+            else:
+                if float(torch.rand((), generator=gen)) < self.photo_fraction:
+                    rgb = composite_alpha(rgb, alpha, self.backgrounds.sample(gen, size))
+                rgb = photometric(augment_rgb(rgb, gen), gen)
         sample = {
             "rgb": rgb,
             "depth": torch.where(mask, depth, torch.zeros_like(depth)),  # 0 where either says background

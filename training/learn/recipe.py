@@ -14,6 +14,9 @@ its value.  Two recipes are named:
   the voxel stages with surface weight 0.1 and (refiner, 3D Completion) lr
   1e-3, and the step budgets of the 2-core CPU chain.  Why they depart from
   the paper: ARCHITECTURE.md.
+* ``photo``: ``shipped`` with the depth stage continued (``--init`` the
+  shipped weights) on renders composited over real photographs, so that the
+  silhouette and depth work on photos.
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ class StageRecipe:
 
     ``surface_weight``: the weight of the BCE averaged over the true shell's
     voxels, added to the BCE over the whole grid (voxel stages only).
+    ``photo_fraction``: the share of samples composited over real photographs,
+    with a camera's faults on every sample (the depth stage; 0 = the renders
+    as they are; :mod:`training.data.dataset`).
     """
 
     lr: float
@@ -40,6 +46,7 @@ class StageRecipe:
     beta1: float = 0.5
     beta2: float = 0.9
     surface_weight: float = 10.0
+    photo_fraction: float = 0.0
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -53,6 +60,8 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1), got {getattr(self, name)!r}")
         if not (math.isfinite(self.surface_weight) and self.surface_weight >= 0):
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
+        if not 0.0 <= self.photo_fraction <= 1.0:
+            raise ValueError(f"photo_fraction: expected a number in [0, 1], got {self.photo_fraction!r}")
 
     @classmethod
     def keys(cls) -> tuple[str, ...]:
@@ -110,7 +119,15 @@ _SHIPPED = Recipe(
     },
 )
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED)}
+_PHOTO = Recipe(
+    name="photo",
+    preset="default",
+    description="photo-like depth net: the shipped chain with the depth stage continued from the shipped "
+                "weights on renders composited over real photographs (genre data backgrounds), 80 % of samples",
+    stages={**_SHIPPED.stages, "depth": replace(_SHIPPED.stages["depth"], steps=3000, lr=5e-4, photo_fraction=0.8)},
+)
+
+RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO)}
 
 
 def get_recipe(name: str) -> Recipe:

@@ -83,6 +83,8 @@ class TrainConfig:
     beta1: float | None = None
     beta2: float | None = None
     surface_weight: float | None = None
+    photo_fraction: float | None = None
+    backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
     val_every: int = 200
     val_samples: int = 48
@@ -387,7 +389,16 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     need_targets = tcfg.stage != "depth"  # the depth stage needs only the renders
     refs = find_views(Path(tcfg.data), shape_ids, targets=need_targets)
     train_refs, val_refs = split_views(refs, tcfg.val_fraction)
-    train_set = ViewDataset(train_refs, config, augment=tcfg.augment and tcfg.stage == "depth", targets=need_targets)
+    photo = tcfg.photo_fraction if tcfg.augment and tcfg.stage == "depth" else 0.0
+    bank = None
+    if photo > 0:
+        from ..data.photo_backgrounds import BackgroundBank
+
+        if not tcfg.backgrounds:
+            raise ValueError(f"photo_fraction {photo} needs --backgrounds DIR (a 'genre data backgrounds' folder, e.g. data/backgrounds)")
+        bank = BackgroundBank(tcfg.backgrounds)
+    train_set = ViewDataset(train_refs, config, augment=tcfg.augment and tcfg.stage == "depth", targets=need_targets,
+                            backgrounds=bank, photo_fraction=photo)
     val_set = ViewDataset(val_refs, config, targets=need_targets) if val_refs else None
 
     net = module
