@@ -23,6 +23,16 @@ EVAL_UNSEEN_VIEWS=${EVAL_UNSEEN_VIEWS:-1}  # per unseen shape: every unseen shap
 # stage to continue training: DEPTH_STEPS, INPAINT_STEPS, REFINE_STEPS, JOINT_STEPS,
 # COMPLETION_STEPS, ONESTEP_STEPS (unset: the recipe's).
 RECIPE=${RECIPE:-shipped}
+# RECIPE=photo continues the depth net from the shipped weights on renders composited over real
+# photographs (data/backgrounds, 'genre data backgrounds'); DEPTH_INIT overrides where it starts.
+BACKGROUNDS=${BACKGROUNDS:-data/backgrounds}
+DEPTH_INIT=${DEPTH_INIT:-}
+PHOTO_ARGS=()
+if [ "$RECIPE" = photo ]; then
+  DEPTH_INIT=${DEPTH_INIT:-genre_backend/weights/default.safetensors}
+  PHOTO_ARGS=(--backgrounds "$BACKGROUNDS")
+fi
+init() { local v="${1:-}"; [ -n "$v" ] && echo "--init $v" || true; }
 steps() { local v="${1:-}"; [ -n "$v" ] && echo "--steps $v" || true; }
 SKIP_TO=${SKIP_TO:-}
 # DRY_RUN=1: run nothing, write nothing; print each step's command, and for the training
@@ -47,8 +57,9 @@ step fetch   $G data fetch
 step build   $G data build
 step render  $G data render --shapes $M --split train --out "$VIEWS" --views "$TRAIN_VIEWS_PER_SHAPE" --preset default --no-progress
 step targets $G data targets --views "$VIEWS" --preset default --no-progress
+[ "$RECIPE" = photo ] && step backgrounds $G data backgrounds
 T=($G train --recipe "$RECIPE")
-step depth   "${T[@]}" depth   --data "$VIEWS" --out "$RUN" $(steps "${DEPTH_STEPS:-}") --no-progress
+step depth   "${T[@]}" depth   --data "$VIEWS" --out "$RUN" $(steps "${DEPTH_STEPS:-}") $(init "$DEPTH_INIT") "${PHOTO_ARGS[@]}" --no-progress
 step inpaint "${T[@]}" inpaint --data "$VIEWS" --out "$RUN" $(steps "${INPAINT_STEPS:-}") --init "$RUN/depth/best.safetensors" --no-progress
 step refine  "${T[@]}" refine  --data "$VIEWS" --out "$RUN" $(steps "${REFINE_STEPS:-}") --init "$RUN/inpaint/best.safetensors" --no-progress
 step joint   "${T[@]}" joint   --data "$VIEWS" --out "$RUN" $(steps "${JOINT_STEPS:-}") --init "$RUN/refine/best.safetensors" --no-progress
