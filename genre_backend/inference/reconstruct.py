@@ -202,7 +202,6 @@ class Reconstruction:
         :mod:`.mesh_export`).  The files written are in ``files``.
         """
         t0 = time.perf_counter()
-        check_output_path(path, self.inputs)
         tex = self.texture() if texture else None
         out, used, self.files = write_mesh(path, self.vertices, self.faces, fmt, texture=tex, inputs=self.inputs)
         self.timings["write"] = time.perf_counter() - t0
