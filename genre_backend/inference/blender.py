@@ -74,6 +74,16 @@ def import_bpy():
     return bpy
 
 
+def _empty_scene(size: int):
+    """(bpy, scene): Blender reset to an empty factory scene rendering size × size pixels."""
+    bpy = import_bpy()
+    with quiet_stdout(True):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.resolution_x = scene.render.resolution_y = size
+    return bpy, scene
+
+
 def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, samples: int = 16,
                   camera: CameraConfig | None = None) -> list[list[np.ndarray]]:
     """Render view-frame meshes with Blender (Cycles, CPU) from the input camera and from the right side.
@@ -89,15 +99,11 @@ def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, 
     if size < 1 or samples < 1:
         raise ValueError(f"size and samples must be positive, got {size}, {samples}")
     cam_cfg = camera or CameraConfig()
-    bpy = import_bpy()
-    with quiet_stdout(True):
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
+    bpy, scene = _empty_scene(size)
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
     scene.cycles.samples = samples
     scene.cycles.use_denoising = False
-    scene.render.resolution_x = scene.render.resolution_y = size
     scene.render.film_transparent = True
     scene.render.image_settings.file_format = "PNG"
     scene.render.image_settings.color_mode = "RGBA"
@@ -168,16 +174,12 @@ def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, tex
     if uvs.shape != (len(v), 2) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8 or size < 1:
         raise ValueError(f"render_textured: expected uv (V, 2), texture (T, T, 3) uint8, size ≥ 1; got {uvs.shape}, {tex.shape} {tex.dtype}, {size}")
     cam_cfg = camera or CameraConfig()
-    bpy = import_bpy()
-    with quiet_stdout(True):
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
+    bpy, scene = _empty_scene(size)
     scene.render.engine = "BLENDER_WORKBENCH"
     scene.display.shading.light = "FLAT"
     scene.display.shading.color_type = "TEXTURE"
     scene.display.render_aa = "OFF"
     scene.view_settings.view_transform = "Standard"
-    scene.render.resolution_x = scene.render.resolution_y = size
     scene.render.film_transparent = True
     scene.render.image_settings.file_format = "PNG"
     scene.render.image_settings.color_mode = "RGBA"
