@@ -260,15 +260,18 @@ def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> 
                     stop.check()
                 attempts.in_flight = shape.id
                 write_render_attempts(out, args.shard, attempts)
+                todo = {k for k in range(args.views) if not view_is_complete(shape_dir, k)}
                 reported = [0]
 
-                def on_view(k, reported=reported):
+                def on_view(k, reported=reported, todo=todo):
+                    nonlocal rendered
                     reported[0] += 1
+                    rendered += k in todo
                     bar.update(1)
                     stop.check()
 
                 try:
-                    rendered += render_shape(renderer, shape, views, out, args.seed, on_view=on_view)
+                    render_shape(renderer, shape, views, out, args.seed, on_view=on_view)
                 except Exception as exc:  # noqa: BLE001  (one bad shape must not stop the corpus)
                     failures[shape.id] = f"{type(exc).__name__}: {exc}"
                     atomic_write_json(failures_file, failures)
