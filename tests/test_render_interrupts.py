@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -188,3 +189,31 @@ def test_attempts_file_of_older_versions_reads_as_interruptions(tmp_path):
     attempts = view_files.RenderAttempts("a", {"a": 1}, {"b": 3})
     view_files.write_render_attempts(tmp_path, (0, 1), attempts)
     assert view_files.read_render_attempts(tmp_path) == attempts
+
+
+@pytest.mark.skipif(shutil.which("blender") is None,
+                    reason="no stock Blender on PATH (Debian: apt-get install blender; scripts/setup.sh --test does)")
+def test_ctrl_c_in_a_stock_blender_stops_with_130(shapes, tmp_path):
+    """A stock Blender installs a SIGINT handler of its own (not Python's); the run still stops with 130 and resumes."""
+    out = tmp_path / "out"
+    env = dict(_env(tmp_path), BLENDER_USER_RESOURCES=str(tmp_path / "user"), XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    script = ROOT / "training" / "render" / "blender_script.py"
+    cmd = [shutil.which("blender"), "--background", "--factory-startup", "--python", str(script), "--",
+           *_argv(shapes, out), "--no-denoise"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(out / "ball" / "view_001.json", proc)
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        waited = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == EXIT_INTERRUPTED, err
+    assert waited < 10.0
+    assert "interrupted:" in err and "views of" in err
+    done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert all(view_files.view_is_complete(out / s, k) for s in ("ball", "box") for k in range(VIEWS))
