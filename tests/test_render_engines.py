@@ -8,7 +8,7 @@
   renders one view.
 * ``--engine`` is recorded in the views folder and a folder refuses another
   engine; a machine without EGL gets one line and exit code 2 before Blender
-  could abort.
+  could abort, and so does an engine the Blender lacks.
 * A stock Blender (Debian's 3.4.1) running training/render/blender_script.py
   writes the same views as the bpy module (skipped without ``blender`` on PATH).
 """
@@ -178,6 +178,17 @@ def test_no_egl_is_one_line_before_blender_could_abort(meshes, tmp_path, capsys,
     assert len(err) == 1 and "libEGL.so.1 is missing" in err[0] and "apt-get install libegl1" in err[0]
     assert not (tmp_path / "out" / view_files.SETTINGS_FILE).exists()
     assert render.engine_problem("cycles") is None  # Cycles needs no OpenGL
+
+
+def test_an_engine_this_blender_lacks_is_one_line(meshes, tmp_path, capsys, monkeypatch):
+    shapes = tmp_path / "shapes"
+    shapes.mkdir()
+    shutil.copy(meshes / "cube.obj", shapes / "cube.obj")
+    monkeypatch.setitem(render._ENGINE_IDS, "workbench", ("BLENDER_WORKBENCH_NEXT",))  # as in a Blender without it
+    assert _cli(tmp_path, shapes, "--engine", "workbench") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no workbench engine" in err[0] and "BLENDER_WORKBENCH_NEXT" in err[0], err
+    assert not (tmp_path / "out" / view_files.SETTINGS_FILE).exists()  # the folder is not claimed for it
 
 
 # ---------------------------------------------------------------------------- a stock Blender
