@@ -3,8 +3,10 @@
 A views folder (written by ``genre data render``, completed by ``genre data
 targets``) looks like this::
 
-    VIEWS/render_settings.json            preset, seed, image size, camera of the whole folder
+    VIEWS/render_settings.json            preset, seed, image size, camera, engine of the whole folder
     VIEWS/render_failures*.json           shapes given up on (one file per render shard)
+    VIEWS/.render_inflight*.json          per render shard: the shape being rendered, crashes and interruptions
+    VIEWS/.render_crash*.log              per render shard: what a crash of the renderer wrote (faulthandler)
     VIEWS/targets_failures.json           shapes whose targets failed
     VIEWS/<shape id>/view_KKK.png         RGB (S, S, 3) uint8, composited over the background
     VIEWS/<shape id>/view_KKK.npz         depth (S, S) float32 (planar, background 0), mask (S, S) float32
@@ -23,7 +25,7 @@ from __future__ import annotations
 import json
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +53,10 @@ __all__ = [
     "find_views",
     "render_failures_path",
     "inflight_path",
+    "crash_log_path",
+    "RenderAttempts",
+    "read_render_attempts",
+    "write_render_attempts",
     "read_render_settings",
     "write_render_settings",
     "recorded_preset",
@@ -190,22 +196,83 @@ def find_views(root: str | os.PathLike, shape_ids: set[str] | None = None, targe
 
 def render_failures_path(views_root: str | os.PathLike, shard: tuple[int, int] = (0, 1)) -> Path:
     """The failures file of one render shard (parallel shards never write the same file)."""
-    tag = "" if shard[1] == 1 else f".shard{shard[0]}of{shard[1]}"
-    return Path(views_root) / f"render_failures{tag}.json"
+    return Path(views_root) / f"render_failures{_shard_tag(shard)}.json"
+
+
+def _shard_tag(shard: tuple[int, int]) -> str:
+    return "" if shard[1] == 1 else f".shard{shard[0]}of{shard[1]}"
 
 
 def inflight_path(views_root: str | os.PathLike, shard: tuple[int, int] = (0, 1)) -> Path:
-    """The hidden file of one render shard that counts interrupted attempts per shape."""
-    tag = "" if shard[1] == 1 else f".shard{shard[0]}of{shard[1]}"
-    return Path(views_root) / f".render_inflight{tag}.json"
+    """The hidden file of one render shard that records its attempts (:class:`RenderAttempts`)."""
+    return Path(views_root) / f".render_inflight{_shard_tag(shard)}.json"
+
+
+def crash_log_path(views_root: str | os.PathLike, shard: tuple[int, int] = (0, 1)) -> Path:
+    """The hidden file of one render shard into which a crashing renderer writes (empty unless it crashed)."""
+    return Path(views_root) / f".render_crash{_shard_tag(shard)}.log"
+
+
+@dataclass
+class RenderAttempts:
+    """A render shard's record of unfinished work, kept across runs in :func:`inflight_path`.
+
+    ``in_flight``: the shape being rendered (None between shapes); a run that
+    finds it set knows the previous run died on that shape, and the crash log
+    (:func:`crash_log_path`) tells a crash (something written) from a kill
+    (nothing).  ``crashes`` and ``interruptions`` count those per shape
+    until the shape is done.
+    """
+
+    in_flight: str | None = None
+    crashes: dict[str, int] = field(default_factory=dict)
+    interruptions: dict[str, int] = field(default_factory=dict)
+
+
+def _counts(value: Any) -> dict[str, int]:
+    if not isinstance(value, dict):
+        return {}
+    return {str(k): int(v) for k, v in value.items() if isinstance(v, int) and not isinstance(v, bool) and v > 0}
+
+
+def read_render_attempts(views_root: str | os.PathLike, shard: tuple[int, int] = (0, 1)) -> RenderAttempts:
+    """The shard's :class:`RenderAttempts` (empty when absent or unreadable).
+
+    Files of older versions (``{shape id: attempts}``, written before crashes
+    and kills were told apart) are read as interruptions.
+    """
+    try:
+        data = json.loads(inflight_path(views_root, shard).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return RenderAttempts()
+    if not isinstance(data, dict):
+        return RenderAttempts()
+    if "interruptions" not in data and "crashes" not in data and "in_flight" not in data:
+        return RenderAttempts(interruptions=_counts(data))
+    in_flight = data.get("in_flight")
+    return RenderAttempts(in_flight if isinstance(in_flight, str) else None, _counts(data.get("crashes")),
+                          _counts(data.get("interruptions")))
+
+
+def write_render_attempts(views_root: str | os.PathLike, shard: tuple[int, int], attempts: RenderAttempts) -> None:
+    atomic_write_json(inflight_path(views_root, shard), {"in_flight": attempts.in_flight,
+                                                         "crashes": attempts.crashes,
+                                                         "interruptions": attempts.interruptions})
 
 
 def read_render_settings(views_root: str | os.PathLike) -> dict | None:
-    """The folder's ``render_settings.json`` (None if absent or unreadable)."""
+    """The folder's ``render_settings.json`` (None if absent or unreadable).
+
+    Folders rendered before the engine was a choice were rendered with Cycles:
+    their settings read ``engine: cycles``.
+    """
     try:
-        return json.loads((Path(views_root) / SETTINGS_FILE).read_text(encoding="utf-8"))
+        settings = json.loads((Path(views_root) / SETTINGS_FILE).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
+    if isinstance(settings, dict):
+        settings.setdefault("engine", "cycles")
+    return settings
 
 
 def write_render_settings(views_root: str | os.PathLike, settings: dict) -> None:

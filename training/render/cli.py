@@ -2,31 +2,56 @@
 
 Shapes come from a corpus manifest or a folder of meshes
 (:func:`training.data.views.read_shapes`); the folder's settings, failures
-and views are files of :mod:`training.data.views`.  A shape that fails is
-recorded and skipped by later runs; one whose rendering was interrupted
-``MAX_ATTEMPTS`` times (Blender crashed or was killed on it) is given up.
+and views are files of :mod:`training.data.views`.
+
+What stops a shape, and what the next run does about it:
+
+* its rendering raised an error (a broken mesh...): recorded as failed and
+  skipped by later runs (``--retry-failed`` tries again);
+* Blender crashed on it (a fatal signal: faulthandler writes into the
+  shard's crash log): counted, and retried until it has crashed
+  ``MAX_CRASHES`` times, then recorded as failed;
+* the process was killed (``kill -9``, out of memory, power loss: nothing is
+  written) or stopped with Ctrl-C: an interruption, never a failure; the
+  next run renders the missing views.
+
+Ctrl-C (SIGINT) lets the view being rendered finish, then stops the run with
+exit code 130 (a second Ctrl-C stops at once, also with 130).
+
+Exit codes: 0 when every view of every selected shape is on disk, 1 when
+views are missing because shapes failed (in this run or an earlier one; the
+count is printed), 2 on a usage error or when Blender cannot render with the
+chosen engine, 130 when interrupted.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
+import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Sequence
 
 from genre_backend.io import atomic_write_json
 
-from ..data.views import (FAILURES_GLOB, inflight_path, read_render_settings, read_shapes, render_failures_path,
-                          view_is_complete, write_render_settings)
+from ..data.views import (FAILURES_GLOB, crash_log_path, read_render_attempts, read_render_settings, read_shapes,
+                          render_failures_path, view_is_complete, write_render_attempts, write_render_settings)
 from .randomness import sample_views
-from .scene import BlenderRenderer, RenderSettings, render_shape
+from .scene import ENGINES, BlenderRenderer, RenderSettings, engine_problem, render_shape
 
-__all__ = ["MAX_ATTEMPTS", "main"]
+__all__ = ["MAX_CRASHES", "EXIT_INTERRUPTED", "main"]
 
-# A shape whose render was interrupted this many times (e.g. Blender crashed) is given up.
-MAX_ATTEMPTS = 2
+# A shape on which Blender crashed this many times is recorded as failed.
+MAX_CRASHES = 2
+# Interruptions never fail a shape; from this many on, each run warns about it.
+WARN_INTERRUPTIONS = 3
+# The shell's code for a process stopped by SIGINT.
+EXIT_INTERRUPTED = 130
 
 
 def _parse_shard(text: str) -> tuple[int, int]:
@@ -49,19 +74,23 @@ def _positive(text: str) -> int:
 def _build_parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=prog,
-        description="Render RGB, planar depth, mask and camera JSON for every shape (Blender Cycles, CPU).",
+        description="Render RGB, planar depth, mask and camera JSON for every shape (Blender on the CPU).",
     )
     p.add_argument("--shapes", required=True, help="a manifest JSON (data/corpus/manifest.json) or a folder of meshes")
     p.add_argument("--out", required=True, help="output folder (one sub-folder per shape)")
     p.add_argument("--views", type=_positive, default=20, help="random views per shape (default 20)")
     p.add_argument("--preset", choices=["default", "paper"], default="default", help="image size preset")
     p.add_argument("--seed", type=int, default=0, help="seed of views, lighting and backgrounds")
+    p.add_argument("--engine", choices=ENGINES, default="cycles",
+                   help="render engine (default cycles; recorded in the folder's render_settings.json). Depth, mask "
+                        "and camera mean the same for all; eevee and workbench need EGL (libegl1)")
     p.add_argument("--limit", type=_positive, default=None, help="render only the first K shapes")
     p.add_argument("--shard", type=_parse_shard, default=(0, 1), metavar="I/N", help="render every N-th shape from I")
     p.add_argument("--split", default=None, help="only manifest shapes of this split or group (e.g. train, unseen)")
-    p.add_argument("--samples", type=_positive, default=RenderSettings.samples, help="Cycles samples per pixel")
+    p.add_argument("--samples", type=_positive, default=RenderSettings.samples,
+                   help="samples per pixel (Cycles, EEVEE); anti-aliasing samples for Workbench (1: none)")
     p.add_argument("--threads", type=_positive, default=RenderSettings.threads, help="Cycles CPU threads")
-    p.add_argument("--no-denoise", dest="denoise", action="store_false", help="turn off the fast OIDN denoiser")
+    p.add_argument("--no-denoise", dest="denoise", action="store_false", help="turn off Cycles' fast OIDN denoiser")
     p.add_argument("--retry-failed", action="store_true", help="try again shapes recorded as failed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -74,15 +103,53 @@ def _read_json(path: Path, default):
         return default
 
 
-def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> int:
-    """``genre data render``: render every shape's views.
+class _StopOnSigint:
+    """While active (main thread only), SIGINT asks the run to stop after the current view.
 
-    Returns 0 when every shape is complete or was already recorded as failed,
-    1 when a shape failed in this run (recorded in ``render_failures*.json``
-    and skipped by later runs unless ``--retry-failed``), 2 on a usage error.
-    A shape whose rendering was interrupted ``MAX_ATTEMPTS`` times (Blender
-    crashed or the process was killed while on it) is recorded as failed.
+    Python's own handler would raise KeyboardInterrupt wherever Python code
+    runs next, which is often inside Cycles' Python callbacks, where Blender
+    prints and swallows it and rendering goes on.  A second SIGINT exits at
+    once with code 130 (the files on disk stay consistent: every file is
+    written atomically and a view is complete only once its JSON exists).
     """
+
+    def __init__(self, prog: str):
+        self.prog = prog
+        self.requested = False
+        self._previous = None
+        self._installed = False
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+            self._installed = True
+        return self
+
+    def __exit__(self, *exc):
+        if self._installed:  # (None: a handler installed outside Python, such as a stock Blender's own)
+            signal.signal(signal.SIGINT, signal.SIG_DFL if self._previous is None else self._previous)
+        return False
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            os.write(2, f"\n{self.prog}: stopped at once\n".encode())
+            os._exit(EXIT_INTERRUPTED)
+        self.requested = True
+        os.write(2, f"\n{self.prog}: stopping after the current view (Ctrl-C again to stop at once)\n".encode())
+
+    def check(self) -> None:
+        """Raise KeyboardInterrupt if a stop was asked for."""
+        if self.requested:
+            raise KeyboardInterrupt
+
+
+def _settings_difference(previous: dict, wanted: dict) -> str:
+    keys = sorted(set(previous) | set(wanted))
+    return ", ".join(f"{k}={previous.get(k)!r} (asked: {wanted.get(k)!r})" for k in keys if previous.get(k) != wanted.get(k))
+
+
+def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> int:
+    """``genre data render``: render every shape's views; returns the exit code (see the module's docstring)."""
     args = _build_parser(prog).parse_args(list(sys.argv[1:] if argv is None else argv))
     from genre_backend.config import get_preset  # noqa: PLC0415
 
@@ -92,6 +159,10 @@ def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> 
     except ValueError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    problem = engine_problem(args.engine)
+    if problem:
+        print(f"{prog}: error: {problem}", file=sys.stderr)
+        return 2
     if args.split is not None:
         shapes = [s for s in shapes if s.split == args.split or args.split in s.groups]
     shapes = shapes[args.shard[0]::args.shard[1]]
@@ -99,86 +170,147 @@ def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> 
         shapes = shapes[: args.limit]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    settings = RenderSettings(samples=args.samples, threads=args.threads, denoise=args.denoise)
+    settings = RenderSettings(samples=args.samples, threads=args.threads, denoise=args.denoise, engine=args.engine)
     run_settings = {"preset": args.preset, "seed": args.seed, "image_size": config.geometry.image_size,
-                    "camera": config.to_dict()["camera"]}
+                    "camera": config.to_dict()["camera"], "engine": args.engine}
     previous = read_render_settings(out)
     if previous is not None and previous != run_settings:
-        print(f"{prog}: error: {out} was rendered with other settings {previous}; use another --out", file=sys.stderr)
+        print(f"{prog}: error: {out} was rendered with other settings: {_settings_difference(previous, run_settings)}; "
+              f"use another --out", file=sys.stderr)
         return 2
-    if previous is None:
-        write_render_settings(out, run_settings)
 
     failures_file = render_failures_path(out, args.shard)
-    inflight_file = inflight_path(out, args.shard)
     failures: dict[str, str] = {}
     for path in sorted(out.glob(FAILURES_GLOB)):
         failures.update(_read_json(path, {}))
-    inflight: dict[str, int] = _read_json(inflight_file, {})
+    attempts = read_render_attempts(out, args.shard)
+    crash_log = crash_log_path(out, args.shard)
     if args.retry_failed:
         for path in out.glob(FAILURES_GLOB):
             path.unlink(missing_ok=True)
-        failures, inflight = {}, {}
-    total_views = len(shapes) * args.views
+        failures = {}
+        attempts.crashes = {}
     from tqdm import tqdm  # noqa: PLC0415
 
+    def note(text: str) -> None:
+        tqdm.write(f"{prog}: {text}", file=sys.stderr)
+
+    # The previous run of this shard died while rendering attempts.in_flight: a crash if it left a crash log.
+    if attempts.in_flight is not None:
+        sid = attempts.in_flight
+        try:
+            crash_text = crash_log.read_text(encoding="utf-8", errors="replace").strip()
+        except OSError:
+            crash_text = ""
+        counts = attempts.crashes if crash_text else attempts.interruptions
+        counts[sid] = counts.get(sid, 0) + 1
+        if crash_text:
+            first = crash_text.splitlines()[0]
+            note(f"Blender crashed on {sid} in an earlier run ({first}); crash {counts[sid]} of at most {MAX_CRASHES}")
+        attempts.in_flight = None
+    write_render_attempts(out, args.shard, attempts)
+
+    total_views = len(shapes) * args.views
     bar = tqdm(total=total_views, unit="view", desc="render", disable=args.no_progress, dynamic_ncols=True)
     renderer = None
     rendered = 0
-    new_failures = 0
+    interrupted = False
     t0 = time.perf_counter()
+    crash_fh = open(crash_log, "w", encoding="utf-8")  # noqa: SIM115  (open while faulthandler may write to it)
+    faulthandler_was_enabled = faulthandler.is_enabled()
+    faulthandler.enable(file=crash_fh, all_threads=True)
+    stop = _StopOnSigint(prog)
     try:
-        for shape in shapes:
-            views = sample_views(shape.id, args.views, args.seed, config.camera)
-            if shape.id in failures:
-                bar.update(args.views)
-                continue
-            attempts = int(inflight.get(shape.id, 0))
-            if attempts >= MAX_ATTEMPTS:
-                failures[shape.id] = f"rendering was interrupted {attempts} times (Blender crashed or was killed)"
-                atomic_write_json(failures_file, failures)
-                new_failures += 1
-                bar.update(args.views)
-                continue
-            shape_dir = out / shape.id
-            if all(view_is_complete(shape_dir, k) for k in range(args.views)):
-                bar.update(args.views)
-                continue
-            inflight[shape.id] = attempts + 1
-            atomic_write_json(inflight_file, inflight)
-            reported = [0]
+        with stop:
+            for shape in shapes:
+                stop.check()
+                views = sample_views(shape.id, args.views, args.seed, config.camera)
+                if shape.id in failures:
+                    bar.update(args.views)
+                    continue
+                shape_dir = out / shape.id
+                if all(view_is_complete(shape_dir, k) for k in range(args.views)):
+                    bar.update(args.views)
+                    continue
+                crashes = attempts.crashes.get(shape.id, 0)
+                if crashes >= MAX_CRASHES:
+                    failures[shape.id] = f"Blender crashed {crashes} times while rendering it"
+                    atomic_write_json(failures_file, failures)
+                    note(f"skipped {shape.id}: {failures[shape.id]}")
+                    bar.update(args.views)
+                    continue
+                interruptions = attempts.interruptions.get(shape.id, 0)
+                if interruptions >= WARN_INTERRUPTIONS:
+                    note(f"warning: rendering {shape.id} was interrupted {interruptions} times before "
+                         f"(killed, perhaps for lack of memory?); trying again")
+                if renderer is None:  # started only when there is work; a failure here is fatal, not the shape's
+                    try:
+                        renderer = BlenderRenderer(config, settings)
+                    except ValueError as exc:
+                        note(f"error: {exc}")
+                        return 2
+                    except Exception as exc:  # noqa: BLE001
+                        note(f"error: could not set up Blender: {type(exc).__name__}: {exc}")
+                        return 2
+                    for line in renderer.notes:
+                        note(line)
+                    if previous is None:
+                        write_render_settings(out, run_settings)
+                        previous = run_settings
+                    stop.check()
+                attempts.in_flight = shape.id
+                write_render_attempts(out, args.shard, attempts)
+                todo = {k for k in range(args.views) if not view_is_complete(shape_dir, k)}
+                reported = [0]
 
-            def on_view(k, reported=reported):
-                reported[0] += 1
-                bar.update(1)
+                def on_view(k, reported=reported, todo=todo):
+                    nonlocal rendered
+                    reported[0] += 1
+                    rendered += k in todo
+                    bar.update(1)
+                    stop.check()
 
-            if renderer is None:  # started only when there is work; a failure here is fatal, not the shape's
                 try:
-                    renderer = BlenderRenderer(config, settings)
-                except Exception as exc:  # noqa: BLE001
-                    tqdm.write(f"{prog}: error: could not set up Blender: {type(exc).__name__}: {exc}", file=sys.stderr)
-                    return 2
-            try:
-                rendered += render_shape(renderer, shape, views, out, args.seed, on_view=on_view)
-            except Exception as exc:  # noqa: BLE001  (one bad shape must not stop the corpus)
-                failures[shape.id] = f"{type(exc).__name__}: {exc}"
-                atomic_write_json(failures_file, failures)
-                new_failures += 1
-                tqdm.write(f"{prog}: skipped {shape.id}: {failures[shape.id]}", file=sys.stderr)
-                bar.update(args.views - reported[0])
-            inflight.pop(shape.id, None)
-            atomic_write_json(inflight_file, inflight)
+                    render_shape(renderer, shape, views, out, args.seed, on_view=on_view)
+                except Exception as exc:  # noqa: BLE001  (one bad shape must not stop the corpus)
+                    failures[shape.id] = f"{type(exc).__name__}: {exc}"
+                    atomic_write_json(failures_file, failures)
+                    note(f"skipped {shape.id}: {failures[shape.id]}")
+                    bar.update(args.views - reported[0])
+                attempts.in_flight = None
+                attempts.crashes.pop(shape.id, None)
+                attempts.interruptions.pop(shape.id, None)
+                write_render_attempts(out, args.shard, attempts)
+    except KeyboardInterrupt:  # asked for by _StopOnSigint (or SIGINT outside the main thread's handler)
+        interrupted = True
+        if attempts.in_flight is not None:
+            sid = attempts.in_flight
+            attempts.interruptions[sid] = attempts.interruptions.get(sid, 0) + 1
+            attempts.in_flight = None
+            write_render_attempts(out, args.shard, attempts)
     finally:
         bar.close()
         if renderer is not None:
             renderer.close()
+        faulthandler.disable()
+        if faulthandler_was_enabled:
+            faulthandler.enable(file=sys.__stderr__, all_threads=True)
+        crash_fh.close()
     dt = time.perf_counter() - t0
     rate = f", {dt / rendered:.3f} s/view including start-up" if rendered else ""
-    summary = f"rendered {rendered} views of {len(shapes)} shapes in {dt:.1f} s{rate}"
-    if failures:
-        summary += f"; {len(failures)} failed shapes are listed in {out / 'render_failures*.json'}"
-    print(summary)
-    return 1 if new_failures else 0
+    print(f"rendered {rendered} views of {len(shapes)} shapes in {dt:.1f} s{rate}", flush=True)
+    missing = {s.id: n for s in shapes if (n := sum(not view_is_complete(out / s.id, k) for k in range(args.views)))}
+    if interrupted:
+        print(f"{prog}: interrupted: {sum(missing.values())} views of {len(missing)} shapes are missing; "
+              f"run the same command again to render them", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if missing:
+        failed = [sid for sid in missing if sid in failures]
+        print(f"{prog}: {sum(missing.values())} views of {len(missing)} shapes are missing: {len(failed)} shapes "
+              f"failed (listed with the reason in {out / 'render_failures*.json'}; --retry-failed renders them again)",
+              file=sys.stderr)
+        return 1
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,6 +1,10 @@
-"""The Blender scene that renders training views (Cycles on the CPU, Z-pass depth, film alpha).
+"""The Blender scene that renders training views (Cycles, EEVEE or Workbench; Z-pass depth, film alpha).
 
-One bpy process renders many shapes and views without restarting Blender.
+One Blender process renders many shapes and views without restarting
+Blender: the ``bpy`` module (5.0) or a stock Blender running
+:mod:`training.render.blender_script` (tested with Debian's 3.4.1).  The few
+API differences between those versions (compositor tree and File Output
+node, importers, Cycles options) are handled here, by feature checks.
 :func:`render_shape` writes each view through :mod:`training.data.views`
 (RGB composited over a random background, planar depth encoded with
 :func:`genre_backend.frame.encode_raw_depth`, the film alpha as mask, and the
@@ -24,13 +28,27 @@ HDRIs (``datafiles/studiolights/world``) at a random rotation and strength,
 plus zero to two random sun lights; without the HDRIs, a grey world and one
 to three suns.
 
+Engines (:data:`ENGINES`) differ in the RGB only: every engine's raw depth
+is the planar Z pass at the pixel centres with the background at 1e10, the
+mask is the film alpha and the camera is the same.  EEVEE needs two things
+for that: it writes about the far clip distance where no surface is
+(:meth:`BlenderRenderer.render_view` maps it to 1e10), and its Z pass keeps
+a jittered sample, so its depth comes from a second, one-sample render.
+Workbench ignores the HDRI and suns: it lights with its default studio light,
+fixed to the camera, and shows each material's viewport colour or image
+texture.  EEVEE and Workbench need OpenGL through EGL (:func:`engine_problem`
+checks first, since Blender aborts the process without it).
+
 ``bpy`` is imported only inside functions, so importing this module is cheap.
 """
 
 from __future__ import annotations
 
+import ctypes
+import glob
 import math
 import os
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +63,9 @@ from .backgrounds import composite_over, make_background
 from .randomness import STREAM_BACKGROUND, STREAM_LIGHT, view_rng
 
 __all__ = [
+    "ENGINES",
+    "RAW_BACKGROUND",
+    "engine_problem",
     "RenderSettings",
     "BlenderRenderer",
     "prepare_blender_environment",
@@ -55,35 +76,97 @@ __all__ = [
 # glTF (x, y, z) is imported as Blender (x, -z, y); this rotation (-90° about X) undoes it.
 _GLTF_UNDO = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
 
+ENGINES = ("cycles", "eevee", "workbench")
+# Blender's identifiers of each engine (EEVEE was BLENDER_EEVEE_NEXT in 4.2–4.5, BLENDER_EEVEE before and since 5.0).
+_ENGINE_IDS = {"cycles": ("CYCLES",), "eevee": ("BLENDER_EEVEE", "BLENDER_EEVEE_NEXT"),
+               "workbench": ("BLENDER_WORKBENCH",)}
+# Workbench anti-aliasing takes one of these sample counts (or none).
+_WORKBENCH_AA = (5, 8, 11, 16, 32)
+# The raw depth of background pixels, for every engine (what Cycles and Workbench write).
+RAW_BACKGROUND = 1e10
+# Camera clipping.  Shapes lie within ~0.9 of the origin and the camera 2.2 from it; a near clip of 0.1
+# (not 0.01) cuts the rasterisers' depth error to a third (median vs Cycles: 1.2e-5 -> 4e-6).  EEVEE
+# writes ~_CLIP_END where no surface is: raw depth beyond _EEVEE_BACKGROUND_FRACTION of it is background.
+_CLIP_START, _CLIP_END = 0.1, 100.0
+_EEVEE_BACKGROUND_FRACTION = 0.99
+# Where glvnd looks for EGL drivers (Mesa's is 50_mesa.json).
+_EGL_VENDOR_DIRS = ("/usr/share/glvnd/egl_vendor.d", "/etc/glvnd/egl_vendor.d", "/usr/local/share/glvnd/egl_vendor.d")
+
+
+def engine_problem(engine: str) -> str | None:
+    """Why ``engine`` cannot render on this machine (one line), or None; needs no ``bpy``.
+
+    EEVEE and Workbench draw with OpenGL, which headless Blender gets through
+    EGL; without libEGL or an EGL driver Blender *aborts the process* when it
+    first renders with them, so this is checked before.  Whether this
+    Blender has the engine at all is checked when the scene is set up.
+    """
+    if engine not in ENGINES:
+        return f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}"
+    if engine == "cycles" or not sys.platform.startswith("linux"):
+        return None
+    try:
+        ctypes.CDLL("libEGL.so.1")
+    except OSError:
+        return (f"the {engine} engine needs OpenGL through EGL and libEGL.so.1 is missing "
+                f"(Debian: apt-get install libegl1 libegl-mesa0); Blender would abort, so nothing was rendered")
+    listed = os.environ.get("__EGL_VENDOR_LIBRARY_FILENAMES", "")
+    dirs = [d for d in os.environ.get("__EGL_VENDOR_LIBRARY_DIRS", "").split(":") if d] or list(_EGL_VENDOR_DIRS)
+    if not any(os.path.isfile(f) for f in listed.split(":") if f) and not any(
+            glob.glob(os.path.join(d, "*.json")) for d in dirs):
+        return (f"the {engine} engine needs an EGL driver and none is installed (no *.json in {', '.join(dirs)}; "
+                f"Debian: apt-get install libegl-mesa0); Blender would abort, so nothing was rendered")
+    return None
+
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """Cycles settings.
+    """Engine and quality settings.
 
-    ``denoise``: OpenImageDenoise with its fast prefilter and quality.  At 16
-    samples the HDRI lighting leaves strong speckle noise on every surface;
-    the fast denoiser removes it for ~0.05 s/view at 128², far cheaper than
-    the samples that would do the same.
+    ``engine``: one of :data:`ENGINES`.  ``samples``: per pixel for Cycles
+    and EEVEE; Workbench's anti-aliasing samples (1: none; otherwise rounded
+    up to one of 5, 8, 11, 16, 32).  ``threads``: CPU threads (Cycles).
+    ``denoise`` (Cycles): OpenImageDenoise with its fast prefilter and
+    quality.  At 16 samples the HDRI lighting leaves strong speckle noise on
+    every surface; the fast denoiser removes it for ~0.05 s/view at 128²,
+    far cheaper than the samples that would do the same.  A Blender built
+    without OpenImageDenoise (Debian's 3.4.1) renders without it and says so
+    (:attr:`BlenderRenderer.notes`).
     """
 
     samples: int = 16
     threads: int = 2
     denoise: bool = True
+    engine: str = "cycles"
 
     def __post_init__(self):
         if self.samples < 1:
             raise ValueError(f"samples must be >= 1, got {self.samples}")
         if self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {self.engine!r}")
+
+    @property
+    def workbench_aa(self) -> str:
+        """Workbench's ``render_aa`` for :attr:`samples`: ``'OFF'`` for 1, else the next offered sample count."""
+        if self.samples <= 1:
+            return "OFF"
+        return str(next((n for n in _WORKBENCH_AA if n >= self.samples), _WORKBENCH_AA[-1]))
 
 
 class BlenderRenderer:
-    """A bpy scene set up once (camera, world, compositor) that renders shape after shape.
+    """A Blender scene set up once (engine, camera, world, compositor) that renders shape after shape.
 
     ``config``: a :class:`genre_backend.config.GenreConfig` (camera + image
     size).  ``scratch_dir``: where the compositor's File Output node writes
-    ``view_rgba.png`` and ``view_depth.exr`` for each view (a fresh temporary
-    folder by default).  ``quiet``: silence Blender's own prints.
+    ``view_rgba*.png`` and ``view_depth*.exr`` for each view (a fresh
+    temporary folder by default).  ``quiet``: silence Blender's own prints.
+
+    Raises ValueError when this Blender lacks the settings' engine.
+    :attr:`notes` lists what differs from the settings asked for (e.g. no
+    denoiser in this Blender), one line each.  :attr:`denoise` is whether
+    the denoiser is really on.
 
     Blender has one scene state per process, so only the newest renderer is
     usable (:attr:`is_active`); an older one raises RuntimeError.
@@ -100,7 +183,10 @@ class BlenderRenderer:
         self.scratch = Path(scratch_dir) if scratch_dir is not None else Path(tempfile.mkdtemp(prefix="genre-render-"))
         self.scratch.mkdir(parents=True, exist_ok=True)
         self.quiet = quiet
+        self.notes: list[str] = []
+        self.denoise = False
         self.bpy = import_bpy()
+        self.blender_version = self.bpy.app.version_string
         global _ACTIVE_RENDERER
         _ACTIVE_RENDERER = None  # the factory reset below invalidates any earlier renderer's scene
         with quiet_stdout(self.quiet):
@@ -124,30 +210,18 @@ class BlenderRenderer:
         scene = bpy.context.scene
         self.scene = scene
         render = scene.render
-        render.engine = "CYCLES"
-        scene.cycles.device = "CPU"
-        scene.cycles.samples = self.settings.samples
-        scene.cycles.use_adaptive_sampling = False
-        scene.cycles.use_denoising = self.settings.denoise
-        if self.settings.denoise:
-            scene.cycles.denoiser = "OPENIMAGEDENOISE"
-            scene.cycles.denoising_prefilter = "FAST"
-            scene.cycles.denoising_input_passes = "RGB"
-            scene.cycles.denoising_quality = "FAST"
-        # Clamping and glossy blur remove most fireflies at a small bias (irrelevant for training data).
-        scene.cycles.sample_clamp_direct = 4.0
-        scene.cycles.sample_clamp_indirect = 2.0
-        scene.cycles.blur_glossy = 1.0
-        scene.cycles.max_bounces = 4
-        scene.cycles.diffuse_bounces = 2
-        scene.cycles.glossy_bounces = 2
-        scene.cycles.transmission_bounces = 4
-        scene.cycles.volume_bounces = 0
-        scene.cycles.caustics_reflective = False
-        scene.cycles.caustics_refractive = False
-        # The light tree pays off with many lights; with at most three suns it only adds set-up work.
-        scene.cycles.use_light_tree = False
-        scene.cycles.transparent_max_bounces = 8
+        self._set_engine()
+        engine = self.settings.engine
+        if engine == "cycles":
+            self._setup_cycles()
+        elif engine == "eevee":
+            scene.eevee.taa_render_samples = self.settings.samples
+        else:
+            shading = scene.display.shading
+            shading.light = "STUDIO"
+            shading.color_type = "TEXTURE"  # image textures where a material has one, else its viewport colour
+            shading.show_specular_highlight = True
+            scene.display.render_aa = self.settings.workbench_aa
         render.threads_mode = "FIXED"
         render.threads = self.settings.threads
         render.resolution_x = render.resolution_y = self.size
@@ -156,7 +230,10 @@ class BlenderRenderer:
         render.film_transparent = True
         render.use_compositing = True
         render.use_sequencer = False
-        render.use_persistent_data = True
+        # Off: with Cycles' persistent data a view's noise depends on the views rendered before it in the
+        # process (lights shown or hidden re-sync in another order), so a resumed run would not reproduce
+        # an uninterrupted one.  Rebuilding costs nothing measurable for these scenes (0.22 vs 0.24 s/view).
+        render.use_persistent_data = False
         scene.view_settings.view_transform = "Standard"
         scene.view_settings.look = "None"
         scene.view_settings.exposure = 0.0
@@ -173,8 +250,8 @@ class BlenderRenderer:
         cam_data.sensor_width = float(cam.sensor_mm)
         cam_data.sensor_height = float(cam.sensor_mm)
         cam_data.shift_x = cam_data.shift_y = 0.0
-        cam_data.clip_start = 0.01
-        cam_data.clip_end = 100.0
+        cam_data.clip_start = _CLIP_START
+        cam_data.clip_end = _CLIP_END
         self.camera = bpy.data.objects.new("genre_camera", cam_data)
         scene.collection.objects.link(self.camera)
         scene.camera = self.camera
@@ -183,6 +260,8 @@ class BlenderRenderer:
         self._setup_compositor()
         # Meshes imported without any material get this one, with a random colour per view.
         self.default_material = bpy.data.materials.new("genre_default")
+        if self.default_material.node_tree is None:  # Blender < 5 makes materials without nodes
+            self.default_material.use_nodes = True
         self.default_bsdf = next(n for n in self.default_material.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
         self.uses_default_material = False
         self.suns = []
@@ -195,11 +274,55 @@ class BlenderRenderer:
         # Everything created so far survives clear_shape().
         self._baseline = {name: {id_.as_pointer() for id_ in getattr(bpy.data, name)} for name in _CLEARED_COLLECTIONS}
 
+    def _set_engine(self) -> None:
+        render = self.scene.render
+        tried = _ENGINE_IDS[self.settings.engine]
+        for engine_id in tried:
+            try:
+                render.engine = engine_id
+                return
+            except TypeError:  # not an engine of this Blender
+                continue
+        raise ValueError(f"this Blender ({self.blender_version}) has no {self.settings.engine} engine "
+                         f"(none of {', '.join(tried)} is among its engines)")
+
+    def _setup_cycles(self) -> None:
+        cycles = self.scene.cycles
+        cycles.device = "CPU"
+        cycles.samples = self.settings.samples
+        cycles.use_adaptive_sampling = False
+        self.denoise = self.settings.denoise and _cycles_has_oidn()
+        if self.settings.denoise and not self.denoise:
+            self.notes.append(f"this Blender's Cycles ({self.blender_version}) has no OpenImageDenoise: "
+                              f"rendering without the denoiser (--no-denoise silences this)")
+        cycles.use_denoising = self.denoise
+        if self.denoise:
+            cycles.denoiser = "OPENIMAGEDENOISE"
+            cycles.denoising_prefilter = "FAST"
+            cycles.denoising_input_passes = "RGB"
+            _set_if_present(cycles, "denoising_quality", "FAST")  # Blender 4.1+
+        # Clamping and glossy blur remove most fireflies at a small bias (irrelevant for training data).
+        cycles.sample_clamp_direct = 4.0
+        cycles.sample_clamp_indirect = 2.0
+        cycles.blur_glossy = 1.0
+        cycles.max_bounces = 4
+        cycles.diffuse_bounces = 2
+        cycles.glossy_bounces = 2
+        cycles.transmission_bounces = 4
+        cycles.volume_bounces = 0
+        cycles.caustics_reflective = False
+        cycles.caustics_refractive = False
+        # The light tree (Blender 3.5+) pays off with many lights; with at most three suns it only adds set-up work.
+        _set_if_present(cycles, "use_light_tree", False)
+        cycles.transparent_max_bounces = 8
+
     def _setup_world(self) -> None:
         bpy = self.bpy
         world = bpy.data.worlds.new("genre_world")
         self.scene.world = world
-        nt = world.node_tree  # Blender 5.0 gives new worlds a node tree (use_nodes is deprecated)
+        if world.node_tree is None:  # Blender < 5 makes worlds without nodes (5.0 deprecates use_nodes)
+            world.use_nodes = True
+        nt = world.node_tree
         nt.nodes.clear()
         out = nt.nodes.new("ShaderNodeOutputWorld")
         bg = nt.nodes.new("ShaderNodeBackground")
@@ -229,33 +352,57 @@ class BlenderRenderer:
             self.env_texture, self.env_mapping = env, mapping
 
     def _setup_compositor(self) -> None:
+        """Render layers → a File Output node writing the RGBA (8-bit PNG) and the Z pass (32-bit EXR).
+
+        Blender 5.0: the tree is ``scene.compositing_node_group``, the node has
+        ``file_output_items`` and writes ``view_rgba.png``; earlier versions
+        (3.4 tested): ``scene.node_tree`` with ``use_nodes``, ``file_slots``,
+        a frame number in the names (``view_rgba0001.png``) and a Composite
+        node, without which rendering refuses to start.
+        """
         bpy = self.bpy
-        tree = bpy.data.node_groups.new("genre_compositor", "CompositorNodeTree")
-        self.scene.compositing_node_group = tree
+        scene = self.scene
+        if hasattr(scene, "compositing_node_group"):
+            tree = bpy.data.node_groups.new("genre_compositor", "CompositorNodeTree")
+            scene.compositing_node_group = tree
+        else:
+            scene.use_nodes = True
+            tree = scene.node_tree
+            tree.nodes.clear()
         layers = tree.nodes.new("CompositorNodeRLayers")
-        layers.scene = self.scene
+        layers.scene = scene
+        image_out = layers.outputs["Image"]
+        depth_out = layers.outputs.get("Depth") or layers.outputs["Z"]
+        if hasattr(bpy.types, "CompositorNodeComposite"):
+            tree.links.new(image_out, tree.nodes.new("CompositorNodeComposite").inputs["Image"])
         fo = tree.nodes.new("CompositorNodeOutputFile")
-        fo.directory = str(self.scratch)
-        fo.file_name = "view_"
-        fo.format.media_type = "IMAGE"
-        fo.format.file_format = "PNG"
-        fo.format.color_mode = "RGBA"
-        fo.format.color_depth = "8"
-        fo.file_output_items.clear()
-        fo.file_output_items.new("RGBA", "rgba")
-        fo.file_output_items.new("FLOAT", "depth")
-        # Item handles go stale when the collection grows: look them up again.
-        depth = fo.file_output_items["depth"]
-        depth.override_node_format = True
-        depth.format.media_type = "IMAGE"
-        depth.format.file_format = "OPEN_EXR"
-        depth.format.color_mode = "BW"
-        depth.format.color_depth = "32"
-        depth.format.exr_codec = "NONE"
-        inputs = {sock.name: sock for sock in fo.inputs if sock.identifier != "__extend__"}
-        tree.links.new(layers.outputs["Image"], inputs["rgba"])
-        tree.links.new(layers.outputs["Depth"], inputs["depth"])
-        if not (inputs["rgba"].is_linked and inputs["depth"].is_linked):
+        if hasattr(fo, "file_output_items"):
+            fo.directory = str(self.scratch)
+            fo.file_name = "view_"
+            fo.format.media_type = "IMAGE"
+            _png_rgba(fo.format)
+            fo.file_output_items.clear()
+            fo.file_output_items.new("RGBA", "rgba")
+            fo.file_output_items.new("FLOAT", "depth")
+            # Item handles go stale when the collection grows: look them up again.
+            depth = fo.file_output_items["depth"]
+            depth.override_node_format = True
+            depth.format.media_type = "IMAGE"
+            _exr_float(depth.format)
+            inputs = [sock for sock in fo.inputs if sock.identifier != "__extend__"]
+        else:
+            fo.base_path = str(self.scratch)
+            _png_rgba(fo.format)
+            fo.file_slots.clear()
+            fo.file_slots.new("view_rgba")
+            fo.file_slots.new("view_depth")
+            depth = fo.file_slots["view_depth"]
+            depth.use_node_format = False
+            _exr_float(depth.format)
+            inputs = list(fo.inputs)
+        tree.links.new(image_out, inputs[0])
+        tree.links.new(depth_out, inputs[1])
+        if not (inputs[0].is_linked and inputs[1].is_linked):
             raise RuntimeError("could not link the render passes to the File Output node")
         self.file_output = fo
 
@@ -291,10 +438,13 @@ class BlenderRenderer:
             if suffix in (".glb", ".gltf"):
                 bpy.ops.import_scene.gltf(filepath=str(path), loglevel=50)
             elif suffix == ".obj":
-                bpy.ops.wm.obj_import(filepath=str(path), forward_axis="Y", up_axis="Z", use_split_objects=False,
-                                      use_split_groups=False)
-            else:
+                options = bpy.ops.wm.obj_import.get_rna_type().properties.keys()
+                split = {k: False for k in ("use_split_objects", "use_split_groups") if k in options}  # 3.5+
+                bpy.ops.wm.obj_import(filepath=str(path), forward_axis="Y", up_axis="Z", **split)
+            elif "ply_import" in dir(bpy.ops.wm):  # Blender 3.6+
                 bpy.ops.wm.ply_import(filepath=str(path), forward_axis="Y", up_axis="Z")
+            else:  # the older Python importer keeps the stored axes
+                bpy.ops.import_mesh.ply(filepath=str(path))
         new = [o for o in bpy.data.objects if o.as_pointer() not in before]
         for obj in new:
             if obj.name not in self.scene.collection.all_objects:
@@ -411,6 +561,7 @@ class BlenderRenderer:
             # Draw the colour last so the lighting above does not depend on whether it is used.
             colour = 0.1 + 0.8 * rng.random(3)
             self.default_bsdf.inputs["Base Color"].default_value = (*(float(c) for c in colour), 1.0)
+            self.default_material.diffuse_color = (*(float(c) for c in colour), 1.0)  # what Workbench shows
             roughness = float(rng.uniform(0.3, 0.9))
             self.default_bsdf.inputs["Roughness"].default_value = roughness
             info["default_material"] = {"colour": [round(float(c), 4) for c in colour], "roughness": round(roughness, 3)}
@@ -420,29 +571,51 @@ class BlenderRenderer:
         """Render one view of the loaded shape.
 
         Returns ``rgba`` (H, W, 4) uint8 (straight alpha, transparent film),
-        ``raw_depth`` (H, W) float32 (Cycles Z pass, background 1e10), row 0
-        at the top of the image, ``rotation`` (3, 3) float64 camera-to-object,
-        and ``lighting`` (a JSON-able description).
+        ``raw_depth`` (H, W) float32 (the Z pass: planar depth, background
+        :data:`RAW_BACKGROUND` for every engine), row 0 at the top of the
+        image, ``rotation`` (3, 3) float64 camera-to-object, and ``lighting``
+        (a JSON-able description).
         """
         self._check_active()
-        bpy = self.bpy
         if self.shape_path is None:
             raise ValueError("render_view: no shape loaded (call load_shape first)")
         rot = self.place_camera(azimuth_deg, elevation_deg)
         lighting = self.randomise_lighting(light_rng)
-        rgba_path = self.scratch / "view_rgba.png"
-        depth_path = self.scratch / "view_depth.exr"
-        for f in (rgba_path, depth_path):
-            f.unlink(missing_ok=True)
-        with quiet_stdout(self.quiet):
-            bpy.ops.render.render(write_still=False)
-        if not rgba_path.is_file() or not depth_path.is_file():
-            found = sorted(p.name for p in self.scratch.iterdir())
-            raise RuntimeError(f"the compositor wrote {found}, expected view_rgba.png and view_depth.exr")
+        rgba_path, depth_path = self._render()
         from PIL import Image  # noqa: PLC0415
 
         with Image.open(rgba_path) as im:
             rgba = np.asarray(im.convert("RGBA"), dtype=np.uint8).copy()
+        if self.settings.engine == "eevee" and self.settings.samples > 1:
+            # EEVEE's Z pass keeps one of its jittered samples per pixel (off by ~1e-3 where the surface
+            # slopes); a one-sample render puts it at the pixel centre, where Cycles and Workbench take it.
+            eevee = self.scene.eevee
+            eevee.taa_render_samples = 1
+            try:
+                _, depth_path = self._render()
+            finally:
+                eevee.taa_render_samples = self.settings.samples
+        raw_depth = self._read_depth(depth_path)
+        if self.settings.engine == "eevee":  # EEVEE's background is ~the far clip distance
+            raw_depth[raw_depth >= _EEVEE_BACKGROUND_FRACTION * _CLIP_END] = RAW_BACKGROUND
+        if rgba.shape[:2] != (self.size, self.size) or raw_depth.shape != (self.size, self.size):
+            raise RuntimeError(f"unexpected render size {rgba.shape} / {raw_depth.shape}, expected {self.size}²")
+        return {"rgba": rgba, "raw_depth": raw_depth, "rotation": rot, "lighting": lighting}
+
+    def _render(self) -> tuple[Path, Path]:
+        """Render the scene; returns the File Output node's RGBA PNG and depth EXR."""
+        self._clear_scratch()
+        with quiet_stdout(self.quiet):
+            self.bpy.ops.render.render(write_still=False)
+        written = {kind: sorted(self.scratch.glob(pattern)) for kind, pattern in _SCRATCH_FILES.items()}
+        if any(len(found) != 1 for found in written.values()):
+            found = sorted(p.name for p in self.scratch.iterdir())
+            raise RuntimeError(f"the compositor wrote {found}, expected one view_rgba*.png and one view_depth*.exr")
+        return written["rgba"][0], written["depth"][0]
+
+    def _read_depth(self, depth_path: Path) -> np.ndarray:
+        """The EXR's first channel (H, W) float32, row 0 at the top."""
+        bpy = self.bpy
         img = bpy.data.images.load(str(depth_path))
         try:
             img.colorspace_settings.name = "Non-Color"
@@ -451,19 +624,56 @@ class BlenderRenderer:
             img.pixels.foreach_get(buf)
         finally:
             bpy.data.images.remove(img)
-        raw_depth = buf.reshape(h, w, -1)[::-1, :, 0].copy()  # Blender rows are bottom-up
-        if rgba.shape[:2] != (self.size, self.size) or raw_depth.shape != (self.size, self.size):
-            raise RuntimeError(f"unexpected render size {rgba.shape} / {raw_depth.shape}, expected {self.size}²")
-        return {"rgba": rgba, "raw_depth": raw_depth, "rotation": rot, "lighting": lighting}
+        return buf.reshape(h, w, -1)[::-1, :, 0].copy()  # Blender rows are bottom-up
 
     def close(self) -> None:
         """Drop the shape and remove the scratch folder if this renderer made it."""
         if self.is_active:
             self.clear_shape()
-        for name in ("view_rgba.png", "view_depth.exr"):
-            (self.scratch / name).unlink(missing_ok=True)
+        self._clear_scratch()
         if self._own_scratch and self.scratch.is_dir() and not any(self.scratch.iterdir()):
             self.scratch.rmdir()
+
+
+    def _clear_scratch(self) -> None:
+        for pattern in _SCRATCH_FILES.values():
+            for f in self.scratch.glob(pattern):
+                f.unlink(missing_ok=True)
+
+
+# What the File Output node writes per view (Blender < 5 adds the frame number).
+_SCRATCH_FILES = {"rgba": "view_rgba*.png", "depth": "view_depth*.exr"}
+
+
+def _set_if_present(owner, name: str, value) -> None:
+    """Set an option that only some Blender versions have."""
+    if hasattr(owner, name):
+        setattr(owner, name, value)
+
+
+def _cycles_has_oidn() -> bool:
+    """Whether this Blender's Cycles was built with OpenImageDenoise (Debian's 3.4.1 was not)."""
+    try:
+        import _cycles  # noqa: PLC0415  (Cycles' own module, present once bpy is imported)
+    except ImportError:
+        return False
+    return bool(getattr(_cycles, "with_openimagedenoise", False))
+
+
+def _png_rgba(fmt) -> None:
+    fmt.file_format = "PNG"
+    fmt.color_mode = "RGBA"
+    fmt.color_depth = "8"
+
+
+def _exr_float(fmt) -> None:
+    fmt.file_format = "OPEN_EXR"
+    try:
+        fmt.color_mode = "BW"
+    except TypeError:  # Blender < 4 writes EXR in RGB(A) only; the depth is read from the first channel
+        fmt.color_mode = "RGB"
+    fmt.color_depth = "32"
+    fmt.exr_codec = "NONE"
 
 
 _ACTIVE_RENDERER: BlenderRenderer | None = None
@@ -542,7 +752,10 @@ def render_shape(
             "camera_location": (rot[:, 2] * float(cam.distance)).tolist(),
             "depth": "planar Z-pass, encoded with frame.encode_raw_depth (background 0)",
             "mask": "film alpha in [0, 1]",
+            "engine": renderer.settings.engine,
             "samples": renderer.settings.samples,
+            "denoise": renderer.denoise,
+            "blender": renderer.blender_version,
             "lighting": out["lighting"],
             "background": bg_info,
         }
