@@ -28,7 +28,8 @@ loss) and ``final.safetensors`` (weights + config, no pickle), ``config.json``
 atomically every ``checkpoint_minutes``).  Running the same command again
 resumes from the checkpoint with the same step count and, on the CPU, the
 same numbers: the batch of step k and its augmentation depend only on
-(seed, k).
+(seed, k).  The steps a killed run did after its last checkpoint run again;
+their rows are first dropped from ``log.csv`` (one row per step and split).
 
 Data-parallel: ``torchrun --nproc_per_node=N -m genre_backend.cli train …``
 (gloo on the CPU, NCCL on CUDA); each process takes its share of every
