@@ -85,9 +85,18 @@ def check_threshold(name: str, value) -> float:
     The one check of every threshold in the project (CLI options, server
     requests, weights metadata, marching cubes); bools, NaN and strings are refused.
     """
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 < float(value) < 1.0:
-        raise ValueError(f"{name}: expected a number in (0, 1), got {value!r}")
+    # compared as it is: float() of a 400-digit integer raises OverflowError, not the ValueError callers catch
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < value < 1:
+        raise ValueError(f"{name}: expected a number in (0, 1), got {_short_repr(value)}")
     return float(value)
+
+
+def _short_repr(value, limit: int = 300) -> str:
+    try:
+        text = repr(value)
+    except ValueError:  # an integer past Python's 4,300-digit conversion limit
+        return f"an integer of about {int(value.bit_length() * 0.30103):,} digits"
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
 
 
 def _fmt(shape: Sequence[int | str | None]) -> str:

@@ -82,6 +82,31 @@ def test_long_values_are_not_echoed_whole(server, photo, tmp_path):
     assert _pong(server)["id"] == "alive"
 
 
+@pytest.mark.parametrize(
+    "fields, code, text",
+    [
+        ({"options": {"threshold": 10**400}}, "bad_field", "(0, 1)"),  # float() overflowed and stopped the reader
+        ({"options": ""}, "bad_field", "must be an object"),  # false, 0, "" and [] were taken for {}
+        ({"options": False}, "bad_field", "must be an object"),
+        ({"image": "a\x00b.png"}, "bad_field", "NUL"),  # each path field: one answer, before any work
+        ({"output": "m\ud800.obj"}, "bad_field", "lone surrogate"),
+        ({"mask": "m\x00.png"}, "bad_field", "NUL"),
+        ({"options": {"save_intermediates": "\udfff"}}, "bad_field", "lone surrogate"),
+        ({"image": "x" * 300 + ".png"}, "bad_image", "name too long"),  # an OSError in a job was 'internal'
+        ({"mask": "m" * 300 + ".png"}, "bad_mask", "name too long"),
+        ({"options": {"save_intermediates": "i" * 300}}, "output_unwritable", "name too long"),  # (was after the mesh's write)
+    ],
+)
+def test_odd_fields_get_their_code_in_one_line(server, photo, tmp_path, fields, code, text):
+    out = tmp_path / "odd.obj"
+    req = {"type": "reconstruct", "id": "odd", "image": str(photo), "output": str(out), **fields}
+    server.send(req)
+    ev = server.until(lambda e: e["type"] in ("result", "error") and e["id"] == "odd")[-1]
+    assert ev["type"] == "error" and ev["code"] == code and text in ev["message"] and "\n" not in ev["message"], ev
+    assert not out.exists()
+    assert _pong(server)["id"] == "alive"
+
+
 # ---- R3, R7: the wrong file is never overwritten -----------------------------------------------------
 def test_outputs_that_are_not_regular_files_or_are_inputs_are_refused(trained, photo, tmp_path, capsys):
     fifo = tmp_path / "pipe"

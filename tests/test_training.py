@@ -76,34 +76,70 @@ def _state(path):
     return load_model(path).state_dict()
 
 
-def test_kill_and_resume_gives_the_same_weights(tiny_views, tmp_path):
+def _log_rows(path):
+    """log.csv's rows without the timing columns (they differ from run to run)."""
+    import csv
+
+    with open(path, newline="") as fh:
+        return [{k: v for k, v in row.items() if k not in ("s_per_step", "samples_per_s")} for row in csv.DictReader(fh)]
+
+
+def _last_logged_step(log_csv) -> int:
+    try:
+        lines = log_csv.read_text().splitlines()
+    except OSError:
+        return 0
+    steps = [int(line.split(",", 1)[0]) for line in lines[1:] if line.split(",", 1)[0].isdigit()]
+    return max(steps, default=0)
+
+
+def test_kill_between_checkpoints_and_resume_gives_identical_weights_and_log(tiny_views, tmp_path):
+    """Depth stage with augmentation and validation (the table's two views; val_fraction 0.5 puts it there),
+    checkpoints every 10 of 30 steps, SIGKILL a few steps after the step-10 checkpoint, the same command
+    again: bit-identical final and best weights, and log.csv equal to the uninterrupted run's (one row per step)."""
     cfg_json = tmp_path / "tiny.json"
     cfg_json.write_text(json.dumps(TINY.to_dict()))
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    # reference: 20 steps in one go
-    subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 20), check=True, cwd=REPO, env=env, capture_output=True)
-    # interrupted: checkpoint every step, SIGKILL once step 10 is on disk, then run the same command again
-    cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 20, ["--checkpoint-every", "1"])
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    extra = ["--val-fraction", "0.5", "--val-every", "3", "--checkpoint-every", "10"]
+    subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 30, extra), check=True, cwd=REPO, env=env, capture_output=True)
+    cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 30, extra)
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    state = tmp_path / "b" / "depth" / "checkpoint" / "state.json"
+    stage = tmp_path / "b" / "depth"
     deadline = time.time() + 300
-    while time.time() < deadline:
-        try:
-            if json.loads(state.read_text())["step"] >= 10:
-                break
-        except (OSError, ValueError, KeyError):
-            pass
-        time.sleep(0.05)
+    while _last_logged_step(stage / "log.csv") < 13 and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.002)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    killed_at = json.loads(state.read_text())["step"]
-    assert 10 <= killed_at < 20
+    killed_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
+    logged = _last_logged_step(stage / "log.csv")
+    assert killed_at == 10 and 10 < logged < 20, (killed_at, logged)  # between the checkpoints of steps 10 and 20
     done = subprocess.run(cmd, check=True, cwd=REPO, env=env, capture_output=True, text=True)
     summary = json.loads(done.stdout[done.stdout.index("{"):])
-    assert summary["resumed_from"] == killed_at
-    a, b = _state(tmp_path / "a" / "depth" / "final.safetensors"), _state(tmp_path / "b" / "depth" / "final.safetensors")
-    for k in a:
-        assert torch.allclose(a[k].float(), b[k].float(), atol=1e-6, rtol=1e-5), k
+    assert summary["resumed_from"] == 10 and summary["val_views"] == 2
+    for name in ("final", "best"):
+        a, b = _state(tmp_path / "a" / "depth" / f"{name}.safetensors"), _state(stage / f"{name}.safetensors")
+        assert a.keys() == b.keys()
+        for k in a:
+            assert torch.equal(a[k], b[k]), (name, k)
+    rows_a, rows_b = _log_rows(tmp_path / "a" / "depth" / "log.csv"), _log_rows(stage / "log.csv")
+    keys = [(r["step"], r["split"]) for r in rows_b]
+    assert len(keys) == len(set(keys)) == 30 + 10  # a train row per step, a val row every 3 steps
+    assert rows_b == rows_a
+
+
+def test_trim_log_keeps_the_rows_up_to_the_checkpoint(tmp_path):
+    from training.learn.train import LOG_FIELDS, _trim_log
+
+    log = tmp_path / "log.csv"
+    head = ",".join(LOG_FIELDS) + "\r\n"
+    rows = [f'{k},train,0.5,"{{""a"": 1, ""b"": 2}}",0.001,0.1,20.0\r\n' for k in range(1, 8)]
+    log.write_text(head + "".join(rows) + "8,train,0.4", newline="")  # the last row cut off by a kill
+    assert _trim_log(log, 5)
+    assert log.read_bytes().decode() == head + "".join(rows[:5])
+    assert _trim_log(log, 5) and log.read_bytes().decode() == head + "".join(rows[:5])  # nothing to drop: unchanged
+    assert not _trim_log(tmp_path / "none.csv", 3)
+    log.write_text("other,columns\n1,2\n")
+    assert not _trim_log(log, 3) and log.read_text() == "other,columns\n1,2\n"  # not ours: left alone, a new log begins
 
 
 def test_resuming_with_another_architecture_says_which_checkpoint(tiny_views, tmp_path, capsys):

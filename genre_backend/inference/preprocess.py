@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -135,13 +136,19 @@ class Preprocessed:
 
 # ---------------------------------------------------------------------------------- decoding
 def _check_file(path: Path, what: str, code: str) -> None:
-    if not path.exists():
-        raise ImageError(code, f"{path}: no such file")
-    if path.is_dir():
+    try:
+        st = path.stat()
+    except (FileNotFoundError, NotADirectoryError):
+        raise ImageError(code, f"{path}: no such file") from None
+    except OSError as exc:  # a name too long, a folder on the way that cannot be searched, a link loop
+        raise ImageError(code, f"{path}: cannot open: {exc.strerror or exc}") from None
+    except ValueError as exc:  # a NUL character, or a lone surrogate no file name can hold
+        raise ImageError(code, f"{str(path)!r}: not a usable path ({exc})") from None
+    if stat.S_ISDIR(st.st_mode):
         raise ImageError(code, f"{path}: is a directory, not an {what} file")
-    if not path.is_file():
+    if not stat.S_ISREG(st.st_mode):
         raise ImageError(code, f"{path}: not a regular file")
-    if path.stat().st_size == 0:
+    if st.st_size == 0:
         raise ImageError(code, f"{path}: empty file (0 bytes)")
     if not os.access(path, os.R_OK):
         raise ImageError(code, f"{path}: not readable (permission denied)")

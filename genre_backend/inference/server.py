@@ -19,7 +19,9 @@ import argparse
 import json
 import logging
 import math
+import os
 import queue
+import stat
 import sys
 import threading
 from dataclasses import dataclass, field
@@ -73,6 +75,28 @@ def _cap(text: str, limit: int = MAX_MESSAGE) -> str:
 def _one_line(exc: BaseException) -> str:
     lines = str(exc).strip().splitlines()
     return _cap(lines[0] if lines else exc.__class__.__name__)
+
+
+def _show(value: Any, limit: int = 300) -> str:
+    """A client's value quoted in a message: its JSON, cut to ``limit`` characters (any value, however deep)."""
+    try:
+        text = json.dumps(value)
+    except (ValueError, RecursionError):  # nesting near the recursion limit; an integer past the digit limit
+        text = f"<a JSON {type(value).__name__}>"
+    return _cap(text, limit)
+
+
+def _path_problem(value: str) -> str | None:
+    """Why no file can have the name ``value`` (None if one can): a NUL, or a lone surrogate that is no escaped byte."""
+    at = value.find("\x00")
+    if at >= 0:
+        return f"contains a NUL character (at character {at:,})"
+    try:
+        os.fsencode(value)
+    except UnicodeEncodeError as exc:
+        return (f"contains the lone surrogate {value[exc.start]!r} (at character {exc.start:,}); a name that is not UTF-8 "
+                f"is sent with one \\udc80-\\udcff escape per byte")
+    return None
 
 
 class Server:
@@ -139,6 +163,9 @@ class Server:
         value = msg[name]
         if not isinstance(value, str) or not value:
             raise RequestError("bad_field", f"{where} '{name}' must be a non-empty string (a path)", rid)
+        problem = _path_problem(value)
+        if problem:
+            raise RequestError("bad_field", f"{where} '{name}' is not a usable path: it {problem}", rid)
         return value
 
     def _parse_job(self, msg: dict) -> Job:
@@ -146,12 +173,14 @@ class Server:
         image = self._str(msg, "image", rid, True)
         output = self._str(msg, "output", rid, True)
         mask = self._str(msg, "mask", rid, False)
-        options = msg.get("options") or {}
-        if not isinstance(options, dict):
-            raise RequestError("bad_field", "field 'options' must be an object", rid)
+        options = msg.get("options")
+        if options is None:  # (absent or null)
+            options = {}
+        elif not isinstance(options, dict):  # false, 0, "" and [] included
+            raise RequestError("bad_field", f"field 'options' must be an object, got {_show(options, 60)}", rid)
         unknown = sorted(set(options) - set(_OPTION_KEYS))
         if unknown:
-            raise RequestError("bad_field", f"unknown option(s) {', '.join(map(repr, unknown))}; known: {', '.join(_OPTION_KEYS)}", rid)
+            raise RequestError("bad_field", f"unknown option(s) {_cap(', '.join(map(_show, unknown)), 600)}; known: {', '.join(_OPTION_KEYS)}", rid)
         threshold = options.get("threshold")
         if threshold is not None:
             from ..validation import check_threshold
@@ -159,16 +188,17 @@ class Server:
             try:
                 check_threshold("threshold", threshold)
             except ValueError:
-                raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {json.dumps(threshold)}", rid) from None
+                raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {_show(threshold)}", rid) from None
         fmt = options.get("format")
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
-            raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {json.dumps(fmt)}", rid)
+            raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {_show(fmt)}", rid)
         inter = self._str(options, "save_intermediates", rid, False, "option")
         flags = {}
         for name in ("texture", "all_parts"):
-            value = options.get(name, False)
+            value = options.get(name)
+            value = False if value is None else value  # (null counts as absent)
             if not isinstance(value, bool):
-                raise RequestError("bad_field", f"option '{name}' must be true or false, got {_cap(json.dumps(value), 300)}", rid)
+                raise RequestError("bad_field", f"option '{name}' must be true or false, got {_show(value)}", rid)
             flags[name] = value
         return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags)
 
@@ -196,7 +226,7 @@ class Server:
                 job = self._parse_job(msg)
                 with self.pending_lock:
                     if _key(job.id) in self.pending:
-                        raise RequestError("bad_field", f"a job with id {json.dumps(job.id)} is already queued or running", job.id)
+                        raise RequestError("bad_field", f"a job with id {_show(job.id)} is already queued or running", job.id)
                     self.pending[_key(job.id)] = job
                 log.info("queued job %s: %s", _cap(_key(job.id), 300), _cap(job.image, 300))
                 self.jobs.put(job)
@@ -207,16 +237,19 @@ class Server:
                 self.shutdown(rid, cancel=True)
                 return False
             else:
-                raise RequestError("unknown_type", f"unknown request type {json.dumps(kind)}; known: ping, version, reconstruct, cancel, shutdown", rid)
+                raise RequestError("unknown_type", f"unknown request type {_show(kind)}; known: ping, version, reconstruct, cancel, shutdown", rid)
         except RequestError as exc:
             self.error(exc.req_id if exc.req_id is not None else rid, exc.code, str(exc))
+        except Exception as exc:  # a bug, not the client's doing: said so, and the server keeps reading
+            log.exception("request %s: internal error", _cap(json.dumps(rid), 300))
+            self.error(rid, "internal", f"internal error: {exc.__class__.__name__}: {_one_line(exc)}")
         return True
 
     def cancel(self, rid: Any) -> None:
         with self.pending_lock:
             job = self.pending.get(_key(rid))
             if job is None:
-                raise RequestError("unknown_job", f"no queued or running job with id {json.dumps(rid)}", rid)
+                raise RequestError("unknown_job", f"no queued or running job with id {_show(rid)}", rid)
             self._cancel_locked(job)
         log.info("cancel requested for job %s", _cap(json.dumps(rid), 300))
 
@@ -265,6 +298,20 @@ class Server:
             log.info("error %s %s: %s", _cap(_key(job.id), 300), event["code"], _cap(event["message"], 300))
         self.emit(event)
 
+    @staticmethod
+    def _check_intermediates(job: Job) -> None:
+        """Refuse, before any work, an intermediates folder that is a file or cannot be looked at (a missing one is made later)."""
+        from .reconstruct import short
+
+        try:
+            mode = os.stat(job.save_intermediates).st_mode
+        except FileNotFoundError:
+            return
+        except OSError as exc:  # a name too long, a file on the way
+            raise RequestError("output_unwritable", f"{short(job.save_intermediates)}: intermediates folder: {exc.strerror or exc}", job.id) from None
+        if not stat.S_ISDIR(mode):
+            raise RequestError("output_unwritable", f"{short(job.save_intermediates)}: intermediates path is a file, not a folder", job.id)
+
     def _run(self, job: Job) -> None:
         from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
         from .mesh_export import mesh_files
@@ -277,8 +324,8 @@ class Server:
         try:
             for path in mesh_files(job.output, job.format, job.texture):
                 check_output_path(path, (job.image, job.mask))
-            if job.save_intermediates and Path(job.save_intermediates).exists() and not Path(job.save_intermediates).is_dir():
-                raise RequestError("output_unwritable", f"{job.save_intermediates}: intermediates path is a file, not a folder", job.id)
+            if job.save_intermediates:
+                self._check_intermediates(job)
             result = self.rec.run(
                 job.image,
                 mask_path=job.mask,

@@ -28,7 +28,8 @@ loss) and ``final.safetensors`` (weights + config, no pickle), ``config.json``
 atomically every ``checkpoint_minutes``).  Running the same command again
 resumes from the checkpoint with the same step count and, on the CPU, the
 same numbers: the batch of step k and its augmentation depend only on
-(seed, k).
+(seed, k).  The steps a killed run did after its last checkpoint run again;
+their rows are first dropped from ``log.csv`` (one row per step and split).
 
 Data-parallel: ``torchrun --nproc_per_node=N -m genre_backend.cli train …``
 (gloo on the CPU, NCCL on CUDA); each process takes its share of every
@@ -57,7 +58,7 @@ from torch import nn
 from genre_backend.config import PRESETS, GenreConfig, get_preset
 from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.geometry.spherical import pad_sph
-from genre_backend.io import atomic_write
+from genre_backend.io import atomic_write, atomic_write_bytes
 
 from ..data.dataset import ViewDataset, find_views, split_views
 from .recipe import RECIPES, STAGES, StageRecipe, get_recipe
@@ -323,6 +324,40 @@ def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor]
     opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
 
 
+LOG_FIELDS = ["step", "split", "loss", "terms", "lr", "s_per_step", "samples_per_s"]  # log.csv's columns
+
+
+def _trim_log(csv_path: Path, step: int) -> bool:
+    """Keep only ``log.csv``'s rows up to ``step`` (the checkpoint a run resumes from); atomically.
+
+    A run killed between two checkpoints has logged steps past the last one;
+    the resumed run logs them again, so without this they would appear twice.
+    Rows up to ``step`` were all written (and flushed) before that checkpoint
+    was saved.  A last line without its newline (a kill mid-write) is dropped
+    too.  Returns False when there is no usable log (no file, or another
+    header): the caller then starts a new one.
+    """
+    try:
+        text = csv_path.read_bytes().decode("utf-8", "surrogateescape")
+    except FileNotFoundError:
+        return False
+    parts = text.split("\n")  # the csv module ends rows with \r\n: kept as they are
+    lines = [p + "\n" for p in parts[:-1]] + ([parts[-1]] if parts[-1] else [])
+    header = ",".join(LOG_FIELDS) + "\n"
+    if not lines or lines[0].replace("\r\n", "\n") != header:
+        return False
+    kept = [lines[0]]
+    for line in lines[1:]:
+        if not line.endswith("\n"):
+            break  # cut off by the kill: nothing after it was written
+        row = next(csv.reader([line]), [])
+        if len(row) == len(LOG_FIELDS) and row[0].isdigit() and int(row[0]) <= step:
+            kept.append(line)
+    if len(kept) < len(lines):
+        atomic_write_bytes(csv_path, "".join(kept).encode("utf-8", "surrogateescape"))
+    return True
+
+
 def _plot_losses(csv_path: Path, png_path: Path, stage: str) -> None:
     import matplotlib
 
@@ -416,10 +451,10 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(stage_dir / "tb"), purge_step=start)
-        new_log = not (stage_dir / "log.csv").exists() or start == 0
-        log = (stage_dir / "log.csv").open("w" if new_log else "a", newline="")
-        fields = ["step", "split", "loss", "terms", "lr", "s_per_step", "samples_per_s"]
-        log_writer = csv.DictWriter(log, fieldnames=fields)
+        # resuming: the rows of the steps after the checkpoint are run (and logged) again, so they go
+        new_log = start == 0 or not _trim_log(stage_dir / "log.csv", start)
+        log = (stage_dir / "log.csv").open("w" if new_log else "a", newline="", encoding="utf-8")
+        log_writer = csv.DictWriter(log, fieldnames=LOG_FIELDS)
         if new_log:
             log_writer.writeheader()
     from tqdm import tqdm
