@@ -116,13 +116,16 @@ def network_seeds(probability: np.ndarray) -> np.ndarray:
     return labels
 
 
-def border_seeds(height: int, width: int, inset: float = BORDER_INSET, band: int = BORDER_BAND) -> np.ndarray:
+def border_seeds(height: int, width: int, inset: float | None = None, band: int | None = None) -> np.ndarray:
     """(H, W) uint8 GrabCut labels of the ``"border"`` seeding (the product-photo prior).
 
     Sure background: ``band`` pixels along the edge; probable object: the
-    rectangle inset by ``inset`` of each side; probable background: the rest.
+    rectangle inset by ``inset`` of each side; probable background: the rest
+    (defaults :data:`BORDER_INSET`, :data:`BORDER_BAND`).
     """
     cv2 = _cv2()
+    inset = BORDER_INSET if inset is None else inset
+    band = BORDER_BAND if band is None else band
     labels = np.full((height, width), cv2.GC_PR_BGD, np.uint8)
     dx, dy = max(1, round(inset * width)), max(1, round(inset * height))
     labels[dy:height - dy, dx:width - dx] = cv2.GC_PR_FGD
@@ -132,14 +135,15 @@ def border_seeds(height: int, width: int, inset: float = BORDER_INSET, band: int
     return labels
 
 
-def grabcut(rgb: np.ndarray, labels: np.ndarray, iterations: int = GRABCUT_ITERATIONS) -> np.ndarray:
+def grabcut(rgb: np.ndarray, labels: np.ndarray, iterations: int | None = None) -> np.ndarray:
     """GrabCut of a (H, W, 3) uint8 RGB image from (H, W) uint8 seed labels → (H, W) bool object.
 
     Deterministic (OpenCV's random generator is seeded before each call).
     A seeding with no possible object or no possible background returns the
-    seeds' own object pixels.
+    seeds' own object pixels.  ``iterations``: default :data:`GRABCUT_ITERATIONS`.
     """
     cv2 = _cv2()
+    iterations = GRABCUT_ITERATIONS if iterations is None else iterations
     fg = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
     if not fg.any() or fg.all():
         return fg
@@ -166,7 +170,7 @@ def largest_part(mask: np.ndarray) -> np.ndarray:
 
 
 def refine_mask(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str = DEFAULT_SEEDING,
-                work_side: int = WORK_SIDE) -> tuple[np.ndarray, str]:
+                work_side: int | None = None) -> tuple[np.ndarray, str]:
     """The object's mask in a photo by GrabCut; returns ((H, W) bool, the seeding used).
 
     ``rgb``: (H, W, 3) uint8 photo.  ``probability``: (H, W) float in [0, 1],
@@ -174,9 +178,11 @@ def refine_mask(rgb: np.ndarray, probability: np.ndarray | None = None, seeding:
     ``"network"`` and ``"auto"`` seedings).  ``seeding``: one of
     :data:`SEEDINGS`; ``"auto"`` resolves to ``"border"`` when the
     network's silhouette is doubtful (:func:`doubt`), else ``"network"``.
-    The mask may be empty when GrabCut finds nothing.
+    GrabCut runs at ``work_side`` pixels on the photo's long side (default
+    :data:`WORK_SIDE`).  The mask may be empty when GrabCut finds nothing.
     """
     cv2 = _cv2()
+    work_side = WORK_SIDE if work_side is None else work_side
     if seeding not in SEEDINGS:
         raise ValueError(f"seeding: expected one of {', '.join(SEEDINGS)}, got {seeding!r}")
     h, w = rgb.shape[:2]
