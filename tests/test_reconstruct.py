@@ -229,7 +229,7 @@ def test_cli_writes_each_format(trained, photos, tmp_path, capsys):
     for fmt in ("obj", "ply", "glb"):
         code, out, err = _cli(capsys, photos["rgb"], "-o", tmp_path / f"m.{fmt}", "--weights", trained[0], "--threshold", 0.5)
         assert code == 0, err
-        assert "mask: silhouette" in out
+        assert "mask: grabcut" in out
         assert len(trimesh.load(tmp_path / f"m.{fmt}", force="mesh").faces) > 0
     with pytest.raises(SystemExit) as exc:  # argparse: the format contradicts the extension
         _cli(capsys, photos["rgba"], "-o", tmp_path / "x.obj", "--format", "ply", "--weights", trained[0])
@@ -286,7 +286,7 @@ def test_cli_many_images_one_line_per_bad_input(trained, photos, tmp_path, capsy
     for (kind, (code_name, text)), line in zip(BAD_INPUTS.items(), errors):
         assert str(photos[kind]) in line and text in line and f"[{code_name}]" in line, (kind, line)
     written = sorted(p.name for p in out_dir.iterdir())
-    # every good image was reconstructed (grayscale and friends through the silhouette) or failed cleanly
+    # every good image was reconstructed (grayscale and friends through GrabCut) or failed cleanly
     ok_lines = [line for line in out.splitlines() if " -> " in line]
     assert len(ok_lines) + 0 == len(written) and len(written) >= 2
     assert f"{len(bad)} of {len(good) + len(bad)} images failed" in err
