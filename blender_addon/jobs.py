@@ -232,6 +232,12 @@ class Job:
             raise
         return self.objects
 
+    @property
+    def mask_warning(self) -> str:
+        """The result's ``mask_warning`` (the backend found the mask doubtful), or ''."""
+        warning = (self.request.result or {}).get("mask_warning")
+        return warning if isinstance(warning, str) else ""
+
     def result_line(self) -> str:
         """'<name>: 1,234 vertices, 2,460 faces in 4.2 s' for the panel."""
         res = self.request.result or {}

@@ -59,6 +59,7 @@ def start_job(settings, prefs, status, *, backend: BackendManager | None = None)
     status.stage = job.stage_label
     status.message = ""
     status.message_is_error = False
+    status.mask_warning = ""
     return job
 
 
@@ -110,6 +111,8 @@ def finish_job(job: Job, status, outcome) -> None:
     status.stage = ""
     status.message = outcome[1].removeprefix("GenRe: ")
     status.message_is_error = outcome[0] == "ERROR"
+    # the backend's doubt about the mask it used (it covers most of the photo or touches most of its border)
+    status.mask_warning = job.mask_warning if outcome[0] == "INFO" else ""
 
 
 def abandon_job(job: Job, status) -> None:
@@ -208,8 +211,11 @@ class GENRE_OT_reconstruct(_TimerModal, bpy.types.Operator):
     def _step(self, context):
         return advance(self._job, context.scene, context.window_manager.genre_status, context.scene.cursor.location.copy())
 
-    def _end(self, outcome):
+    def _end(self, context, outcome):
         self.report({outcome[0]}, outcome[1])
+        warning = context.window_manager.genre_status.mask_warning
+        if outcome[0] == "INFO" and warning:
+            self.report({"WARNING"}, f"GenRe: doubtful mask: {warning}")
         return {"FINISHED"} if outcome[0] == "INFO" else {"CANCELLED"}
 
     def invoke(self, context, event):
@@ -234,7 +240,7 @@ class GENRE_OT_reconstruct(_TimerModal, bpy.types.Operator):
         if outcome is None:
             return {"RUNNING_MODAL"}
         self._remove_timer(context)
-        return self._end(outcome)
+        return self._end(context, outcome)
 
     def cancel(self, context):
         # Blender ends the operator (new file, window closed): stop the job, leave nothing behind.
@@ -250,7 +256,7 @@ class GENRE_OT_reconstruct(_TimerModal, bpy.types.Operator):
         while True:
             outcome = self._step(context)
             if outcome is not None:
-                return self._end(outcome)
+                return self._end(context, outcome)
             time.sleep(0.05)
 
 

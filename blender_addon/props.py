@@ -68,6 +68,7 @@ class GENRE_PG_status(bpy.types.PropertyGroup):
     stage: StringProperty(name="Stage", default="")
     message: StringProperty(name="Result", default="")
     message_is_error: BoolProperty(default=False)
+    mask_warning: StringProperty(name="Mask Warning", default="")
     checking: BoolProperty(name="Checking Backend", default=False)
     backend_info: StringProperty(name="Backend", default="")
     backend_ok: BoolProperty(default=False)

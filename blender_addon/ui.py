@@ -68,6 +68,11 @@ class GENRE_PT_panel(bpy.types.Panel):
                 counts, _, seconds = rest.rpartition(" in ")
                 col.label(text=f"{head} ({seconds})" if counts else head, icon="CHECKMARK")
                 col.label(text=(counts or rest).replace(" vertices,", " verts,"), icon="BLANK1")
+            if status.mask_warning and not status.message_is_error:
+                # the backend doubts the mask (probably the photo's frame): say so, with the way out
+                col = layout.column(align=True)
+                for i, part in enumerate(_wrap(f"Doubtful mask: {status.mask_warning}. Choose a mask file (white object on black) and reconstruct again.", 38)):
+                    col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
 
 
 def _wrap(text, width):

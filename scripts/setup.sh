@@ -58,7 +58,7 @@ want=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "setup: installing the project and its dependencies into .venv (first time: a few minutes, bpy is ~370 MB)"
   .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[dev]' 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
-  .venv/bin/python -c "import torch, bpy, numpy, skimage, trimesh, safetensors" \
+  .venv/bin/python -c "import torch, bpy, numpy, skimage, trimesh, safetensors, cv2" \
     || { echo "setup: the installed environment does not import; see the pip output above" >&2; exit 1; }
   echo "$want" > "$stamp"
 fi

@@ -15,6 +15,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -204,7 +205,8 @@ def scenario_reconstruct(args: dict) -> dict:
     out["added"] = snap.added()
     bpy.context.view_layer.update()  # matrix_world of the parented camera
     out["mesh"] = _mesh_report(bpy.data.objects[job.objects[0].name], bpy)
-    out["status_after"] = {"running": status.running, "message": status.message, "error": status.message_is_error}
+    out["status_after"] = {"running": status.running, "message": status.message, "error": status.message_is_error,
+                           "mask_warning": status.mask_warning}
     out["job_dirs_after"] = _job_dirs(ops)
     pid = ops.manager.client.pid
 
@@ -217,6 +219,16 @@ def scenario_reconstruct(args: dict) -> dict:
     out["objects_after_second"] = sorted(o.name for o in bpy.data.collections["GenRe"].objects)
     out["check"] = sorted(bpy.ops.genre.check_backend())
     out["backend_info"] = status.backend_info
+    # a mask that covers the whole photo: the backend doubts it and the panel says so
+    from PIL import Image
+
+    with Image.open(args["photo"]) as im:
+        full = os.path.join(tempfile.gettempdir(), "full_mask.png")
+        Image.new("L", im.size, 255).save(full)
+    settings.mask_path = full
+    job, outcome, _ = _drive(ops, settings, prefs, status, scene)
+    out["doubtful"] = {"outcome": list(outcome), "mask_warning": status.mask_warning, "event": job.request.result.get("mask_warning")}
+    settings.mask_path = ""
     # the backend stops when the add-on is disabled
     proc = ops.manager.client._proc
     bpy.ops.preferences.addon_disable(module=module)
@@ -601,6 +613,11 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert ((uv > -0.05) & (uv < 1.05)).all()
     assert r["status_after"]["running"] is False and not r["status_after"]["error"]
     assert f"{ev['vertices']:,} vertices" in r["status_after"]["message"]
+    assert ev["mask_warning"] is None and r["status_after"]["mask_warning"] == ""
+    # a doubtful mask: the job still succeeds, and the panel keeps the backend's warning
+    warning = "the mask covers 100% of the photo and touches 100% of its border: it is probably the photo's frame, not the object"
+    assert r["doubtful"] == {"outcome": r["doubtful"]["outcome"], "mask_warning": warning, "event": warning}
+    assert r["doubtful"]["outcome"][0] == "INFO"
     assert r["job_dirs_after"] == []  # temporary files removed
     assert "write" in r["stages"] or "mesh" in r["stages"]
     assert max(r["progress_seen"]) > 0

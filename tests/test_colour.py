@@ -133,7 +133,7 @@ REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize("photo, mask", [
-    ("examples/sofa.png", None),  # no mask: the depth net's silhouette
+    ("examples/sofa.png", None),  # no mask: found by GrabCut
     ("examples/photos/apple.jpg", "examples/photos/apple_mask.png"),  # real photos, hand-made masks
     ("examples/photos/orange.jpg", "examples/photos/orange_mask.png"),
 ])

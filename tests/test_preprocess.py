@@ -157,14 +157,16 @@ def test_square_crop_box():
 
 def test_framing_puts_the_object_in_the_middle_at_object_fraction(tmp_path):
     img = load_image(_save(tmp_path, "p.png", _photo(box=(20, 10, 100, 50))))
-    pre = preprocess(img, CFG, silhouette=_not_background)
-    assert pre.mask_source == "silhouette" and pre.mask is None and pre.rgb.shape == (3, S, S)
-    sil = _not_background(pre.rgb).numpy()
-    x0, y0, x1, y1 = mask_bbox(sil)
-    assert abs((x1 - x0) - CFG.geometry.object_fraction * S) <= 2
-    assert abs((x0 + x1) / 2 - S / 2) <= 1.5 and abs((y0 + y1) / 2 - S / 2) <= 1.5
-    # padding outside the photo has the photo's border colour
-    assert torch.allclose(pre.rgb[:, 0, 0], torch.tensor([30, 90, 160]) / 255.0, atol=0.01)
+    for refine, source in ((False, "silhouette"), (True, "grabcut")):
+        pre = preprocess(img, CFG, silhouette=_not_background, refine=refine)
+        assert pre.mask_source == source and pre.rgb.shape == (3, S, S)
+        assert (pre.mask is None) == (not refine)
+        sil = _not_background(pre.rgb).numpy()
+        x0, y0, x1, y1 = mask_bbox(sil)
+        assert abs((x1 - x0) - CFG.geometry.object_fraction * S) <= 2
+        assert abs((x0 + x1) / 2 - S / 2) <= 1.5 and abs((y0 + y1) / 2 - S / 2) <= 1.5
+        # padding outside the photo has the photo's border colour
+        assert torch.allclose(pre.rgb[:, 0, 0], torch.tensor([30, 90, 160]) / 255.0, atol=0.01)
 
 
 def test_mask_order_file_alpha_silhouette(tmp_path):
@@ -186,7 +188,8 @@ def test_mask_order_file_alpha_silhouette(tmp_path):
     assert abs((x1 - x0) - CFG.geometry.object_fraction * S) <= 2
     pre = preprocess(rgba, CFG, silhouette=no_silhouette)
     assert pre.mask_source == "alpha" and pre.mask.sum() > 0
-    assert preprocess(rgb, CFG, silhouette=_not_background).mask_source == "silhouette"
+    assert preprocess(rgb, CFG, silhouette=_not_background).mask_source == "grabcut"
+    assert preprocess(rgb, CFG, silhouette=_not_background, refine=False).mask_source == "silhouette"
 
 
 def test_rgba_is_composited_over_the_neutral_background(tmp_path):

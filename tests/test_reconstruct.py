@@ -136,7 +136,7 @@ def huge_png(width: int, height: int) -> bytes:
 def test_reconstructs_a_rendered_view_in_the_view_frame(rec, photos, trained, tmp_path):
     stages = []
     res = rec.run(photos["rgb"], progress=lambda s, f: stages.append((s, f)))
-    assert res.mask_source == "silhouette"
+    assert res.mask_source == "grabcut"
     assert [s for s, _ in stages] == list(STAGES[:-1])
     fractions = [f for _, f in stages]
     assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] < 1.0
@@ -163,7 +163,7 @@ def test_reconstructs_a_rendered_view_in_the_view_frame(rec, photos, trained, tm
     assert fmt == "glb" and len(trimesh.load(path, force="mesh").faces) == len(res.faces)
     pngs = res.save_intermediates(tmp_path / "inter")
     names = {p.name for p in pngs}
-    assert {"input.png", "mask.png", "depth.png", "partial_sph.png", "full_sph.png", "vox_sph.png", "vox_depth.png"} <= names
+    assert {"input.png", "mask.png", "depth.png", "partial_sph.png", "full_sph.png", "vox_sph.png", "vox_depth.png", "mask_in_photo.png"} <= names
     for p in pngs:
         with Image.open(p) as im:
             assert im.size[0] >= 64
@@ -174,11 +174,12 @@ def test_mask_source_order(rec, photos):
     assert rec.run(photos["rgb"], mask_path=photos["mask"]).mask_source == "file"
     assert rec.run(photos["rgba"], mask_path=photos["mask"]).mask_source == "file"
     assert rec.run(photos["rgba"]).mask_source == "alpha"
-    assert rec.run(photos["rgb"]).mask_source == "silhouette"
-    # an opaque alpha channel is no mask: the silhouette is used
+    assert rec.run(photos["rgb"]).mask_source == "grabcut"
+    assert rec.run(photos["rgb"], refine=False).mask_source == "silhouette"
+    # an opaque alpha channel is no mask: the photo is segmented
     opaque = photos["rgba"].with_name("opaque.png")
     Image.open(photos["rgb"]).convert("RGBA").save(opaque)
-    assert rec.run(opaque).mask_source == "silhouette"
+    assert rec.run(opaque).mask_source == "grabcut"
 
 
 @pytest.mark.parametrize("kind", ["gray16", "gray", "palette", "cmyk", "animated"])
@@ -228,7 +229,7 @@ def test_cli_writes_each_format(trained, photos, tmp_path, capsys):
     for fmt in ("obj", "ply", "glb"):
         code, out, err = _cli(capsys, photos["rgb"], "-o", tmp_path / f"m.{fmt}", "--weights", trained[0], "--threshold", 0.5)
         assert code == 0, err
-        assert "mask: silhouette" in out
+        assert "mask: grabcut" in out
         assert len(trimesh.load(tmp_path / f"m.{fmt}", force="mesh").faces) > 0
     with pytest.raises(SystemExit) as exc:  # argparse: the format contradicts the extension
         _cli(capsys, photos["rgba"], "-o", tmp_path / "x.obj", "--format", "ply", "--weights", trained[0])
@@ -285,7 +286,7 @@ def test_cli_many_images_one_line_per_bad_input(trained, photos, tmp_path, capsy
     for (kind, (code_name, text)), line in zip(BAD_INPUTS.items(), errors):
         assert str(photos[kind]) in line and text in line and f"[{code_name}]" in line, (kind, line)
     written = sorted(p.name for p in out_dir.iterdir())
-    # every good image was reconstructed (grayscale and friends through the silhouette) or failed cleanly
+    # every good image was reconstructed (grayscale and friends through GrabCut) or failed cleanly
     ok_lines = [line for line in out.splitlines() if " -> " in line]
     assert len(ok_lines) + 0 == len(written) and len(written) >= 2
     assert f"{len(bad)} of {len(good) + len(bad)} images failed" in err

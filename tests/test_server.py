@@ -114,6 +114,8 @@ def files(trained, tmp_path_factory):
     Image.fromarray(np.dstack([rgb, mask.astype(np.uint8) * 255]), "RGBA").save(f["rgba"])
     Image.fromarray(mask.astype(np.uint8) * 255, "L").save(f["mask"])
     Image.new("L", (64, 64), 0).save(f["empty_mask"])
+    f["full_mask"] = d / "full.png"
+    Image.new("L", rgb.shape[1::-1], 255).save(f["full_mask"])  # the whole photo: a doubtful mask
     Image.new("L", (32, 48), 255).save(f["small_mask"])
     Image.new("RGBA", (64, 64), (9, 9, 9, 0)).save(f["transparent"])
     f["text"].write_text("hello")
@@ -197,7 +199,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     assert all(e["id"] == "job1" for e in events)
     fr = [e["fraction"] for e in progress]
     assert fr == sorted(fr) and 0 <= fr[0] and fr[-1] <= 1
-    assert result["mesh"] == str(out) and result["format"] == "ply" and result["mask_source"] == "silhouette"
+    assert result["mesh"] == str(out) and result["format"] == "ply" and result["mask_source"] == "grabcut"
     assert result["threshold"] == 0.45  # the option, not the weights' level (0.5 here)
     assert result["faces"] == len(trimesh.load(out, force="mesh").faces) > 0
     assert set(result["timings"]) >= {"depth", "refine", "mesh", "write"}
@@ -214,7 +216,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     # mask file and alpha are reported as such
     server.send({"type": "reconstruct", "id": "job2", "image": str(files["rgb"]), "mask": str(files["mask"]), "output": str(files["out"] / "m.glb")})
     r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
-    assert r["mask_source"] == "file"
+    assert r["mask_source"] == "file" and r["mask_warning"] is None
     from genre_backend.nets.model import load_model
 
     assert r["threshold"] == load_model(trained[0]).config.geometry.default_threshold
@@ -232,6 +234,16 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     assert r["files"] == [str(out), str(out.with_suffix(".mtl")), str(files["out"] / "col_texture.png")]
     back = trimesh.load(out, process=False)
     assert len(back.visual.uv) == len(back.vertices) and back.visual.material.image is not None
+
+
+def test_result_says_when_the_mask_is_doubtful(server, files):
+    server.send({"type": "reconstruct", "id": "frame", "image": str(files["rgb"]), "mask": str(files["full_mask"]), "output": str(files["out"] / "f.obj")})
+    r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
+    assert r["type"] == "result" and r["mask_source"] == "file" and r["faces"] > 0
+    assert r["mask_warning"] == "the mask covers 100% of the photo and touches 100% of its border: it is probably the photo's frame, not the object"
+    server.send({"type": "reconstruct", "id": "auto", "image": str(files["rgb"]), "output": str(files["out"] / "g.obj")})
+    r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
+    assert r["type"] == "result" and r["mask_source"] == "grabcut" and r["mask_warning"] is None
 
 
 @pytest.mark.parametrize(

@@ -14,8 +14,13 @@ framing here, and only here:
    on their long side, which is far more than the network input needs.
 2. **Mask** (:func:`preprocess`), in this order: a mask file given by the user
    (same size as the image, not empty), else the image's alpha channel when it
-   has real transparency, else the depth net's own silhouette (two passes:
-   the whole image padded to a square, then the crop around that silhouette).
+   has real transparency, else a mask found in the photo by GrabCut
+   (:mod:`.segment`; seeded by the photo's border, a product-photo prior,
+   which beat seeding by the depth net's silhouette on our real photos),
+   else the depth net's own silhouette (two passes: the whole image padded
+   to a square, then the crop around that silhouette).  A final mask that
+   covers most of the photo or touches most of its border is reported as
+   doubtful (:func:`.segment.doubt`, done by the caller).
 3. **Framing** (:func:`square_crop_box`, :func:`crop_resize`): a square
    centred on the mask's bounding box whose side makes the box's longest side
    span ``GeometryConfig.object_fraction`` of the image; parts outside the
@@ -42,6 +47,7 @@ import numpy as np
 import torch
 
 from ..config import GenreConfig
+from .segment import DEFAULT_SEEDING, SEEDINGS, doubt, refine_mask
 
 __all__ = [
     "ImageError",
@@ -57,6 +63,7 @@ __all__ = [
     "square_crop_box",
     "crop_resize",
     "composite",
+    "uncrop",
     "preprocess",
 ]
 
@@ -119,10 +126,15 @@ class Preprocessed:
     ``rgb``: (3, S, S) float32 in [0, 1].  ``mask``: (S, S) bool, or None when
     the depth net's silhouette is to be used (``mask_source`` ``"silhouette"``;
     the silhouette of the final crop then becomes the mask).  ``mask_source``:
-    ``"file"``, ``"alpha"`` or ``"silhouette"``.  ``crop_box``: (x0, y0, x1, y1)
+    ``"file"``, ``"alpha"``, ``"grabcut"`` or ``"silhouette"``.  ``crop_box``: (x0, y0, x1, y1)
     the square crop in the original image's pixel coordinates (may extend past
     the image).  ``image_size``: (width, height) of the original image.
     ``fill``: the RGB (uint8) that parts of the crop outside the photo got.
+    ``photo_mask``: (H, W) bool, the mask at the decoded photo's pixels
+    (None for ``"silhouette"``: the caller projects the crop's silhouette
+    back with :func:`uncrop`).  ``network_doubt``: when the depth net's own
+    silhouette of the whole photo was doubtful
+    (:func:`.segment.doubt`), why; else None.
     """
 
     rgb: torch.Tensor
@@ -132,6 +144,8 @@ class Preprocessed:
     image_size: tuple[int, int]
     notes: list[str]
     fill: tuple[int, int, int]
+    photo_mask: np.ndarray | None = None
+    network_doubt: str | None = None
 
 
 # ---------------------------------------------------------------------------------- decoding
@@ -346,20 +360,61 @@ def _to_tensor(rgb: np.ndarray) -> torch.Tensor:
 SilhouetteFn = Callable[[torch.Tensor], torch.Tensor]
 
 
+def uncrop(values: np.ndarray, box: tuple[float, float, float, float], size: tuple[int, int], linear: bool = False) -> np.ndarray:
+    """A crop's (S, S) values back at the photo's pixels: the inverse of :func:`crop_resize`'s framing.
+
+    ``box``: the crop's square (x0, y0, x1, y1) in the photo's (decoded)
+    pixels; ``size``: the photo's (width, height).  Returns (height, width)
+    of ``values``' dtype: each photo pixel takes the crop pixel under its
+    centre (``linear``: interpolated between the four nearest, float32);
+    pixels outside the box get 0.
+    """
+    w, h = size
+    s = values.shape[0]
+    x0, y0, x1, y1 = box
+    k = s / (x1 - x0)
+    u = (np.arange(w) + 0.5 - x0) * k
+    v = (np.arange(h) + 0.5 - y0) * k
+    if linear:
+        import cv2
+
+        mx, my = np.meshgrid((u - 0.5).astype(np.float32), (v - 0.5).astype(np.float32))
+        return cv2.remap(values.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    ok_u, ok_v = (iu >= 0) & (iu < s), (iv >= 0) & (iv < s)
+    out = np.zeros((h, w), values.dtype)
+    out[np.ix_(ok_v, ok_u)] = values[np.ix_(iv[ok_v], iu[ok_u])]
+    return out
+
+
+def _probability(silhouette_out: torch.Tensor) -> np.ndarray:
+    """A silhouette function's output → (S, S) float32 probability (bool: 0/1; float: logits → sigmoid)."""
+    if silhouette_out.dtype == torch.bool:
+        return silhouette_out.detach().cpu().numpy().astype(np.float32)
+    return torch.sigmoid(silhouette_out.detach().float()).cpu().numpy()
+
+
 def preprocess(
     image: LoadedImage,
     config: GenreConfig,
     *,
     mask_path: str | os.PathLike | None = None,
     silhouette: SilhouetteFn | None = None,
+    refine: bool = True,
+    seeding: str = DEFAULT_SEEDING,
 ) -> Preprocessed:
     """Select the mask and bring the image to the canonical framing.
 
-    ``silhouette``: a function (3, S, S) float RGB → (S, S) bool (the depth
-    net's silhouette), needed only when neither a mask file nor real alpha is
-    there; it runs once on the whole image padded to a square (to find the
-    object), and the returned ``mask`` is None so that the caller takes the
-    silhouette of the final crop.  Raises :class:`ImageError`.
+    ``silhouette``: a function (3, S, S) float RGB → (S, S) silhouette
+    logits (float) or mask (bool) of the depth net, needed only when neither
+    a mask file nor real alpha is there; it runs once on the whole image
+    padded to a square.  Then, with ``refine`` (the default), the object's
+    mask is found in the photo by GrabCut (:func:`.segment.refine_mask`,
+    ``seeding`` one of :data:`.segment.SEEDINGS`) and used like a mask file
+    (``mask_source`` ``"grabcut"``); without it (or when GrabCut finds
+    nothing) the returned ``mask`` is None so that the caller takes the
+    silhouette of the final crop (``mask_source`` ``"silhouette"``).
+    Raises :class:`ImageError`.
     """
     g = config.geometry
     size = g.image_size
@@ -371,6 +426,16 @@ def preprocess(
     def original_box(box):
         return tuple(float(v) * inv for v in box)
 
+    def framed(mask: np.ndarray, source: str, network_doubt: str | None = None) -> Preprocessed:
+        box = square_crop_box(mask_bbox(mask), g.object_fraction)
+        fill = tuple(int(round(255 * c)) for c in NEUTRAL_BACKGROUND) if image.alpha is not None else _border_colour(rgb)
+        crop = crop_resize(rgb, box, size, fill)
+        crop_mask = crop_resize(mask.astype(np.uint8) * 255, box, size, 0) >= 128
+        if int(crop_mask.sum()) < MIN_OBJECT_PIXELS:
+            raise ImageError("no_object", f"{image.path}: no object: the {source} mask is too small to see at {size}² pixels")
+        return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, original_box(box), image.original_size, notes, fill,
+                            photo_mask=mask, network_doubt=network_doubt)
+
     if mask_path is not None or image.has_transparency():
         if mask_path is not None:
             mask, source = load_mask(mask_path, image), "file"
@@ -378,21 +443,28 @@ def preprocess(
             mask, source = image.alpha >= ALPHA_OBJECT_MIN, "alpha"
             if int(mask.sum()) < MIN_OBJECT_PIXELS:
                 raise ImageError("no_object", f"{image.path}: no object: the alpha channel is fully transparent")
-        box = square_crop_box(mask_bbox(mask), g.object_fraction)
-        fill = tuple(int(round(255 * c)) for c in NEUTRAL_BACKGROUND) if image.alpha is not None else _border_colour(rgb)
-        crop = crop_resize(rgb, box, size, fill)
-        crop_mask = crop_resize(mask.astype(np.uint8) * 255, box, size, 0) >= 128
-        if int(crop_mask.sum()) < MIN_OBJECT_PIXELS:
-            raise ImageError("no_object", f"{image.path}: no object: the {source} mask is too small to see at {size}² pixels")
-        return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, original_box(box), image.original_size, notes, fill)
+        return framed(mask, source)
 
     if silhouette is None:
         raise ValueError("preprocess: an image without mask file or transparency needs the silhouette function")
+    if seeding not in SEEDINGS:
+        raise ValueError(f"seeding: expected one of {', '.join(SEEDINGS)}, got {seeding!r}")
     # pass 1: the whole image, padded to a square, to find the object
     side = float(max(w, h))
     whole = ((w - side) / 2.0, (h - side) / 2.0, (w + side) / 2.0, (h + side) / 2.0)
     fill = _border_colour(rgb)
-    sil = silhouette(_to_tensor(crop_resize(rgb, whole, size, fill))).cpu().numpy().astype(bool)
+    prob = _probability(silhouette(_to_tensor(crop_resize(rgb, whole, size, fill))))
+    photo_prob = uncrop(prob, whole, (w, h), linear=True)
+    network_doubt = doubt(photo_prob > 0.5, "depth net's silhouette")
+    if network_doubt:
+        notes.append(network_doubt)
+    if refine:
+        refined, used = refine_mask(rgb, photo_prob, seeding)
+        if int(refined.sum()) >= MIN_OBJECT_PIXELS:
+            notes.append(f"mask: GrabCut seeded by the {'photo border' if used == 'border' else 'depth net silhouette'}")
+            return framed(refined, "grabcut", network_doubt)
+        notes.append("GrabCut found no object: the depth net's silhouette is used")
+    sil = prob > 0.5
     bbox = mask_bbox(sil)
     if bbox is None or int(sil.sum()) < MIN_OBJECT_PIXELS:
         raise ImageError("no_object", f"{image.path}: no object found (the depth net's silhouette is empty; give a mask with --mask or an alpha channel)")
@@ -405,7 +477,8 @@ def preprocess(
         box = whole
         notes.append("already framed: first silhouette pass reused")
     crop = crop_resize(rgb, box, size, fill)
-    return Preprocessed(_to_tensor(crop), None, "silhouette", original_box(box), image.original_size, notes, fill)
+    return Preprocessed(_to_tensor(crop), None, "silhouette", original_box(box), image.original_size, notes, fill,
+                        network_doubt=network_doubt)
 
 
 # a crop this close to the first pass's square is within the spread of training framings

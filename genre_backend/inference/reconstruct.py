@@ -38,7 +38,8 @@ from ..geometry.mesh_voxels import voxels_to_mesh
 from ..nets.model import GenRe, WeightsError, load_model
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
-from .preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess
+from .preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess, uncrop
+from .segment import DEFAULT_SEEDING, doubt
 
 __all__ = [
     "STAGES",
@@ -121,7 +122,12 @@ class Reconstruction:
     """The result of one image.
 
     ``vertices`` (V, 3) float32 and ``faces`` (F, 3) int64: the mesh in the
-    view frame.  ``mask_source``: ``"file"``, ``"alpha"`` or ``"silhouette"``.
+    view frame.  ``mask_source``: ``"file"``, ``"alpha"``, ``"grabcut"`` or
+    ``"silhouette"``.  ``photo_mask``: (H, W) bool, the mask the networks
+    used at the decoded photo's pixels (:meth:`mask_in_photo` gives it at
+    the photo's own size).  ``mask_warning``: one line when that mask is
+    doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
+    of the photo or touches most of its border), else None.
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -151,6 +157,8 @@ class Reconstruction:
     fill: tuple[int, int, int] = (0, 0, 0)
     clean: CleanReport | None = None
     files: list[Path] = field(default_factory=list)
+    photo_mask: np.ndarray | None = field(default=None, repr=False)
+    mask_warning: str | None = None
     _texture: PhotoTexture | None = field(default=None, repr=False)
 
     @property
@@ -174,6 +182,23 @@ class Reconstruction:
             "crop_box": [round(float(v), 3) for v in self.crop_box],
             "image_size": [int(v) for v in self.image_size],
         }
+
+    def mask_in_photo(self) -> np.ndarray:
+        """(height, width) bool at the photo's own size (``image_size``): the mask the networks used.
+
+        Written by :meth:`save_intermediates` as ``mask_in_photo.png``; given
+        back as a mask file (``--mask``) it reproduces this result's crop and
+        network mask (exactly when the photo was not downscaled on decoding).
+        """
+        if self.photo_mask is None:
+            raise ValueError("this reconstruction keeps no mask at the photo's pixels")
+        w, h = self.image_size
+        mask = self.photo_mask
+        if mask.shape != (h, w):  # the photo was downscaled on decoding: nearest pixel back to its size
+            rows = np.minimum((np.arange(h) + 0.5) * mask.shape[0] / h, mask.shape[0] - 1).astype(np.int64)
+            cols = np.minimum((np.arange(w) + 0.5) * mask.shape[1] / w, mask.shape[1] - 1).astype(np.int64)
+            mask = mask[np.ix_(rows, cols)]
+        return mask
 
     def texture(self) -> PhotoTexture:
         """The mesh's colour from the photo (:mod:`.colour`): UVs into the photo's crop and the crop at up to 2,048 px.
@@ -214,7 +239,10 @@ class Reconstruction:
         depth, near = bright; background black), ``silhouette.png``,
         ``partial_sph.png`` and ``full_sph.png`` (far from the centre = bright, on the partial map's scale; no
         hit black), ``vox_sph.png``, ``vox_depth.png`` and ``probability.png``
-        (max-projections along view −z, −x and −y, side by side).
+        (max-projections along view −z, −x and −y, side by side), and
+        ``mask_in_photo.png``: the mask at the photo's own size (white object
+        on black, :meth:`mask_in_photo`), to correct in any editor and give
+        back with ``--mask``.
         """
         folder = Path(folder)
         try:
@@ -223,13 +251,15 @@ class Reconstruction:
             raise OutputError(f"{short(folder)}: cannot create the intermediates folder: {exc.strerror or exc}") from None
         if not os.access(folder, os.W_OK | os.X_OK):
             raise OutputError(f"{short(folder)}: intermediates folder is not writable")
-        images = self.intermediate_images()
+        images = {name: _upscale(img) for name, img in self.intermediate_images().items()}
+        if self.photo_mask is not None:
+            images["mask_in_photo"] = self.mask_in_photo().astype(np.uint8) * 255  # the photo's own pixels, never scaled
         for name in images:  # all checks before the first write
             check_output_path(folder / f"{name}.png", self.inputs)
         paths = []
         for name, img in images.items():
             p = folder / f"{name}.png"
-            write_png(p, _upscale(img))
+            write_png(p, img)
             paths.append(p)
         return paths
 
@@ -335,8 +365,8 @@ class Reconstructor:
         return out
 
     def _silhouette(self, rgb: torch.Tensor) -> torch.Tensor:
-        """(3, S, S) float → (S, S) bool: the depth net's silhouette."""
-        return (self._depth_net(rgb)["silhouette_logits"][0] > 0).cpu()
+        """(3, S, S) float → (S, S) float: the depth net's silhouette logits."""
+        return self._depth_net(rgb)["silhouette_logits"][0].float().cpu()
 
     def run(
         self,
@@ -346,6 +376,8 @@ class Reconstructor:
         progress: ProgressFn | None = None,
         should_cancel: Callable[[], bool] | None = None,
         keep_fraction: float = DEFAULT_KEEP_FRACTION,
+        refine: bool = True,
+        seeding: str = DEFAULT_SEEDING,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -356,7 +388,10 @@ class Reconstructor:
         when it returns True, :class:`Cancelled` is raised.
         ``keep_fraction``: parts of the mesh smaller (in area) than this
         fraction of the largest are dropped (0 keeps every part; cavity walls
-        inside the object are always dropped).  Raises
+        inside the object are always dropped).  ``refine`` and ``seeding``:
+        without a mask file or alpha, find the mask by GrabCut
+        (:func:`.preprocess.preprocess`); ``refine=False`` takes the depth
+        net's silhouette as it is.  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
@@ -384,7 +419,7 @@ class Reconstructor:
             stage("load")
             image = load_image(image_path)
             stage("preprocess")
-            pre: Preprocessed = preprocess(image, self.config, mask_path=mask_path, silhouette=self._silhouette)
+            pre: Preprocessed = preprocess(image, self.config, mask_path=mask_path, silhouette=self._silhouette, refine=refine, seeding=seeding)
             stage("depth")
             out = self._depth_net(pre.rgb)
             self._first_pass = None
@@ -409,6 +444,11 @@ class Reconstructor:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
             vertices, faces, clean = clean_mesh(vertices, faces, keep_fraction)
             stage("done")
+        photo_mask = pre.photo_mask
+        if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
+            box = tuple(v * image.scale for v in pre.crop_box)
+            photo_mask = uncrop(mask[0].cpu().numpy(), box, image.size)
+        warning = doubt(photo_mask)
         inter = {
             "rgb": pre.rgb,
             "depth": out["depth"][0],
@@ -439,4 +479,6 @@ class Reconstructor:
             photo=image,
             fill=pre.fill,
             clean=clean,
+            photo_mask=photo_mask,
+            mask_warning=warning,
         )

@@ -1,10 +1,13 @@
 """``genre reconstruct IMAGE… [-o OUT] [--mask M] [--threshold T] [--format obj|ply|glb]
-[--texture] [--all-parts] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
+[--texture] [--all-parts] [--no-refine] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
 
 One image or many (a progress bar on stderr for many).  Each mesh is written
 atomically; every bad input gets one line on stderr naming the file and the
 problem (with its ``genre serve`` error code), the other images go on, and the
-exit status is 1 if any image failed (2 for bad arguments).
+exit status is 1 if any image failed (2 for bad arguments).  A doubtful mask
+(one that covers most of the photo or touches most of its border: probably
+the photo's frame, not the object) gets a warning line on stderr; the mesh is
+still written.
 
 Outputs: with one image, ``-o`` is the mesh file (or an existing folder);
 with many, ``-o`` is a folder (created if needed) that receives
@@ -63,7 +66,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
     parser.add_argument("--all-parts", action="store_true",
                         help="keep every part of the mesh (default: parts smaller than 5%% of the largest part's area are dropped)")
-    parser.add_argument("--save-intermediates", metavar="DIR", help="write PNGs of depth, mask, spherical maps and voxels here")
+    parser.add_argument("--no-refine", action="store_true",
+                        help="without --mask or alpha, use the depth net's silhouette as it is (default: find the object in the photo by GrabCut)")
+    parser.add_argument("--save-intermediates", metavar="DIR",
+                        help="write PNGs of depth, mask, spherical maps and voxels here, and mask_in_photo.png: the mask at the photo's size, to correct and give back with --mask")
     parser.add_argument("--preview", action="store_true",
                         help="also write MESH_preview.png beside each mesh: the photo, depth, spherical maps and the mesh rendered from the photo's viewpoint and the side (Blender)")
     parser.add_argument("--weights", metavar="W", help=f"weights file (default: {DEFAULT_WEIGHTS})")
@@ -140,7 +146,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
         try:
             for p in mesh_files(out, fmt, args.texture):
                 check_output_path(p, (image, args.mask))
-            result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION)
+            result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
+                             refine=not args.no_refine)
             path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
@@ -154,6 +161,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                 shape += f"; {clean.parts_before - clean.parts} small or inner parts dropped"
             colour = ", coloured from the photo" if args.texture else ""
             say(f"{image} -> {path} ({used}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
+            if result.mask_warning:
+                fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \
+                    else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"
+                say(f"{prog}: warning: {image}: doubtful mask: {result.mask_warning}; {fix}", err=True)
         except Exception as exc:  # one bad input must not stop the others
             failed += 1
             code = error_code(exc)

@@ -370,6 +370,7 @@ class Server:
                 "watertight": result.clean.watertight,
                 "files": [str(p) for p in result.files],
                 "mask_source": result.mask_source,
+                "mask_warning": result.mask_warning,
                 "threshold": result.threshold,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},
                 "camera": result.camera(),
