@@ -326,8 +326,21 @@ def scenario_failures(args: dict) -> dict:
     out["timed_out_backend_replaced"] = ops.manager.client is None or ops.manager.client.pid != frozen
     prefs.job_timeout = 300.0
     works("works_after_timeout")
-    # 7. cancel while it runs
-    attempt("cancel", on_tick=lambda job: job.cancel() if job.request.state == "running" else None)
+    # 7. cancel while it runs.  The warm backend answers the box in ~0.1 s (and the mesh's last stage,
+    # colour and writing, has no cancel point), so a cancel sent on a later tick can arrive too late on a
+    # loaded machine: freeze the backend, let the request and the cancel both reach its pipe, then thaw it.
+    frozen = ops.manager.client.pid
+    os.kill(frozen, signal.SIGSTOP)
+
+    cancelled = []
+
+    def cancel_then_thaw(job):
+        if job.request.state == "running" and not cancelled:
+            cancelled.append(job)
+            job.cancel()
+            os.kill(frozen, signal.SIGCONT)
+
+    attempt("cancel", on_tick=cancel_then_thaw)
     # 8. the result cannot be added (a broken mesh file): nothing half-made stays
     def when_answered(job, action):
         # Between two ticks: wait for the backend's answer, then spoil something before the result is added.
