@@ -116,20 +116,25 @@ def test_killed_twice_on_one_shape_then_resumed(shapes, reference, tmp_path):
     _assert_same_as(reference, out)
 
 
-def test_ctrl_c_stops_promptly_with_130_and_resumes(shapes, reference, tmp_path):
-    out = tmp_path / "out"
-    argv = _argv(shapes, out)
-    proc = _start(argv, tmp_path)
+def _interrupt_after_first_views(proc: subprocess.Popen, out) -> tuple[str, float]:
+    """Ctrl-C once the first shape has two views on disk; (stderr, seconds from the signal to the exit)."""
     try:
         _wait_for(out / "ball" / "view_001.json", proc)
         sent = time.monotonic()
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
-        waited = time.monotonic() - sent
+        return err, time.monotonic() - sent
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+def test_ctrl_c_stops_promptly_with_130_and_resumes(shapes, reference, tmp_path):
+    out = tmp_path / "out"
+    argv = _argv(shapes, out)
+    proc = _start(argv, tmp_path)
+    err, waited = _interrupt_after_first_views(proc, out)
     assert proc.returncode == EXIT_INTERRUPTED, err
     # At most the view being rendered (~0.3 s here) is finished first, then Blender is closed.
     assert waited < 10.0, f"the run took {waited:.1f} s to stop"
@@ -201,16 +206,7 @@ def test_ctrl_c_in_a_stock_blender_stops_with_130(shapes, tmp_path):
     cmd = [shutil.which("blender"), "--background", "--factory-startup", "--python", str(script), "--",
            *_argv(shapes, out), "--no-denoise"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_for(out / "ball" / "view_001.json", proc)
-        sent = time.monotonic()
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-        waited = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    err, waited = _interrupt_after_first_views(proc, out)
     assert proc.returncode == EXIT_INTERRUPTED, err
     assert waited < 10.0
     assert "interrupted:" in err and "views of" in err
