@@ -1,6 +1,6 @@
 """Property-based fuzzing of the ``genre serve`` protocol (issue 18), with Hypothesis.
 
-One server process (the tiny trained weights of ``test_server``), started in a
+One server process (the tiny trained weights of conftest's ``trained``), started in a
 temporary working folder, receives generated lines: every request type of
 ``docs/protocol.md`` with every field drawn from plain values and from
 arbitrary JSON (NaN and infinities, integers of 4,000 and of more than 4,300
@@ -44,7 +44,7 @@ import pytest
 from hypothesis import HealthCheck, assume, example, given, note, settings
 from hypothesis import strategies as st
 
-from test_server import ServerProcess, trained  # noqa: F401  (trained: the tiny trained weights, a fixture)
+from test_server import ServerProcess
 
 EXAMPLES = int(os.environ.get("GENRE_FUZZ_EXAMPLES", "800"))
 EVENT_TYPES = {"pong", "version", "progress", "result", "error", "cancelled", "bye"}

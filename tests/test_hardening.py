@@ -17,7 +17,7 @@ from genre_backend.inference import reconstruct_cli
 from genre_backend.inference.reconstruct import OutputError, check_output_path
 from genre_backend.io import WeightsError, atomic_write_bytes, remove_dead_temporaries, tmp_prefix
 from genre_backend.nets.model import WEIGHTS_FORMAT, load_model
-from test_server import ServerProcess, trained  # noqa: F401  (trained: the tiny trained weights, a fixture)
+from test_server import ServerProcess
 
 REPO = Path(__file__).resolve().parents[1]
 

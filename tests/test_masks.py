@@ -11,7 +11,6 @@ from genre_backend.inference import reconstruct_cli
 from genre_backend.inference.preprocess import load_image, load_mask
 from genre_backend.inference.reconstruct import Reconstructor
 from genre_backend.inference.segment import border_touch, cover, doubt, refine_mask
-from test_reconstruct import trained_weights
 
 
 def _photo(w: int = 240, h: int = 180, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -90,16 +89,6 @@ class _FrameSilhouette(torch.nn.Module):
         out = dict(self.net(x))
         out["silhouette_logits"] = torch.full_like(out["silhouette_logits"], 8.0)
         return out
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return trained_weights(tmp_path_factory)
-    finally:
-        torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

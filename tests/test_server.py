@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from test_reconstruct import huge_png, trained_weights
+from test_reconstruct import huge_png
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -85,18 +85,6 @@ class ServerProcess:
         finally:
             if self.proc.poll() is None:
                 self.proc.kill()
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return trained_weights(tmp_path_factory)
-    finally:
-        torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
