@@ -164,14 +164,20 @@ def watch():
     return None
 
 
-@guarded
-def shoot_panel():
+def screenshot(name: str, key: str) -> tuple:
+    """Save the window as OUT/name, record it under RESULT[key]; returns (window, area, region) of the 3D view."""
     window, area, region, sidebar = view3d()
-    path = os.path.join(OUT, "viewport_with_panel.png")
+    path = os.path.join(OUT, name)
     with bpy.context.temp_override(window=window, area=area, region=region):
         bpy.ops.screen.screenshot(filepath=path)
-    RESULT["screenshot"] = path
+    RESULT[key] = path
     log(f"screenshot {path}")
+    return window, area, region
+
+
+@guarded
+def shoot_panel():
+    window, area, region = screenshot("viewport_with_panel.png", "screenshot")
     cam = bpy.context.scene.camera
     if cam is not None:
         with bpy.context.temp_override(window=window, area=area, region=region):
@@ -186,11 +192,7 @@ def shoot_panel():
 
 @guarded
 def shoot_camera():
-    window, area, region, sidebar = view3d()
-    path = os.path.join(OUT, "through_camera.png")
-    with bpy.context.temp_override(window=window, area=area, region=region):
-        bpy.ops.screen.screenshot(filepath=path)
-    RESULT["camera_screenshot"] = path
+    window, area, region = screenshot("through_camera.png", "camera_screenshot")
     with bpy.context.temp_override(window=window, area=area, region=region):
         bpy.ops.view3d.view_axis(type="RIGHT")  # the side: how deep the mesh is, and the colour of its unseen side
         bpy.ops.view3d.view_selected()
@@ -200,11 +202,7 @@ def shoot_camera():
 
 @guarded
 def shoot_side():
-    window, area, region, sidebar = view3d()
-    path = os.path.join(OUT, "side.png")
-    with bpy.context.temp_override(window=window, area=area, region=region):
-        bpy.ops.screen.screenshot(filepath=path)
-    RESULT["side_screenshot"] = path
+    screenshot("side.png", "side_screenshot")
     finish(0)
     return None
 
