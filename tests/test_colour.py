@@ -155,3 +155,17 @@ def test_shipped_model_coloured_mesh_reproduces_the_photo_through_its_camera(pho
     assert inside.sum() >= 0.9 * (np.asarray(m) > 0).sum()  # the mesh covers the mask
     mae = np.abs(rgb[inside].astype(float) - photo_crop[inside]).mean()
     assert mae <= 8.0, mae
+
+
+def test_textured_obj_with_a_name_that_is_not_utf8(tmp_path):
+    """A Latin-1 file name (bytes caf\\xe9) reaches Python with a lone surrogate; the .mtl must name the texture
+    by the same bytes, and the OBJ its .mtl."""
+    import os
+
+    v, f = _sphere(subdivisions=1)
+    tex = photo_texture(v, f, CAM, np.ones((128, 128), bool), np.zeros((8, 8, 3), np.uint8), tolerance=0.02)
+    name = os.fsdecode(b"caf\xe9.obj")
+    _, _, files = write_mesh(tmp_path / name, v, f, texture=tex)
+    assert sorted(os.listdir(os.fsencode(tmp_path))) == [b"caf\xe9.mtl", b"caf\xe9.obj", b"caf\xe9_texture.png"]
+    assert b"map_Kd caf\xe9_texture.png" in (tmp_path / os.fsdecode(b"caf\xe9.mtl")).read_bytes()
+    assert b"mtllib caf\xe9.mtl" in (tmp_path / name).read_bytes()

@@ -173,3 +173,16 @@ def test_rejects_bad_inputs():
         sph.mesh_to_sph(torch.zeros(3, 3), torch.tensor([[0, 1, 5]]), 8)
     with pytest.raises(ValueError, match="NaN"):
         sph.sph_to_points(torch.full((1, 4, 4), float("nan")))
+
+
+def test_cached_directions_made_during_inference_still_work_with_autograd():
+    """A reconstruction (inference mode) and then training in one process: the cached directions must not be
+    inference tensors (CI saw 'Inference tensors cannot be saved for backward')."""
+    from genre_backend.geometry.spherical import sph_directions, sph_to_points
+
+    with torch.inference_mode():
+        sph_directions(37, 41)
+    sph = torch.full((1, 37, 41), 0.5, requires_grad=True)
+    points, _ = sph_to_points(sph, supersample=1)
+    points.sum().backward()
+    assert sph.grad is not None and torch.isfinite(sph.grad).all()

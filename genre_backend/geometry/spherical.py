@@ -58,6 +58,13 @@ NO_HIT = 1.0
 
 @lru_cache(maxsize=16)
 def _directions(height: int, width: int, dtype: torch.dtype, device: str) -> torch.Tensor:
+    # Cached across calls, so never an inference tensor: one made under torch.inference_mode() (a
+    # reconstruction) could not be used later by autograd (training in the same process).
+    with torch.inference_mode(False):
+        return _make_directions(height, width, dtype, device)
+
+
+def _make_directions(height: int, width: int, dtype: torch.dtype, device: str) -> torch.Tensor:
     theta = (torch.arange(height, dtype=torch.float64) + 0.5) * math.pi / height
     phi = torch.arange(width, dtype=torch.float64) * 2.0 * math.pi / width
     st, ct = torch.sin(theta)[:, None], torch.cos(theta)[:, None]

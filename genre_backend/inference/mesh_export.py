@@ -176,13 +176,18 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
     if texture is not None and len(texture.uv) != len(v):
         raise ValueError(f"texture: {len(texture.uv)} UVs for {len(v)} vertices")
     if fmt == "obj":
+        # (file names that are not UTF-8 reach Python as lone surrogates: written back as their own bytes)
         if texture is None:
-            _write(path, _obj_text(v, f, None, None).encode())
+            _write(path, _obj_text(v, f, None, None).encode("utf-8", "surrogateescape"))
         else:
             mtl, png = files[1], files[2]
-            _write(png, png_bytes(texture.image))
-            _write(mtl, f"newmtl photo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png.name}\n".encode())
-            _write(path, _obj_text(v, f, texture.uv, mtl.name).encode())
+            data = {  # everything encoded before the first write
+                png: png_bytes(texture.image),
+                mtl: f"newmtl photo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png.name}\n".encode("utf-8", "surrogateescape"),
+                path: _obj_text(v, f, texture.uv, mtl.name).encode("utf-8", "surrogateescape"),
+            }
+            for target, payload in data.items():
+                _write(target, payload)
         return path, fmt, files
     mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
     if texture is not None and fmt == "ply":
