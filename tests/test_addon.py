@@ -332,12 +332,16 @@ def scenario_failures(args: dict) -> dict:
     frozen = ops.manager.client.pid
     os.kill(frozen, signal.SIGSTOP)
 
-    cancelled = []
+    steps = []
 
     def cancel_then_thaw(job):
-        if job.request.state == "running" and not cancelled:
-            cancelled.append(job)
+        # tick k: the request went out (state running) → ask to cancel; the next tick writes the cancel line;
+        # then thaw the backend, which finds both lines in its pipe
+        if not steps and job.request.state == "running":
+            steps.append("cancel")
             job.cancel()
+        elif steps == ["cancel"]:
+            steps.append("thaw")
             os.kill(frozen, signal.SIGCONT)
 
     attempt("cancel", on_tick=cancel_then_thaw)

@@ -102,6 +102,12 @@ def test_textured_files_in_each_format_read_back(tmp_path):
     back = trimesh.load(path, process=False)
     assert np.array_equal(back.visual.vertex_colors, tex.vertex_colours())
 
+    # a path with no file name has no companions (it is then refused as a folder, not a crash)
+    from pathlib import Path
+
+    assert mesh_files("/", "obj", True) == [Path("/")]
+    with pytest.raises(OutputError, match="directory"):
+        write_mesh("/", v, f, "obj", texture=tex)
     # never over an input, checked before anything is written
     photo = tmp_path / "x_texture.png"
     photo.write_bytes(b"the user's photo")

@@ -339,7 +339,7 @@ def written_files(output: str, fmt, texture) -> list[str]:
     if fmt is None:
         ext = PurePosixPath(output).suffix.lower().lstrip(".")
         fmt = ext if ext in ("obj", "ply", "glb") else "obj"
-    if texture is True and fmt == "obj":
+    if texture is True and fmt == "obj" and PurePosixPath(output).name:
         p = PurePosixPath(output)
         return [output, str(p.with_suffix(".mtl")), str(p.with_name(p.stem + "_texture.png"))]
     return [output]

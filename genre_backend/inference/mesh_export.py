@@ -135,7 +135,7 @@ def _resolve_format(path: Path, fmt: str | None) -> str:
 def mesh_files(path: str | os.PathLike, fmt: str | None = None, textured: bool = False) -> list[Path]:
     """Every file :func:`write_mesh` writes for ``path``: the mesh first, then an OBJ's material and texture."""
     path = Path(path)
-    if _resolve_format(path, fmt) == "obj" and textured:
+    if _resolve_format(path, fmt) == "obj" and textured and path.name:  # (no name, e.g. "/": refused by the checks)
         return [path, path.with_suffix(".mtl"), path.with_name(path.stem + "_texture.png")]
     return [path]
 
