@@ -53,7 +53,6 @@ __all__ = [
     "resolve_device",
     "check_output_path",
     "write_mesh",
-    "short",
 ]
 
 STAGES = ("load", "preprocess", "depth", "partial_sph", "inpaint", "voxels", "refine", "mesh", "write")
@@ -206,13 +205,13 @@ class Reconstruction:
         Needs the decoded photo (``photo``); computed once and kept.
         """
         if self._texture is None:
+            from scipy.ndimage import binary_erosion
+
             if self.photo is None:
                 raise ValueError("this reconstruction keeps no photo to colour the mesh from")
             x0, y0, x1, y1 = (v * self.photo.scale for v in self.crop_box)  # original → decoded pixels
             side = int(np.clip(round(x1 - x0), self.config.geometry.image_size, MAX_TEXTURE_SIDE))
             image = crop_resize(composite(self.photo), (x0, y0, x1, y1), side, self.fill)
-            from scipy.ndimage import binary_erosion
-
             # one pixel in from the mask's edge, so no vertex takes the background's colour
             mask = binary_erosion(self.intermediates["mask"].numpy().astype(bool), iterations=1)
             tolerance = 1.5 / self.config.geometry.voxel_size  # a voxel and a half (the mesh is cut from voxels)

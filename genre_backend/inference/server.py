@@ -301,7 +301,7 @@ class Server:
     @staticmethod
     def _check_intermediates(job: Job) -> None:
         """Refuse, before any work, an intermediates folder that is a file or cannot be looked at (a missing one is made later)."""
-        from .reconstruct import short
+        from .mesh_export import short
 
         try:
             mode = os.stat(job.save_intermediates).st_mode
