@@ -5,8 +5,9 @@ For each view (one per shape, a seeded sample of ``--views`` of them) it
 scores, with ``genre eval``'s metric (CD at 1,024 points, both clouds
 normalised):
 
-* ``true shell, marching cubes``   the refiner's target itself at 0.5 (the best a
-                                   surface-shell output can do at this voxel size)
+* ``true target, marching cubes``  the refiner's target itself (the shell or the
+                                   truncated distance, as the weights' config names it) at
+                                   each threshold: the best that representation can do
 * ``true spherical map, projected`` the true full map → voxels, every hit voxel kept
 * ``GenRe spherical map, projected`` GenRe's inpainted map → voxels, likewise
 * ``refiner <- true depth + true map`` (GenRe-SphOracle), ``refiner <- true depth``
@@ -57,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     pick = np.random.default_rng(args.seed).choice(len(views), min(args.views_count, len(views)), replace=False)
     views = [views[i] for i in sorted(pick)]
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)
-    truth, scores, shell_fraction = Truth(), {}, []
+    truth, scores, target_fraction = Truth(), {}, []
 
     def add(name: str, per_t: dict) -> None:
         for t, m in per_t.items():
@@ -69,8 +70,8 @@ def main(argv: list[str] | None = None) -> int:
             gt, _ = truth.posed(view)
             target = CloudScorer(gt[:POINTS_SMALL], gt)
             rgb, mask, depth, full = s["rgb"][None], s["mask"][None], s["depth"][None], s["full_sph"][None]
-            shell_fraction.append(float(s["shell"].mean()))
-            add("true shell, marching cubes", score_grid(s["shell"], [0.5], target))
+            target_fraction.append(float((s["voxels"] > 0).float().mean()))
+            add(f"true {model.config.geometry.target}, marching cubes", score_grid(s["voxels"], thresholds, target))
             sph_oracle = model(rgb, mask=mask, depth=depth, full_sph=full)
             add("true spherical map, projected", score_grid(sph_oracle["vox_sph"][0, 0], [HIT], target))
             add("refiner <- true depth + true map", score_grid(torch.sigmoid(sph_oracle["logits"])[0, 0], thresholds, target))
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
             add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))
             add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target))
     print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
-          f"the true shell fills {100 * np.mean(shell_fraction):.1f} % of the grid")
+          f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")
     for name, per_t in scores.items():
         print(f"{name:36s} " + "  ".join(f"t={t:.2f}: {np.mean(v):.4f}" for t, v in per_t.items()))
     return 0

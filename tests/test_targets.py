@@ -41,7 +41,7 @@ def check_view(shape_dir: Path, view: int, config) -> None:
     edge = ndimage.binary_dilation((alpha > 0.01) & (alpha < 0.99))
     assert not ((solid != valid) & ~edge).any()
     assert (solid == valid).mean() > 0.97
-    t = load_targets(shape_dir, view, config.geometry.voxel_size)
+    t = load_targets(shape_dir, view, config.geometry)
     # full map: every hit lies on the mesh, and where there is no hit the reference ray caster agrees
     h = config.geometry.sph_size
     dirs = sph_directions(h, dtype=torch.float64).numpy()
@@ -53,15 +53,36 @@ def check_view(shape_dir: Path, view: int, config) -> None:
     rows = slice(h // 2 - 2, h // 2 + 2)
     ref = raycast_triangles_reference(mesh.triangles, h, h)[rows]
     assert np.abs(ref - full[rows]).max() < 1e-4
-    # shell voxels: they hold the surface, and none is far from it
     n = config.geometry.voxel_size
-    centres = (np.argwhere(t["shell"]) + 0.5) / n - 0.5
-    far = trimesh.proximity.closest_point(mesh, centres)[1]
-    assert far.max() < (3**0.5 / 2 + 3**0.5 * config.geometry.shell_dilation) / n + 1e-6
+    check_voxel_target(mesh, t["voxels"], config.geometry)
+
+
+def check_voxel_target(mesh: trimesh.Trimesh, voxels: np.ndarray, geometry) -> None:
+    """The voxel target against the posed mesh, with trimesh's closest points as the independent reference."""
+    n = geometry.voxel_size
     surface = trimesh.sample.sample_surface(mesh, 2000, seed=0)[0]
     idx = np.floor((surface + 0.5) * n).astype(int)
     inside = ((idx >= 0) & (idx < n)).all(1)
-    assert t["shell"][tuple(idx[inside].T)].all()
+    if geometry.target == "shell":
+        # shell voxels: they hold the surface, and none is far from it
+        assert set(np.unique(voxels)) <= {0.0, 1.0}
+        centres = (np.argwhere(voxels > 0.5) + 0.5) / n - 0.5
+        far = trimesh.proximity.closest_point(mesh, centres)[1]
+        assert far.max() < (3**0.5 / 2 + 3**0.5 * geometry.shell_dilation) / n + 1e-6
+        assert (voxels[tuple(idx[inside].T)] == 1).all()
+        return
+    # distance: every voxel within the band holds 1 − d/band (to the uint8 storage's 1/255),
+    # every voxel holding a value is within the band, and the voxels around the surface are set
+    band = geometry.distance_band
+    near = np.argwhere(voxels > 0)
+    d = trimesh.proximity.closest_point(mesh, (near + 0.5) / n - 0.5)[1] * n
+    assert np.abs(voxels[tuple(near.T)] - np.clip(1 - d / band, 0, 1)).max() <= 0.5 / 255 + 1e-4
+    rng = np.random.default_rng(0)
+    zeros = np.argwhere(voxels == 0)
+    zeros = zeros[rng.choice(len(zeros), min(2000, len(zeros)), replace=False)]
+    d0 = trimesh.proximity.closest_point(mesh, (zeros + 0.5) / n - 0.5)[1] * n
+    assert d0.min() >= band * (1 - 0.5 / 255) - 1e-4
+    assert (voxels[tuple(idx[inside].T)] >= 1 - (3**0.5 / 2) / band - 0.5 / 255).all()
 
 
 def test_tiny_views_agree_with_their_meshes(tiny_views):
@@ -70,13 +91,33 @@ def test_tiny_views_agree_with_their_meshes(tiny_views):
     for ref in refs:
         check_view(ref.shape_dir, ref.view, TINY)
     sample = ViewDataset(refs, TINY)[0]
-    assert sample["rgb"].shape == (3, 64, 64) and sample["shell"].shape == (32, 32, 32)
+    assert sample["rgb"].shape == (3, 64, 64) and sample["voxels"].shape == (32, 32, 32)
     assert (tiny_views / "box" / "surface_points.npz").is_file()
 
 
 def test_targets_resume_and_skip(tiny_views):
     counts = build_targets(tiny_views, TINY, progress=False)
     assert counts["written"] == 0 and counts["skipped_complete"] == 4
+
+
+def test_another_representation_is_added_to_the_files_and_keeps_their_maps(tiny_views, tmp_path):
+    import dataclasses
+    import shutil
+
+    views = tmp_path / "views"
+    shutil.copytree(tiny_views, views)
+    other = "shell" if TINY.geometry.target == "distance" else "distance"
+    config = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, target=other))
+    before = {r: load_targets(r.shape_dir, r.view, TINY.geometry) for r in find_views(views)}
+    with pytest.raises(ValueError, match=f"no '{other}' voxel target"):
+        load_targets(next(iter(before)).shape_dir, 0, config.geometry)
+    counts = build_targets(views, config, progress=False)
+    assert counts["added_target"] == 4 and counts["written"] == 0
+    for ref, old in before.items():
+        new = load_targets(ref.shape_dir, ref.view, config.geometry)
+        assert np.array_equal(new["full_sph"], old["full_sph"]) and np.array_equal(new["partial_sph"], old["partial_sph"])
+        assert np.array_equal(load_targets(ref.shape_dir, ref.view, TINY.geometry)["voxels"], old["voxels"])
+        check_voxel_target(_posed_mesh(ref.shape_dir, ref.view), new["voxels"], config.geometry)
 
 
 def test_sphere_full_map_is_one_minus_r(tmp_path):
@@ -88,7 +129,7 @@ def test_sphere_full_map_is_one_minus_r(tmp_path):
     trimesh.creation.icosphere(subdivisions=5, radius=r).export(path)
     render_shape(BlenderRenderer(TINY, scratch_dir=tmp_path / "s"), ShapeEntry("sphere", path), [(10.0, 20.0)], tmp_path / "views", seed=0)
     build_targets(tmp_path / "views", TINY, progress=False)
-    t = load_targets(tmp_path / "views" / "sphere", 0, TINY.geometry.voxel_size)
+    t = load_targets(tmp_path / "views" / "sphere", 0, TINY.geometry)
     assert np.abs(t["full_sph"] - (1 - r)).max() < 5e-4  # the icosphere's facets are within 2e-4 of the sphere
     visible = t["partial_sph"] < 1
     assert visible.sum() > 0.2 * visible.size

@@ -11,7 +11,7 @@ from genre_backend.config import GenreConfig, GeometryConfig, NetworkConfig
 
 TINY = GenreConfig(
     preset="tiny",
-    geometry=GeometryConfig(image_size=64, sph_size=32, sph_pad=16, voxel_size=32),
+    geometry=GeometryConfig(image_size=64, sph_size=32, sph_pad=16, voxel_size=32, target="distance"),
     network=NetworkConfig(depth_widths=(8, 16, 32, 64), depth_decoder_blocks=0, inpaint_widths=(8, 16, 32, 64), refiner_nf=4, refiner_fc=32),
 )
 

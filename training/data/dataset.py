@@ -8,7 +8,8 @@ size, N = voxel grid size):
 * ``depth``       (S, S) float, planar depth, 0 outside the mask or where the Z pass saw nothing
 * ``mask``        (S, S) bool, the film alpha > 0.5 (the silhouette target)
 * ``full_sph``    (H, H) float, ``partial_sph`` (H, H) float
-* ``shell``       (N, N, N) float in {0, 1}
+* ``voxels``      (N, N, N) float in [0, 1], the refiner's target (``GeometryConfig.target``:
+  the surface shell or the truncated distance)
 
 Augmentation (training only) follows the original: brightness, contrast and
 saturation each scaled by U[0.6, 1.4] in random order, then PCA lighting noise.
@@ -175,8 +176,8 @@ class ViewDataset(torch.utils.data.Dataset):
             "mask": mask,
         }
         if self.targets:
-            t = load_targets(ref.shape_dir, ref.view, self.config.geometry.voxel_size)
+            t = load_targets(ref.shape_dir, ref.view, self.config.geometry)
             sample["full_sph"] = torch.from_numpy(t["full_sph"])
             sample["partial_sph"] = torch.from_numpy(t["partial_sph"])
-            sample["shell"] = torch.from_numpy(t["shell"]).float()
+            sample["voxels"] = torch.from_numpy(t["voxels"])
         return sample

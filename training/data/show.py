@@ -1,7 +1,7 @@
 """``genre data show``: a contact sheet of training samples for a person to look at.
 
 One row per sample: RGB, depth, mask, partial and full spherical maps, and
-the middle slice of the surface-shell voxels (view x–y plane at z = 0).
+the middle slice of the voxel target (view x–y plane at z = 0).
 """
 
 from __future__ import annotations
@@ -33,19 +33,19 @@ def contact_sheet(views_root: Path, out_png: Path, preset: str | None = None, co
         raise ValueError(f"{views_root}: no views with targets (run 'genre data render' and 'genre data targets')")
     pick = np.random.default_rng(seed).choice(len(refs), size=min(count, len(refs)), replace=False)
     data = ViewDataset([refs[i] for i in sorted(pick)], config)
-    cols = ["RGB", "depth", "mask", "partial sph", "full sph", "shell (z = 0 slice)"]
+    cols = ["RGB", "depth", "mask", "partial sph", "full sph", "voxel target (z = 0 slice)"]
     fig, axes = plt.subplots(len(data), len(cols), figsize=(2.2 * len(cols), 2.3 * len(data)), squeeze=False)
     for r in range(len(data)):
         s = data[r]
         depth = s["depth"].numpy()
-        n = s["shell"].shape[0]
+        n = s["voxels"].shape[0]
         panels = [
             s["rgb"].permute(1, 2, 0).numpy(),
             np.where(depth > 0, depth, np.nan),
             s["mask"].numpy(),
             s["partial_sph"].numpy(),
             s["full_sph"].numpy(),
-            s["shell"][:, :, n // 2].T.flip(0).numpy(),  # x to the right, y up
+            s["voxels"][:, :, n // 2].T.flip(0).numpy(),  # x to the right, y up
         ]
         for c, img in enumerate(panels):
             ax = axes[r, c]

@@ -5,17 +5,22 @@ this writes ``view_KKK_targets.npz`` with
 
 * ``full_sph``    (H, H) float32 — the posed mesh's full spherical map (ray cast),
 * ``partial_sph`` (H, H) float32 — the partial map of the true depth,
-* ``shell``       (N³ bits, ``np.packbits``) — the surface shell (:func:`mesh_to_shell`),
-* ``preset`` / ``sph_size`` / ``voxel_size`` — what the arrays were made for;
+* the refiner's voxel target, one key per representation
+  (``GeometryConfig.target``, :func:`~genre_backend.geometry.mesh_voxels.mesh_to_target`):
+  ``shell`` (N³ bits, ``np.packbits``) — the paper's surface shell — and/or
+  ``distance`` (N³ uint8, value × 255) — the truncated unsigned distance;
+* ``sph_size`` / ``voxel_size`` — what the arrays were made for;
 
 and once per shape ``surface_points.npz``: 10,000 area-uniform points
 (object frame) for evaluation.  Files are written atomically (temporary name,
-then rename); complete targets are skipped on re-runs.
+then rename); complete targets are skipped on re-runs, and a file that lacks
+the wanted representation gets it added (its spherical maps are kept).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -25,26 +30,57 @@ import numpy as np
 import torch
 
 from genre_backend import frame
-from genre_backend.config import GenreConfig, get_preset, PRESETS
+from genre_backend.config import TARGETS, GenreConfig, get_preset, PRESETS
 from genre_backend.geometry.metrics import sample_surface
 from genre_backend.geometry.spherical import depth_to_sph, mesh_to_sph
 from genre_backend.io import atomic_savez, atomic_write_text
 
 from .views import TARGETS_FAILURES_FILE, load_view_meta, recorded_preset, surface_points_path, targets_path, view_indices, view_paths
 
-__all__ = ["ShapeTargets", "targets_path", "load_targets", "build_targets", "main"]
+__all__ = ["ShapeTargets", "targets_path", "load_targets", "has_target", "build_targets", "main"]
 
 SURFACE_POINTS = 10_000
 
 
-def load_targets(shape_dir: Path, view: int, voxel_size: int) -> dict[str, np.ndarray]:
-    """Read a view's targets: ``full_sph``, ``partial_sph`` (H, H) float32 and ``shell`` (N, N, N) bool."""
+def _encode(kind: str, grid: torch.Tensor) -> np.ndarray:
+    if kind == "shell":
+        return np.packbits(grid.numpy().reshape(-1) > 0.5)
+    return np.round(grid.numpy().reshape(-1) * 255.0).astype(np.uint8)
+
+
+def _decode(kind: str, stored: np.ndarray, n: int) -> np.ndarray:
+    if kind == "shell":
+        return np.unpackbits(stored, count=n**3).reshape(n, n, n).astype(np.float32)
+    return (stored.reshape(n, n, n).astype(np.float32) / 255.0)
+
+
+def has_target(path: Path, kind: str) -> bool:
+    """Whether a targets file exists and holds the ``kind`` voxel target."""
+    if not path.is_file():
+        return False
+    try:
+        with np.load(path) as z:
+            return kind in z.files
+    except (OSError, ValueError, EOFError):  # a cut file: written again
+        return False
+
+
+def load_targets(shape_dir: Path, view: int, geometry) -> dict[str, np.ndarray]:
+    """Read a view's targets for ``geometry`` (a GeometryConfig).
+
+    Returns ``full_sph``, ``partial_sph`` (H, H) float32 and ``voxels``
+    (N, N, N) float32 in [0, 1]: the refiner's target in the representation
+    ``geometry.target`` names.
+    """
+    kind = geometry.target
     with np.load(targets_path(shape_dir, view)) as z:
         n = int(z["voxel_size"])
-        if n != voxel_size:
-            raise ValueError(f"{shape_dir}: targets were made for {n}³ voxels, the config wants {voxel_size}³")
-        shell = np.unpackbits(z["shell"], count=n**3).reshape(n, n, n).astype(bool)
-        return {"full_sph": z["full_sph"], "partial_sph": z["partial_sph"], "shell": shell}
+        if n != geometry.voxel_size:
+            raise ValueError(f"{shape_dir}: targets were made for {n}³ voxels, the config wants {geometry.voxel_size}³")
+        if kind not in z.files:
+            raise ValueError(f"{shape_dir}: view {view} has no '{kind}' voxel target: run "
+                             f"'genre data targets --views {shape_dir.parent} --target {kind}'")
+        return {"full_sph": z["full_sph"], "partial_sph": z["partial_sph"], "voxels": _decode(kind, z[kind], n)}
 
 
 class ShapeTargets:
@@ -64,36 +100,46 @@ class ShapeTargets:
         # the lattice is rotation-invariant in spacing, so sample once in the object frame
         self.lattice = surface_lattice(self.vertices, self.faces, config.geometry.voxel_size)
 
-    def view_targets(self, rotation: torch.Tensor, depth: torch.Tensor) -> dict[str, np.ndarray]:
-        from genre_backend.geometry.mesh_voxels import lattice_to_shell
+    def voxel_target(self, rotation: torch.Tensor, kind: str) -> np.ndarray:
+        """The ``kind`` voxel target of the posed mesh, encoded for the targets file."""
+        from genre_backend.geometry.mesh_voxels import dilate, mesh_to_distance, points_to_occupancy
 
+        g = self.config.geometry
+        rot = rotation.to(torch.float64)[None]
+        surface = points_to_occupancy(frame.object_to_view(self.lattice[None], rot)[0], g.voxel_size)
+        if kind == "shell":
+            return _encode(kind, dilate(surface, g.shell_dilation).float())
+        verts = frame.object_to_view(self.vertices[None], rot)[0]
+        return _encode(kind, mesh_to_distance(verts, self.faces, g.voxel_size, g.distance_band, surface=surface))
+
+    def view_targets(self, rotation: torch.Tensor, depth: torch.Tensor, kind: str) -> dict[str, np.ndarray]:
         g, cam = self.config.geometry, self.config.camera
         rot = rotation.to(torch.float64)[None]
         verts = frame.object_to_view(self.vertices[None], rot)[0]
         full = mesh_to_sph(verts.float(), self.faces, g.sph_size)  # float32: 2× faster, error ~1e-7
         partial = depth_to_sph(depth[None].float(), cam, g.sph_size, g.depth_edge_max_ratio)[0]
-        pts = frame.object_to_view(self.lattice[None], rot)[0]
-        shell = lattice_to_shell(pts, g.voxel_size, g.shell_dilation)
         return {
             "full_sph": full.numpy().astype(np.float32),
             "partial_sph": partial.numpy().astype(np.float32),
-            "shell": np.packbits(shell.numpy().reshape(-1)),
+            kind: self.voxel_target(rotation, kind),
             "voxel_size": np.int64(g.voxel_size),
             "sph_size": np.int64(g.sph_size),
         }
 
 
-def build_targets(views_root: Path, config: GenreConfig, *, progress: bool = True) -> dict[str, int]:
-    """Write missing targets for every rendered view under ``views_root``; returns counts."""
+def build_targets(views_root: Path, config: GenreConfig, *, progress: bool = True, shard: tuple[int, int] = (0, 1)) -> dict[str, int]:
+    """Write missing targets (with ``config.geometry.target``'s voxels) for every rendered view; returns counts."""
     from tqdm import tqdm
 
-    shape_dirs = sorted(p for p in Path(views_root).iterdir() if p.is_dir())
-    counts = {"views": 0, "written": 0, "skipped_complete": 0, "failed_shapes": 0}
+    kind = config.geometry.target
+    k_shard, n_shards = shard
+    shape_dirs = sorted(p for p in Path(views_root).iterdir() if p.is_dir())[k_shard::n_shards]
+    counts = {"views": 0, "written": 0, "added_target": 0, "skipped_complete": 0, "failed_shapes": 0}
     failures = {}
     bar = tqdm(shape_dirs, desc="targets", unit="shape", disable=not progress)
     for shape_dir in bar:
         views = view_indices(shape_dir)
-        todo = [k for k in views if not targets_path(shape_dir, k).is_file()]
+        todo = [k for k in views if not has_target(targets_path(shape_dir, k), kind)]
         counts["views"] += len(views)
         counts["skipped_complete"] += len(views) - len(todo)
         if not todo and surface_points_path(shape_dir).is_file():
@@ -111,8 +157,21 @@ def build_targets(views_root: Path, config: GenreConfig, *, progress: bool = Tru
                 with np.load(view_paths(shape_dir, k)["npz"]) as z:
                     depth = torch.from_numpy(z["depth"])
                 rot = torch.tensor(meta["rotation_cam_to_obj"])
-                atomic_savez(targets_path(shape_dir, k), **shape.view_targets(rot, depth))
-                counts["written"] += 1
+                path = targets_path(shape_dir, k)
+                old = None
+                if path.is_file():
+                    try:
+                        with np.load(path) as z:
+                            old = {name: z[name] for name in z.files}
+                    except (OSError, ValueError, EOFError):
+                        old = None
+                if old is not None and int(old.get("voxel_size", -1)) == config.geometry.voxel_size \
+                        and int(old.get("sph_size", -1)) == config.geometry.sph_size:
+                    atomic_savez(path, **old, **{kind: shape.voxel_target(rot, kind)})  # the maps are kept
+                    counts["added_target"] += 1
+                else:
+                    atomic_savez(path, **shape.view_targets(rot, depth, kind))
+                    counts["written"] += 1
         except Exception as exc:  # one bad shape must not stop the build
             counts["failed_shapes"] += 1
             failures[shape_dir.name] = f"{exc.__class__.__name__}: {exc}"
@@ -127,8 +186,18 @@ def main(argv: list[str] | None = None, prog: str = "genre data targets") -> int
     parser.add_argument("--views", type=Path, required=True, help="folder written by 'genre data render'")
     parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
                         help="check against the preset recorded by 'genre data render' (default: the recorded one)")
+    parser.add_argument("--target", choices=TARGETS, default=None,
+                        help="the voxel representation to add (default: the preset's, geometry.target)")
+    parser.add_argument("--shard", default="0/1", metavar="K/N",
+                        help="build only every N-th shape starting at K (run N processes side by side)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    try:
+        shard = tuple(int(x) for x in args.shard.split("/"))
+        if len(shard) != 2 or not 0 <= shard[0] < shard[1]:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--shard: expected K/N with 0 <= K < N, got {args.shard!r}")
     if not args.views.is_dir():
         parser.error(f"--views: not a folder: {args.views}")
     try:
@@ -136,7 +205,10 @@ def main(argv: list[str] | None = None, prog: str = "genre data targets") -> int
     except ValueError as exc:
         parser.error(str(exc))
     start = time.perf_counter()
-    counts = build_targets(args.views, get_preset(preset), progress=not args.no_progress)
+    config = get_preset(preset)
+    if args.target:
+        config = dataclasses.replace(config, geometry=dataclasses.replace(config.geometry, target=args.target))
+    counts = build_targets(args.views, config, progress=not args.no_progress, shard=shard)
     counts["seconds"] = round(time.perf_counter() - start, 1)
     print(json.dumps(counts))
     return 1 if counts["failed_shapes"] else 0

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from genre_backend.io import atomic_write, atomic_write_text
 
-from .protocol import FLOOR, GROUPS, GROUP_LABEL, POINTS_LARGE, POINTS_SMALL
+from .protocol import FLOOR, GROUPS, GROUP_LABEL, POINTS_LARGE, POINTS_SMALL, REPRESENTATION
 
 __all__ = ['format_table', 'pyplot', 'save_figure', 'write_csv']
 
@@ -59,6 +59,11 @@ def format_table(per_class: list[dict], groups: dict, choice: dict, rows: list[s
         t = "–" if row in (FLOOR, "Nearest training shape") else f"{choice['seen'].get(row, math.nan):.2f}"
         cells = [_fmt(groups["seen"][g].get(row, math.nan)) for g in present] + [_fmt(groups["per_class"][g].get(row, math.nan)) for g in present]
         lines.append(f"| {row} | {t} | " + " | ".join(cells) + " |")
+    ratios = [(a, b) for a, b in ((REPRESENTATION, FLOOR), ("GenRe", "3D Completion"), ("GenRe", "Nearest training shape")) if a in rows and b in rows]
+    if ratios:
+        lines += ["", "Ratios of group means (seen t*): " + "; ".join(
+            f"{a} ÷ {b}: " + ", ".join(f"{GROUP_LABEL[g]} {groups['seen'][g].get(a, math.nan) / groups['seen'][g].get(b, math.nan):.3f}" for g in present)
+            for a, b in ratios) + "."]
     for g in present:
         classes = sorted({c["class"] for c in per_class if g in c["groups"].split("|")})
         lines += ["", f"## {GROUP_LABEL[g]}: CD per class (seen t*), mean ± 95 % interval", ""]

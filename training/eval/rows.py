@@ -10,6 +10,9 @@ GenRe-1step                 RGB → full spherical map in one U-ResNet → GenRe
                             (the depth channel from GenRe's depth net)
 Nearest training shape      the training view whose depth thumbnail is closest to the predicted
                             masked depth; its shape posed as it appears in that view
+Truth through the            the view's true voxel target (GeometryConfig.target: the surface shell
+representation              or the truncated distance) through marching cubes: what the
+                            representation alone loses (the best any voxel row can do)
 Noise floor                 the truth against itself resampled (the best any row can do)
 ==========================  =====================================================================
 
@@ -26,7 +29,7 @@ import torch
 from genre_backend.config import GenreConfig
 from genre_backend.nets.model import GenRe, WeightsError
 
-from .protocol import ROWS
+from .protocol import REPRESENTATION, ROWS
 
 __all__ = ['Models', 'predict']
 
@@ -51,6 +54,7 @@ class Models:
             rows.append("GenRe-1step")
         if self.nearest is not None:
             rows.append("Nearest training shape")
+        rows.append(REPRESENTATION)
         return [r for r in rows if r in self.wanted]
 
     def check(self) -> None:
@@ -85,6 +89,8 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
         sph = models.onestep(rgb).clamp(0.0, 1.0)
         logits = m.refine(m.sph_voxels(sph), m.depth_voxels(pred_depth))
         out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu()}
+    if REPRESENTATION in models.wanted:
+        out[REPRESENTATION] = {"prob": sample["voxels"]}
     if models.nearest is not None:
         i = models.nearest.query(pred_depth)[0]
         out["Nearest training shape"] = {"points": models.nearest.view_points(i), "retrieved": f"{models.nearest.shape_id(i)}/{models.nearest.views[i]}"}

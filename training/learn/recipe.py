@@ -5,7 +5,7 @@ live in :mod:`genre_backend.config`; the recipe names one, it does not copy
 them) and gives one :class:`StageRecipe` per stage: learning rate, Adam
 betas, batch size, loss weights and step budget.  ``genre train STAGE
 --recipe NAME`` starts from a named recipe; any explicit option overrides
-its value.  Two recipes are named:
+its value.  The named recipes:
 
 * ``paper``: the paper's optimiser numbers (lr 1e-3 for the depth net and the
   one-step baseline, 1e-4 for the inpainting net, refiner and 3D Completion,
@@ -14,6 +14,9 @@ its value.  Two recipes are named:
   the voxel stages with surface weight 0.1 and (refiner, 3D Completion) lr
   1e-3, and the step budgets of the 2-core CPU chain.  Why they depart from
   the paper: ARCHITECTURE.md.
+* ``sharp``: ``shipped`` with the voxel stages on the truncated-distance
+  target (``GeometryConfig.target = "distance"``), continued from the shipped
+  weights.
 * ``photo``: ``shipped`` with the depth stage continued (``--init`` the
   shipped weights) on renders composited over real photographs, so that the
   silhouette and depth work on photos.
@@ -76,6 +79,9 @@ class Recipe:
     preset: str
     stages: dict[str, StageRecipe] = field(default_factory=dict)
     description: str = ""
+    # the voxel representation the voxel stages learn (GeometryConfig.target); None: the model's own
+    # (the preset's, or what --init weights were trained on)
+    target: str | None = None
 
     def __post_init__(self):
         missing = [s for s in STAGES if s not in self.stages]
@@ -127,7 +133,17 @@ _PHOTO = Recipe(
     stages={**_SHIPPED.stages, "depth": replace(_SHIPPED.stages["depth"], steps=3000, lr=5e-4, photo_fraction=0.8)},
 )
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO)}
+_SHARP = Recipe(
+    name="sharp",
+    preset="default",
+    target="distance",
+    description="the shipped chain moved to the truncated-distance target: every stage continues from the shipped "
+                "weights (--init), the inpainting net for 3,000 more steps, the refiner and the 3D Completion net "
+                "(which starts from the same refiner) 3,000 steps each on the distance target, joint 400",
+    stages={**_SHIPPED.stages},
+)
+
+RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO, _SHARP)}
 
 
 def get_recipe(name: str) -> Recipe:

@@ -55,7 +55,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from genre_backend.config import PRESETS, GenreConfig, get_preset
+from genre_backend.config import PRESETS, TARGETS, GenreConfig, get_preset
 from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.geometry.spherical import pad_sph
 from genre_backend.io import atomic_write, atomic_write_bytes
@@ -85,6 +85,7 @@ class TrainConfig:
     beta2: float | None = None
     surface_weight: float | None = None
     photo_fraction: float | None = None
+    target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
     val_every: int = 200
@@ -109,6 +110,10 @@ class TrainConfig:
         resolved = dataclasses.replace(recipe.stage(self.stage), **given)  # (validates the values)
         for k in StageRecipe.keys():
             setattr(self, k, getattr(resolved, k))
+        if self.target is None:
+            self.target = recipe.target
+        if self.target is not None and self.target not in TARGETS:
+            raise ValueError(f"target: expected one of {TARGETS}, got {self.target!r}")
 
     @property
     def learning_rate(self) -> float:
@@ -128,6 +133,10 @@ class StageModule(nn.Module):
             self.baseline = (CompletionBaseline if stage == "completion" else OneStepNet)(model.config)
             if stage == "completion":  # the depth net it completes from: GenRe's (from --init), frozen
                 self.baseline.depth_net.load_state_dict(model.depth_net.state_dict())
+                # the completion net has the refiner's architecture and starts where GenRe's refiner
+                # is: freshly initialised after the depth stage, or trained when continuing from full
+                # weights, so that the two voxel nets always start level
+                self.baseline.completion.load_state_dict(model.refiner.state_dict())
         trainable = {"depth": [model.depth_net], "inpaint": [model.inpaint_net], "refine": [model.refiner], "joint": [model],
                      "completion": [], "onestep": []}[stage]
         for p in model.parameters():
@@ -175,11 +184,12 @@ class StageModule(nn.Module):
         target = pad_sph(batch["full_sph"][:, None], pad)
         return F.mse_loss(full_padded_pred, target)
 
-    def shell_loss(self, logits, batch):
-        shell = batch["shell"][:, None]
-        bce = F.binary_cross_entropy_with_logits(logits, shell, reduction="none")
+    def voxel_loss(self, logits, batch):
+        """BCE over the grid + ``surface_weight`` × the BCE weighted by the target (the shell's voxels, or the distance's ramp)."""
+        target = batch["voxels"][:, None]
+        bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
         l_all = bce.mean()
-        l_surf = (bce * shell).sum() / shell.sum().clamp(min=1)
+        l_surf = (bce * target).sum() / target.sum().clamp(min=1)
         return l_all + self.surface_weight * l_surf, {"voxel_bce": l_all, "surface_bce": l_surf}
 
     def forward(self, batch: dict[str, torch.Tensor]):
@@ -195,7 +205,7 @@ class StageModule(nn.Module):
             with torch.no_grad():
                 depth = m.masked_depth(b.depth_net(batch["rgb"])["depth"], batch["mask"])
                 vox_depth = b.depth_voxels(depth)
-            return self.shell_loss(b.complete(vox_depth), batch)
+            return self.voxel_loss(b.complete(vox_depth), batch)
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
             depth = m.masked_depth(m.depth_net(batch["rgb"])["depth"], batch["mask"])
             partial = m.partial_sph(depth)
@@ -209,7 +219,7 @@ class StageModule(nn.Module):
             full = full_padded[:, 0, pad:-pad, pad:-pad] if pad else full_padded[:, 0]
             vox_sph, vox_depth = m.sph_voxels(full), m.depth_voxels(depth)
         logits = m.refine(vox_sph, vox_depth)
-        loss, terms = self.shell_loss(logits, batch)
+        loss, terms = self.voxel_loss(logits, batch)
         if self.stage == "joint":
             l_sph = self.sph_loss(full_padded, batch)
             terms["sph_mse"] = l_sph
@@ -407,6 +417,9 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         model = load_model(tcfg.init).train()
     else:
         model = GenRe(model_config or get_preset(tcfg.preset))
+    if tcfg.target is not None and model.config.geometry.target != tcfg.target:
+        # a change of representation: the nets are the same, the refiner learns the new target
+        model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, target=tcfg.target))
     config = model.config
     module = StageModule(model, tcfg.stage, tcfg.surface_weight).to(device)
     params = [p for p in module.parameters() if p.requires_grad]
