@@ -17,7 +17,7 @@ Seen-test views only: what it shows is used to change the model, and the
 unseen classes must stay untouched by such choices.
 
     .venv/bin/python scripts/stage_errors.py --weights runs/default/joint/best.safetensors \\
-        --views data/views/eval_sub --views-count 8
+        --views data/views/eval --views-count 8
 """
 
 from __future__ import annotations
@@ -71,15 +71,15 @@ def main(argv: list[str] | None = None) -> int:
             target = CloudScorer(gt[:POINTS_SMALL], gt)
             rgb, mask, depth, full = s["rgb"][None], s["mask"][None], s["depth"][None], s["full_sph"][None]
             target_fraction.append(float((s["voxels"] > 0).float().mean()))
-            add(f"true {model.config.geometry.target}, marching cubes", score_grid(s["voxels"], thresholds, target))
+            add(f"true {model.config.geometry.target}, its surface", score_grid(s["voxels"], thresholds, target, model.config.geometry))
             sph_oracle = model(rgb, mask=mask, depth=depth, full_sph=full)
             add("true spherical map, projected", score_grid(sph_oracle["vox_sph"][0, 0], [HIT], target))
-            add("refiner <- true depth + true map", score_grid(torch.sigmoid(sph_oracle["logits"])[0, 0], thresholds, target))
+            add("refiner <- true depth + true map", score_grid(torch.sigmoid(sph_oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
             oracle = model(rgb, mask=mask, depth=depth)
-            add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target))
+            add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
             genre = model(rgb, mask=mask)
             add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))
-            add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target))
+            add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target, model.config.geometry))
     print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
           f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")
     for name, per_t in scores.items():

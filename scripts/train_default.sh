@@ -28,6 +28,10 @@ RECIPE=${RECIPE:-shipped}
 BACKGROUNDS=${BACKGROUNDS:-data/backgrounds}
 DEPTH_INIT=${DEPTH_INIT:-}
 PHOTO_ARGS=()
+# RECIPE=sharp moves the shipped weights to the truncated-distance voxel target: the depth net is
+# kept as shipped, every other stage (and the 3D Completion net, which starts from the same refiner)
+# continues from SHARP_INIT; the 1-step baseline is trained afresh as in the shipped chain.
+SHARP_INIT=${SHARP_INIT:-genre_backend/weights/default.safetensors}
 if [ "$RECIPE" = photo ]; then
   DEPTH_INIT=${DEPTH_INIT:-genre_backend/weights/default.safetensors}
   PHOTO_ARGS=(--backgrounds "$BACKGROUNDS")
@@ -59,8 +63,13 @@ step render  $G data render --shapes $M --split train --out "$VIEWS" --views "$T
 step targets $G data targets --views "$VIEWS" --preset default --no-progress
 [ "$RECIPE" = photo ] && step backgrounds $G data backgrounds
 T=($G train --recipe "$RECIPE")
-step depth   "${T[@]}" depth   --data "$VIEWS" --out "$RUN" $(steps "${DEPTH_STEPS:-}") $(init "$DEPTH_INIT") "${PHOTO_ARGS[@]}" --no-progress
-step inpaint "${T[@]}" inpaint --data "$VIEWS" --out "$RUN" $(steps "${INPAINT_STEPS:-}") --init "$RUN/depth/best.safetensors" --no-progress
+if [ "$RECIPE" = sharp ]; then
+  DEPTH_WEIGHTS=$SHARP_INIT; COMPLETION_INIT=$SHARP_INIT; log "skip: depth (RECIPE=sharp keeps the depth net of $SHARP_INIT)"
+else
+  DEPTH_WEIGHTS=$RUN/depth/best.safetensors; COMPLETION_INIT=$RUN/depth/best.safetensors
+  step depth   "${T[@]}" depth   --data "$VIEWS" --out "$RUN" $(steps "${DEPTH_STEPS:-}") $(init "$DEPTH_INIT") "${PHOTO_ARGS[@]}" --no-progress
+fi
+step inpaint "${T[@]}" inpaint --data "$VIEWS" --out "$RUN" $(steps "${INPAINT_STEPS:-}") --init "$DEPTH_WEIGHTS" --no-progress
 step refine  "${T[@]}" refine  --data "$VIEWS" --out "$RUN" $(steps "${REFINE_STEPS:-}") --init "$RUN/inpaint/best.safetensors" --no-progress
 step joint   "${T[@]}" joint   --data "$VIEWS" --out "$RUN" $(steps "${JOINT_STEPS:-}") --init "$RUN/refine/best.safetensors" --no-progress
 # Evaluation views: seen-test and both unseen groups.
@@ -69,16 +78,13 @@ step render_eval bash -c "$G data render --shapes $M --split test --out $EVAL_VI
 step targets_eval $G data targets --views "$EVAL_VIEWS" --preset default --no-progress
 # Baselines, same data and the recipe's budgets: the completion net gets the refiner's steps;
 # 1-step gets half the depth net's, to fit the CPU budget.
-step completion "${T[@]}" completion --data "$VIEWS" --out "$RUN" $(steps "${COMPLETION_STEPS:-${REFINE_STEPS:-}}") --init "$RUN/depth/best.safetensors" --no-progress
+step completion "${T[@]}" completion --data "$VIEWS" --out "$RUN" $(steps "${COMPLETION_STEPS:-${REFINE_STEPS:-}}") --init "$COMPLETION_INIT" --no-progress
 step onestep    "${T[@]}" onestep    --data "$VIEWS" --out "$RUN" $(steps "${ONESTEP_STEPS:-}") --no-progress
-# Every seen-test shape and at most 8 shapes per unseen class, one view each, in two halves
-# that two single-threaded processes evaluate side by side; then one run over the whole
-# subset resumes from their rows, aggregates and draws the figures.
-step eval_subset .venv/bin/python scripts/eval_subset.py --views "$EVAL_VIEWS" --cap 8
-EVAL_ARGS=(--run "$RUN" --train-views "$VIEWS" --manifest $M --max-views 1)
-step eval_parts bash -c "for p in a b; do OMP_NUM_THREADS=1 $G eval --data ${EVAL_VIEWS}_part_\$p --out $RESULTS.part_\$p ${EVAL_ARGS[*]} --gallery 0 --no-figures --no-progress & done; wait"
-step eval bash -c "mkdir -p $RESULTS && { head -1 $RESULTS.part_a/per_view.csv; tail -q -n +2 $RESULTS.part_a/per_view.csv $RESULTS.part_b/per_view.csv; } > $RESULTS/per_view.csv &&
-  $G eval --data ${EVAL_VIEWS}_sub --out $RESULTS ${EVAL_ARGS[*]} --heatmap-shapes 2 --gallery 2 --no-progress"
+# The full evaluation views: every seen-test shape (EVAL_TEST_VIEWS views) and every unseen shape
+# (EVAL_UNSEEN_VIEWS), scored by EVAL_JOBS worker processes side by side.
+EVAL_JOBS=${EVAL_JOBS:-2}
+step eval $G eval --data "$EVAL_VIEWS" --out "$RESULTS" --run "$RUN" --train-views "$VIEWS" --manifest $M --jobs "$EVAL_JOBS" \
+  --heatmap-shapes 2 --gallery 2 --no-progress
 step install .venv/bin/python -m training.eval.install --weights "$RUN/joint/best.safetensors" --thresholds "$RESULTS/thresholds.json" \
                      --out genre_backend/weights/default.safetensors
 log "weights: genre_backend/weights/default.safetensors; results: $RESULTS"

@@ -16,7 +16,7 @@ from tiny_data import TINY, make_tiny_views
 from genre_backend.geometry.metrics import CloudScorer
 from training.eval.cli import main
 from training.eval.protocol import FLOOR, ROWS, EvalView
-from training.eval.runner import Truth, mesh_metrics
+from training.eval.runner import Truth, mesh_metrics, score_grid
 from training.eval.statistics import aggregate, choose_thresholds
 from training.learn.train import TrainConfig, train
 
@@ -229,3 +229,39 @@ def test_score_grid_sweeps_the_configured_range():
     # each cloud is normalised on its own, so the shell's two sheets score alike at every level
     assert all(0.0 < v < 0.1 for v in result.values())
     assert score_grid(torch.zeros(8, 8, 8), [0.5], scorer)[0.5]["cd1k"] == EMPTY_CD
+
+
+def test_parallel_workers_write_the_same_rows(tiny, tmp_path):
+    root, views, run = tiny
+    rows = "GenRe,3D Completion,Truth through the representation"
+    assert main(_args(root, views, run, tmp_path / "one", "--no-figures", "--rows", rows)) == 0
+    assert main(_args(root, views, run, tmp_path / "two", "--no-figures", "--rows", rows, "--jobs", "2")) == 0
+    one = (tmp_path / "one" / "per_view.csv").read_text().splitlines()
+    two = (tmp_path / "two" / "per_view.csv").read_text().splitlines()
+    assert one[0] == two[0] and sorted(one[1:]) == sorted(two[1:]) and len(one) == 1 + 4 * 4
+    assert "2 processes" in (tmp_path / "two" / "table.md").read_text()
+    assert main(_args(root, views, run, tmp_path / "bad", "--jobs", "0")) == 2
+
+
+def test_the_distance_target_is_nearer_the_truth_than_the_shell(tiny):
+    """Truth through each representation, at its best threshold, against the resampling floor."""
+    import dataclasses
+
+    from genre_backend.geometry.mesh_voxels import mesh_to_target
+
+    _, views, _ = tiny
+    for shape in ("box", "table"):
+        meta = json.loads((views / shape / "view_000.json").read_text())
+        view = EvalView(views / shape, 0, shape, ("unseen",), meta)
+        gt, again = Truth().posed(view)
+        scorer = CloudScorer(gt[:1024], gt)
+        floor = scorer.metrics(again[:1024], again)["cd1k"]
+        mesh = trimesh.load(meta["mesh"], force="mesh", process=False)
+        rot = torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)[None]
+        verts = frame.object_to_view(torch.tensor(mesh.vertices)[None], rot)[0]
+        best = {}
+        for kind in ("shell", "distance"):
+            grid = mesh_to_target(verts, torch.tensor(mesh.faces), dataclasses.replace(TINY.geometry, target=kind))
+            best[kind] = min(m["cd1k"] for m in score_grid(grid, TINY.geometry.thresholds(), scorer).values())
+        assert best["distance"] < 0.8 * best["shell"], (shape, best, floor)
+        assert best["distance"] < 1.6 * floor, (shape, best, floor)

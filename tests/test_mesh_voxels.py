@@ -173,3 +173,33 @@ def test_mesh_to_target_follows_the_config():
     assert dist.max() <= 1 and dist.min() >= 0 and ((dist > 0) & (dist < 1)).any()
     with pytest.raises(ValueError, match="geometry.target"):
         GeometryConfig(target="occupancy")
+
+
+def test_the_distance_grid_surface_lands_on_the_sphere_at_every_level():
+    """grid_to_surface moves both sheets of the distance target onto the surface they surround."""
+    from genre_backend.config import GeometryConfig
+    from genre_backend.geometry.mesh_voxels import grid_to_surface, mesh_to_target, vertex_normals
+
+    g = GeometryConfig(voxel_size=48, target="distance")
+    r = 0.3
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=r)
+    grid = mesh_to_target(torch.tensor(mesh.vertices), torch.tensor(mesh.faces), g)
+    for level in (0.3, 0.5, 0.6):
+        plain, _ = voxels_to_mesh(grid, level)
+        verts, faces = grid_to_surface(grid, level, g)
+        assert np.abs(np.linalg.norm(plain, axis=1) - r).mean() * 48 > 0.5 * (1 - level) * g.distance_band
+        assert np.abs(np.linalg.norm(verts, axis=1) - r).mean() * 48 < 0.05  # voxels
+    # a shell grid is left as marching cubes made it
+    shell = GeometryConfig(voxel_size=48, target="shell")
+    v0, f0 = voxels_to_mesh(grid, 0.5)
+    assert np.array_equal(grid_to_surface(grid, 0.5, shell)[0], v0)
+    # the normals: area-weighted face normals summed per vertex, against a plain loop
+    v0, f0 = v0.astype(np.float64), f0[:300]
+    ref = np.zeros_like(v0)
+    for a, b, c in f0:
+        n = np.cross(v0[b] - v0[a], v0[c] - v0[a])
+        for k in (a, b, c):
+            ref[k] += n
+    used = np.linalg.norm(ref, axis=1) > 0
+    ref[used] /= np.linalg.norm(ref[used], axis=1, keepdims=True)
+    assert np.allclose(vertex_normals(v0, f0), ref, atol=1e-9)

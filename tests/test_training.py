@@ -56,7 +56,7 @@ def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
     model = GenRe(TINY)
     module = StageModule(model, "joint", 10.0).train()
     out = model(batch["rgb"], mask=batch["mask"])
-    loss3d, _ = module.shell_loss(out["logits"], batch)
+    loss3d, _ = module.voxel_loss(out["logits"], batch)
     loss3d.backward()
     grad = sum(p.grad.abs().sum() for p in model.depth_net.parameters() if p.grad is not None)
     assert grad > 0

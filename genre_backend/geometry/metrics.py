@@ -185,6 +185,11 @@ def mesh_chamfer(pred, gt, count: int = 1024, *, normalize: bool = True, seed: i
     return float(chamfer_distance(pa, pb))
 
 
+# k-d tree leaves of 64 points: exact all the same, and 1.7× faster than SciPy's 16 on surface clouds
+# queried from a shape's distance (measured on a predicted mesh's 10,000 points)
+LEAF_SIZE = 64
+
+
 class CloudScorer:
     """The scorer of ``genre eval``: one truth cloud normalised once, with a k-d tree of its large cloud.
 
@@ -203,7 +208,7 @@ class CloudScorer:
         self.fscore_at = tuple(fscore_at)
         self.small = normalize_points(gt_small.float())
         self.large = normalize_points(gt_large.float()).double().numpy()
-        self.tree = cKDTree(self.large)
+        self.tree = cKDTree(self.large, leafsize=LEAF_SIZE)
 
     def metrics(self, pred_small: torch.Tensor, pred_large: torch.Tensor) -> dict[str, float]:
         """``cd1k``, ``cd10k``, ``f1``, ``f2`` and ``empty`` (0) of a predicted cloud pair, normalised the same way."""
@@ -212,7 +217,7 @@ class CloudScorer:
         a = normalize_points(pred_small.float())
         big = normalize_points(pred_large.float()).double().numpy()
         d_pg = self.tree.query(big)[0]
-        d_gp = cKDTree(big).query(self.large)[0]
+        d_gp = cKDTree(big, leafsize=LEAF_SIZE).query(self.large)[0]
         out = {"cd1k": float(chamfer_distance(a, self.small)), "cd10k": float(d_pg.mean() + d_gp.mean())}
         for name, t in zip(("f1", "f2"), self.fscore_at):
             p, r = float((d_pg <= t).mean()), float((d_gp <= t).mean())

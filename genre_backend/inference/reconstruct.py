@@ -34,7 +34,7 @@ import torch
 from ..config import GenreConfig
 from ..validation import check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
-from ..geometry.mesh_voxels import voxels_to_mesh
+from ..geometry.mesh_voxels import onto_surface, voxels_to_mesh
 from ..nets.model import GenRe, WeightsError, load_model
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
@@ -442,6 +442,7 @@ class Reconstructor:
             if len(faces) == 0:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
             vertices, faces, clean = clean_mesh(vertices, faces, keep_fraction)
+            vertices = onto_surface(vertices, faces, threshold, model.config.geometry)
             stage("done")
         photo_mask = pre.photo_mask
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels

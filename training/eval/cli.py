@@ -23,7 +23,7 @@ from genre_backend.nets.model import WeightsError, load_model
 
 from .protocol import GROUPS, ROWS, find_eval_views
 from .rows import Models
-from .runner import evaluate_views
+from .runner import ModelSpec, evaluate_views
 from .statistics import aggregate, choose_thresholds
 from .report import format_table, write_csv
 
@@ -81,6 +81,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
     p.add_argument("--thresholds-from", help="thresholds.json of a run on seen-test data (when this run has none)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes scoring views side by side (one thread each; e.g. the number of cores)")
     p.add_argument("--gallery", type=int, default=3, help="shapes per group in the Blender gallery (0: none)")
     p.add_argument("--heatmap-class", default="table", help="class of the viewpoint heatmap (Figure 7)")
     p.add_argument("--heatmap-shapes", type=int, default=0, help="shapes rendered on the elevation × azimuth grid (0: no heatmap)")
@@ -183,7 +184,15 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
                 if g in v.groups and v.shape_dir.name not in firsts:
                     firsts[v.shape_dir.name] = v.key
             gallery_keys += [k for k in list(firsts.values())[: args.gallery] if k not in gallery_keys]
-    records = evaluate_views(models, views, out, device=args.device, progress=not args.no_progress, save_grids=set(gallery_keys))
+    if args.jobs < 1:
+        return _fail(prog, f"--jobs: expected a positive number of processes, got {args.jobs}")
+    spec = ModelSpec(str(paths["genre"]), str(paths["completion"]) if need["completion"] else None,
+                     str(paths["onestep"]) if need["onestep"] else None,
+                     str(out / "nearest_index.safetensors") if models.nearest is not None else None, tuple(rows_wanted), args.device)
+    t_views = time.perf_counter()
+    records = evaluate_views(models, views, out, device=args.device, progress=not args.no_progress, save_grids=set(gallery_keys),
+                             jobs=args.jobs, spec=spec)
+    t_views = time.perf_counter() - t_views
     thresholds = genre.config.geometry.thresholds()
     fixed = None
     if args.thresholds_from:
@@ -194,8 +203,11 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     write_csv(out / "per_shape.csv", per_shape)
     write_csv(out / "per_class.csv", per_class)
     n_shapes = len({v.shape_dir.name for v in views})
-    header = (f"# GenRe evaluation: {out.name}\n\n{len(views)} views of {n_shapes} shapes; preset {genre.config.preset}; "
-              f"weights {paths['genre']}.\n\nCommand: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n")
+    header = (f"# GenRe evaluation: {out.name}\n\n{len(views)} views of {n_shapes} shapes; preset {genre.config.preset} "
+              f"(voxel target: {genre.config.geometry.target}); weights {paths['genre']}.\n\n"
+              f"Command: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n\n"
+              f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
+              "views scored by an earlier, interrupted invocation are not counted).\n")
     table = format_table(per_class, group_means, choice, models.rows(), header)
     notes = []
     if not args.no_figures:

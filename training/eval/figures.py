@@ -85,13 +85,13 @@ def render_meshes(meshes, size: int = 160, samples: int = 16):
     return render(meshes, size=size, samples=samples)
 
 
-def gallery(out: Path, views, gallery_keys: list[str], choice, samples: int, default_threshold: float) -> str:
+def gallery(out: Path, views, gallery_keys: list[str], choice, samples: int, default_threshold: float, geometry) -> str:
     """Input photo | GenRe's mesh from the input view and the side | the truth from both, for a few shapes per group."""
     import trimesh
     from PIL import Image
 
     from genre_backend import frame
-    from genre_backend.geometry.mesh_voxels import voxels_to_mesh
+    from genre_backend.geometry.mesh_voxels import grid_to_surface
 
     by_key = {v.key: v for v in views}
     t = choice["seen"].get("GenRe", default_threshold)  # (no seen-test choice: the weights' own level)
@@ -103,7 +103,7 @@ def gallery(out: Path, views, gallery_keys: list[str], choice, samples: int, def
         v = by_key[key]
         with np.load(grid_file) as z:
             prob = z["prob"].astype(np.float32)
-        pv, pf = voxels_to_mesh(prob, t)
+        pv, pf = grid_to_surface(prob, t, geometry)
         gt = trimesh.load(resolve_mesh(v.meta["mesh"]), force="mesh", process=False)
         rot = torch.tensor(v.meta["rotation_cam_to_obj"], dtype=torch.float64)[None]
         gv = frame.object_to_view(torch.tensor(np.asarray(gt.vertices), dtype=torch.float64)[None], rot)[0].numpy()
@@ -150,5 +150,5 @@ def make_all(out: Path, per_class: list[dict], models, views, choice: dict, *, t
     if heatmap is not None and heatmap.shapes > 0:
         notes.append(viewpoint_heatmap(out, models, views, choice, heatmap, device))
     if gallery_keys:
-        notes.append(gallery(out, views, gallery_keys, choice, render_samples, models.config.geometry.default_threshold))
+        notes.append(gallery(out, views, gallery_keys, choice, render_samples, models.config.geometry.default_threshold, models.config.geometry))
     return notes

@@ -17,13 +17,14 @@ from __future__ import annotations
 import csv
 import os
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from genre_backend import frame
-from genre_backend.geometry.mesh_voxels import voxels_to_mesh
+from genre_backend.geometry.mesh_voxels import grid_to_surface, voxels_to_mesh
 from genre_backend.geometry.metrics import CloudScorer, sample_surface
 
 from ..data.views import surface_points_path
@@ -31,7 +32,7 @@ from .protocol import BASE_COLUMNS, EMPTY_CD, EvalView, FLOOR, POINTS_LARGE, POI
 from .rows import Models, predict
 from .report import write_csv
 
-__all__ = ['EMPTY', 'Truth', 'evaluate_views', 'grid_path', 'mesh_metrics', 'score_grid']
+__all__ = ['EMPTY', 'ModelSpec', 'Truth', 'evaluate_views', 'grid_path', 'mesh_metrics', 'score_grid', 'score_view']
 
 
 EMPTY = {"cd1k": EMPTY_CD, "cd10k": EMPTY_CD, "f1": 0.0, "f2": 0.0, "empty": 1.0}
@@ -49,11 +50,16 @@ def mesh_metrics(verts, faces, target: CloudScorer, seed: int = 0) -> dict[str, 
         return dict(EMPTY)
 
 
-def score_grid(prob: torch.Tensor, thresholds: list[float], target: CloudScorer) -> dict[float, dict[str, float]]:
-    """Metrics of the marching-cubes mesh of a probability grid (N, N, N) at every threshold."""
+def score_grid(prob: torch.Tensor, thresholds: list[float], target: CloudScorer, geometry=None) -> dict[float, dict[str, float]]:
+    """Metrics of the surface of a probability grid (N, N, N) at every threshold.
+
+    With ``geometry`` (a GeometryConfig) the surface is the one the model's
+    representation stands for (:func:`grid_to_surface`, what ``genre
+    reconstruct`` gives); without, plain marching cubes.
+    """
     out = {}
     for t in thresholds:
-        v, f = voxels_to_mesh(prob, float(t))
+        v, f = grid_to_surface(prob, float(t), geometry) if geometry is not None else voxels_to_mesh(prob, float(t))
         out[t] = mesh_metrics(v, f, target)
     return out
 
@@ -88,8 +94,10 @@ def grid_path(grids_dir: Path, key: str) -> Path:
 
 
 def _write_grid(grids_dir: Path, key: str, prob: torch.Tensor) -> None:
+    from genre_backend.io import atomic_savez
+
     grids_dir.mkdir(exist_ok=True)
-    np.savez_compressed(grid_path(grids_dir, key), prob=prob.numpy().astype(np.float16))
+    atomic_savez(grid_path(grids_dir, key), prob=prob.numpy().astype(np.float16))
 
 
 @torch.no_grad()
@@ -121,9 +129,93 @@ def _read_done(path: Path, columns: list[str]) -> list[dict]:
     return rows
 
 
+@dataclass(frozen=True)
+class ModelSpec:
+    """How a worker process loads the models (picklable): weights paths, rows, device, the nearest index file."""
+
+    genre: str
+    completion: str | None
+    onestep: str | None
+    nearest_index: str | None
+    wanted: tuple[str, ...]
+    device: str = "cpu"
+
+    def load(self) -> Models:
+        from genre_backend.nets.model import load_model
+
+        from ..learn.baselines import NearestIndex, load_baseline
+
+        models = Models(load_model(self.genre, self.device),
+                        load_baseline(self.completion, "completion", self.device) if self.completion else None,
+                        load_baseline(self.onestep, "onestep", self.device) if self.onestep else None,
+                        wanted=self.wanted)
+        if self.nearest_index:
+            models.nearest = NearestIndex.load(self.nearest_index)
+        return models
+
+
+def score_view(models: Models, view: EvalView, sample: dict, truth: Truth, device, grids_dir: Path | None = None) -> list[dict]:
+    """Every row of one view at every threshold, as CSV records (strings); GenRe's grid saved when ``grids_dir`` is given."""
+    thresholds = models.config.geometry.thresholds()
+    gt_large, again_large = truth.posed(view)
+    gt_small, again_small = gt_large[:POINTS_SMALL], again_large[:POINTS_SMALL]
+    pred = predict(models, sample, device)
+    base = {"key": view.key, "shape": view.shape_dir.name, "view": view.view, "class": view.cls, "groups": "|".join(view.groups),
+            "azimuth": view.meta.get("azimuth_deg", ""), "elevation": view.meta.get("elevation_deg", ""), "depth_abs_err": "", "retrieved": ""}
+    target = CloudScorer(gt_small, gt_large)
+    floor = target.metrics(again_small, again_large)
+    results = {FLOOR: {t: floor for t in thresholds}}
+    for row in models.rows():
+        p = pred[row]
+        if "prob" in p:
+            results[row] = score_grid(p["prob"], thresholds, target, models.config.geometry)
+            if grids_dir is not None and row == "GenRe":
+                _write_grid(grids_dir, view.key, p["prob"])
+        else:
+            pts = p["points"]
+            m = target.metrics(pts[:POINTS_SMALL], pts)
+            results[row] = {t: m for t in thresholds}
+    new = []
+    for row, per_t in results.items():
+        rec = dict(base, row=row)
+        if row == "GenRe":
+            rec["depth_abs_err"] = f"{pred['depth_abs_err']:.6g}"
+        if row == "Nearest training shape":
+            rec["retrieved"] = pred[row]["retrieved"]
+        for t, mt in per_t.items():
+            for k, v in mt.items():
+                rec[f"{k}@{threshold_key(t)}"] = f"{v:.6g}"
+        new.append({k: str(v) for k, v in rec.items()})
+    return new
+
+
+_WORKER: dict = {}
+
+
+def _worker_init(spec: ModelSpec, grids_dir: str, save_grids: frozenset) -> None:
+    torch.set_num_threads(1)  # one process per core
+    _WORKER.update(models=spec.load(), truth=Truth(), grids_dir=Path(grids_dir), save_grids=save_grids, device=spec.device)
+
+
+def _worker_shape(views: list[EvalView]) -> list[list[dict]]:
+    """One shape's views (so its truth is loaded once), scored in a worker process."""
+    from ..data.dataset import ViewDataset
+    from ..data.views import ViewRef
+
+    w = _WORKER
+    data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], w["models"].config)
+    return [score_view(w["models"], v, data.sample(i, None), w["truth"], w["device"],
+                       w["grids_dir"] if v.key in w["save_grids"] else None) for i, v in enumerate(views)]
+
+
 def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, device="cpu", progress: bool = True,
-                   save_grids: set[str] | None = None) -> list[dict]:
-    """Score every row on every view, appending to ``out_dir/per_view.csv``; returns all rows (old and new)."""
+                   save_grids: set[str] | None = None, jobs: int = 1, spec: ModelSpec | None = None) -> list[dict]:
+    """Score every row on every view, appending to ``out_dir/per_view.csv``; returns all rows (old and new).
+
+    ``jobs`` > 1 scores shapes in that many worker processes (each loads the
+    models from ``spec``, one thread each); rows are written by this process
+    as views finish, so an interrupted run resumes the same way.
+    """
     from tqdm import tqdm
 
     from ..data.dataset import ViewDataset
@@ -143,52 +235,46 @@ def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, devi
         write_csv(path, records, columns)
     todo = [v for v in views if v.key not in complete]
     grids_dir = out_dir / "grids"
+    grids_dir.mkdir(exist_ok=True)
+    save_grids = set(save_grids or ())
     if save_grids:  # views scored earlier (or by another process) whose grid the figures still need
         _save_grids(models, [v for v in views if v.key in save_grids and v.key in complete], grids_dir, device)
-    data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in todo], models.config) if todo else None
-    truth = Truth()
     new_file = not path.is_file()
     fh = path.open("a", newline="")
     writer = csv.DictWriter(fh, fieldnames=columns)
     if new_file:
         writer.writeheader()
+
+    def write(new: list[dict]) -> None:
+        writer.writerows(new)  # one view's rows together, then flushed: a kill loses at most this view
+        fh.flush()
+        os.fsync(fh.fileno())
+        records.extend(new)
+
+    bar = tqdm(total=len(todo), desc="eval", unit="view", disable=not progress, dynamic_ncols=True)
     try:
-        for i, view in enumerate(tqdm(todo, desc="eval", unit="view", disable=not progress, dynamic_ncols=True)):
-            sample = data.sample(i, None)
-            gt_large, again_large = truth.posed(view)
-            gt_small, again_small = gt_large[:POINTS_SMALL], again_large[:POINTS_SMALL]
-            pred = predict(models, sample, device)
-            base = {"key": view.key, "shape": view.shape_dir.name, "view": view.view, "class": view.cls, "groups": "|".join(view.groups),
-                    "azimuth": view.meta.get("azimuth_deg", ""), "elevation": view.meta.get("elevation_deg", ""), "depth_abs_err": "", "retrieved": ""}
-            target = CloudScorer(gt_small, gt_large)
-            floor = target.metrics(again_small, again_large)
-            results = {FLOOR: {t: floor for t in thresholds}}
-            for row in rows:
-                p = pred[row]
-                if "prob" in p:
-                    results[row] = score_grid(p["prob"], thresholds, target)
-                    if save_grids is not None and view.key in save_grids and row == "GenRe":
-                        _write_grid(grids_dir, view.key, p["prob"])
-                else:
-                    pts = p["points"]
-                    m = target.metrics(pts[:POINTS_SMALL], pts)
-                    results[row] = {t: m for t in thresholds}
-            new = []
-            for row, per_t in results.items():
-                rec = dict(base, row=row)
-                if row == "GenRe":
-                    rec["depth_abs_err"] = f"{pred['depth_abs_err']:.6g}"
-                if row == "Nearest training shape":
-                    rec["retrieved"] = pred[row]["retrieved"]
-                for t, mt in per_t.items():
-                    for k, v in mt.items():
-                        rec[f"{k}@{threshold_key(t)}"] = f"{v:.6g}"
-                new.append({k: str(v) for k, v in rec.items()})
-            writer.writerows(new)  # one view's rows together, then flushed: a kill loses at most this view
-            fh.flush()
-            os.fsync(fh.fileno())
-            records.extend(new)
+        if jobs > 1 and len(todo) > 1:
+            import multiprocessing as mp
+
+            if spec is None:
+                raise ValueError("evaluate_views: jobs > 1 needs the ModelSpec the workers load")
+            by_shape: dict[Path, list[EvalView]] = defaultdict(list)
+            for v in todo:
+                by_shape[v.shape_dir].append(v)
+            tasks = sorted(by_shape.values(), key=len, reverse=True)  # the longest first: the workers end together
+            with mp.get_context("spawn").Pool(jobs, _worker_init, (spec, str(grids_dir), frozenset(save_grids))) as pool:
+                for shape_rows in pool.imap_unordered(_worker_shape, tasks):
+                    for new in shape_rows:
+                        write(new)
+                        bar.update(1)
+        else:
+            data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in todo], models.config) if todo else None
+            truth = Truth()
+            for i, view in enumerate(todo):
+                write(score_view(models, view, data.sample(i, None), truth, device, grids_dir if view.key in save_grids else None))
+                bar.update(1)
     finally:
+        bar.close()
         fh.close()
     keys = {v.key for v in views}
     return [r for r in records if r["key"] in keys and (r["row"] in rows or r["row"] == FLOOR)]

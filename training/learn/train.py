@@ -7,8 +7,11 @@ Stages (``method.md``):
 ``inpaint``  the inpainting net; its input is the partial spherical map of the
              *predicted* depth (depth net frozen) inside the true mask; MSE
              against the true full map over the periodically padded map.  lr 1e-4.
-``refine``   the refiner; both nets frozen; BCE-with-logits against the surface
-             shell + ``surface_weight`` × the BCE averaged over shell voxels.  lr 1e-4.
+``refine``   the refiner; both nets frozen; BCE-with-logits against the voxel
+             target (the surface shell or the truncated distance,
+             ``GeometryConfig.target``; ``--target``/the recipe may change it)
+             + ``surface_weight`` × the BCE weighted by the target, each less
+             the target's entropy.  lr 1e-4.
 ``joint``    everything, through the differentiable projections: the refiner's
              loss + the spherical MSE.  lr 1e-5.
 
@@ -17,7 +20,8 @@ Baseline stages (:mod:`training.learn.baselines`; their weights are baseline fil
 
 ``completion``  the 3D Completion baseline: the depth net (frozen, from
              ``--init``) → depth voxels → a completion net of the refiner's
-             architecture and size; the refiner's loss.  lr 1e-4.
+             architecture and size, starting from ``--init``'s refiner; the
+             refiner's loss.  lr 1e-4.
 ``onestep``  GenRe-1step's RGB → full spherical map U-ResNet (the depth net's
              widths); MSE against the true full map over the padded map.  lr 1e-3.
 
@@ -185,9 +189,15 @@ class StageModule(nn.Module):
         return F.mse_loss(full_padded_pred, target)
 
     def voxel_loss(self, logits, batch):
-        """BCE over the grid + ``surface_weight`` × the BCE weighted by the target (the shell's voxels, or the distance's ramp)."""
+        """BCE over the grid + ``surface_weight`` × the BCE weighted by the target (the shell's voxels, or the distance's ramp).
+
+        The target's own entropy is subtracted per voxel (a constant: the
+        gradients are the BCE's), so that the loss is the KL divergence,
+        0 at a perfect fit for the soft distance target as for the binary shell.
+        """
         target = batch["voxels"][:, None]
-        bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+        entropy = -(torch.xlogy(target, target) + torch.xlogy(1 - target, 1 - target))
+        bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none") - entropy
         l_all = bce.mean()
         l_surf = (bce * target).sum() / target.sum().clamp(min=1)
         return l_all + self.surface_weight * l_surf, {"voxel_bce": l_all, "surface_bce": l_surf}
