@@ -159,6 +159,14 @@ def test_a_plate_thinner_than_a_voxel_survives_the_distance_target_but_has_two_s
     half = (1 - level) * band / n
     assert np.allclose(np.sort(np.unique(np.round(z, 6))), [0.11 - half, 0.11 + half], atol=1e-5)
     assert trimesh.Trimesh(verts, faces).is_watertight
+    # its surface keeps a slab 2·surface_margin voxels thick instead of two coincident sheets
+    from genre_backend.config import GeometryConfig
+    from genre_backend.geometry.mesh_voxels import grid_to_surface
+
+    g = GeometryConfig(voxel_size=n, target="distance", distance_band=band)
+    sv, _ = grid_to_surface(mesh_to_distance(v, f, n, band), level, g)
+    z = sv[inner, 2]
+    assert np.allclose(np.sort(np.unique(np.round(z, 6))), [0.11 - g.surface_margin / n, 0.11 + g.surface_margin / n], atol=1e-5)
 
 
 def test_mesh_to_target_follows_the_config():
@@ -181,6 +189,7 @@ def test_the_distance_grid_surface_lands_on_the_sphere_at_every_level():
     from genre_backend.geometry.mesh_voxels import grid_to_surface, mesh_to_target, vertex_normals
 
     g = GeometryConfig(voxel_size=48, target="distance")
+    assert g.surface_margin == 0.25
     r = 0.3
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=r)
     grid = mesh_to_target(torch.tensor(mesh.vertices), torch.tensor(mesh.faces), g)
@@ -188,7 +197,8 @@ def test_the_distance_grid_surface_lands_on_the_sphere_at_every_level():
         plain, _ = voxels_to_mesh(grid, level)
         verts, faces = grid_to_surface(grid, level, g)
         assert np.abs(np.linalg.norm(plain, axis=1) - r).mean() * 48 > 0.5 * (1 - level) * g.distance_band
-        assert np.abs(np.linalg.norm(verts, axis=1) - r).mean() * 48 < 0.05  # voxels
+        # the sheets end surface_margin voxels off the sphere, outside and inside
+        assert np.abs(np.abs(np.linalg.norm(verts, axis=1) - r) * 48 - g.surface_margin).mean() < 0.05
     # a shell grid is left as marching cubes made it
     shell = GeometryConfig(voxel_size=48, target="shell")
     v0, f0 = voxels_to_mesh(grid, 0.5)

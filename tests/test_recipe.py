@@ -81,8 +81,27 @@ def _flags_as_fields(flags: list[str]) -> dict:
     return out
 
 
+def shipped_target_is_the_models(recipes) -> bool:
+    return all(recipes[name].target is None for name in ("paper", "shipped", "photo"))
+
+
+def test_a_recipe_target_moves_the_model_to_it(tmp_path):
+    from training.learn.train import TrainConfig
+
+    assert TrainConfig(stage="refine", data="d", out="o", recipe="sharp").target == "distance"
+    assert TrainConfig(stage="refine", data="d", out="o", recipe="shipped").target is None
+    assert TrainConfig(stage="refine", data="d", out="o", recipe="shipped", target="shell").target == "shell"
+    with pytest.raises(ValueError, match="target"):
+        TrainConfig(stage="refine", data="d", out="o", target="occupancy")
+
+
 def test_recipes_validate_their_values():
-    assert set(RECIPES) == {"paper", "shipped", "photo"}
+    assert set(RECIPES) == {"paper", "shipped", "photo", "sharp"}
+    # sharp = shipped on the distance target, the two voxel nets with equal budgets
+    sharp = RECIPES["sharp"]
+    assert sharp.target == "distance" and shipped_target_is_the_models(RECIPES)
+    assert sharp.stages["refine"].steps == sharp.stages["completion"].steps
+    assert sharp.stages["inpaint"] == RECIPES["shipped"].stages["inpaint"]
     # photo = shipped, except the depth stage continued on photo-composited samples
     photo, shipped = RECIPES["photo"], RECIPES["shipped"]
     assert {k: v for k, v in photo.stages.items() if k != "depth"} == {k: v for k, v in shipped.stages.items() if k != "depth"}

@@ -49,7 +49,7 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
     """Time the geometry ops of one preset; returns one row per op."""
     import trimesh
 
-    from ..geometry.mesh_voxels import mesh_to_shell, voxels_to_mesh
+    from ..geometry.mesh_voxels import mesh_to_distance, mesh_to_shell, point_mesh_distance_reference, voxels_to_mesh
     from ..geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
     from ..geometry.spherical import depth_to_sph, depth_to_triangles, mesh_to_sph, raycast_triangles_reference, sph_to_points, sph_to_voxels
     from ..geometry.voxels import points_to_voxels_reference
@@ -97,6 +97,11 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
     v, f = torch.tensor(sphere.vertices, dtype=torch.float32), torch.tensor(sphere.faces)
     add(f"mesh (20k faces) → full sph {g.sph_size}²", lambda: mesh_to_sph(v, f, g.sph_size), note="ground truth, offline")
     add(f"mesh (20k faces) → shell {g.voxel_size}³", lambda: mesh_to_shell(v, f, g.voxel_size, g.shell_dilation), note="ground truth, offline")
+    band = mesh_to_distance(v, f, g.voxel_size, g.distance_band) > 0
+    probe = ((torch.nonzero(band)[:2].double() + 0.5) / g.voxel_size - 0.5).numpy()
+    add(f"mesh (20k faces) → distance {g.voxel_size}³", lambda: mesh_to_distance(v, f, g.voxel_size, g.distance_band),
+        lambda: point_mesh_distance_reference(probe, sphere.vertices, sphere.faces), int(band.sum()) / len(probe),
+        f"ground truth, offline; reference timed on {len(probe)} of the {int(band.sum())} band voxels, scaled")
     # Chamfer distance
     for n in (g.chamfer_points, 10_000):
         a = sample_surface(v, f, n, seed=0)

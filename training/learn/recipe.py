@@ -138,8 +138,9 @@ _SHARP = Recipe(
     preset="default",
     target="distance",
     description="the shipped chain moved to the truncated-distance target: every stage continues from the shipped "
-                "weights (--init), the inpainting net for 3,000 more steps, the refiner and the 3D Completion net "
-                "(which starts from the same refiner) 3,000 steps each on the distance target, joint 400",
+                "weights (--init; the depth net is kept) with the shipped budgets: the inpainting net 3,000 more "
+                "steps, the refiner and the 3D Completion net (which starts from the same refiner) 3,000 steps each "
+                "on the distance target, joint 400; the 1-step baseline afresh, 3,000",
     stages={**_SHIPPED.stages},
 )
 
