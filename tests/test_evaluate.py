@@ -201,10 +201,10 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
     out = capsys.readouterr().out
     lines = {line[:36].strip(): line for line in out.splitlines()[1:]}
     assert out.startswith("1 seen-test views")  # the box (test split); the unseen table is never looked at
-    assert set(lines) == {"true shell, marching cubes", "true spherical map, projected", "refiner <- true depth + true map",
+    assert set(lines) == {"true distance, its surface", "true spherical map, projected", "refiner <- true depth + true map",
                           "refiner <- true depth", "GenRe spherical map, projected", "GenRe"}
-    # the representation's own error of a box at the tiny preset's voxel size: a few voxels, finite
-    shell_cd = float(lines["true shell, marching cubes"].split(": ")[1])
+    # the representation's own error of a box at the tiny preset's voxel size: a fraction of a voxel, finite
+    shell_cd = float(lines["true distance, its surface"].split(": ")[1])
     sph_cd = float(lines["true spherical map, projected"].split(": ")[1])
     assert 0.0 < shell_cd < 0.25 and 0.0 < sph_cd < 0.25
 

@@ -59,11 +59,14 @@ def format_table(per_class: list[dict], groups: dict, choice: dict, rows: list[s
         t = "–" if row in (FLOOR, "Nearest training shape") else f"{choice['seen'].get(row, math.nan):.2f}"
         cells = [_fmt(groups["seen"][g].get(row, math.nan)) for g in present] + [_fmt(groups["per_class"][g].get(row, math.nan)) for g in present]
         lines.append(f"| {row} | {t} | " + " | ".join(cells) + " |")
+    def ratio(a: str, b: str, g: str) -> str:
+        num, den = groups["seen"][g].get(a, math.nan), groups["seen"][g].get(b, math.nan)
+        return f"{num / den:.3f}" if math.isfinite(num) and math.isfinite(den) and den > 0 else "–"
+
     ratios = [(a, b) for a, b in ((REPRESENTATION, FLOOR), ("GenRe", "3D Completion"), ("GenRe", "Nearest training shape")) if a in rows and b in rows]
     if ratios:
         lines += ["", "Ratios of group means (seen t*): " + "; ".join(
-            f"{a} ÷ {b}: " + ", ".join(f"{GROUP_LABEL[g]} {groups['seen'][g].get(a, math.nan) / groups['seen'][g].get(b, math.nan):.3f}" for g in present)
-            for a, b in ratios) + "."]
+            f"{a} ÷ {b}: " + ", ".join(f"{GROUP_LABEL[g]} {ratio(a, b, g)}" for g in present) for a, b in ratios) + "."]
     for g in present:
         classes = sorted({c["class"] for c in per_class if g in c["groups"].split("|")})
         lines += ["", f"## {GROUP_LABEL[g]}: CD per class (seen t*), mean ± 95 % interval", ""]

@@ -234,8 +234,7 @@ def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, devi
         records = [r for r in records if r["key"] in complete]
         write_csv(path, records, columns)
     todo = [v for v in views if v.key not in complete]
-    grids_dir = out_dir / "grids"
-    grids_dir.mkdir(exist_ok=True)
+    grids_dir = out_dir / "grids"  # (made when the first grid is written)
     save_grids = set(save_grids or ())
     if save_grids:  # views scored earlier (or by another process) whose grid the figures still need
         _save_grids(models, [v for v in views if v.key in save_grids and v.key in complete], grids_dir, device)
