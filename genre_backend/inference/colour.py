@@ -26,8 +26,9 @@ import torch
 
 from ..config import CameraConfig
 from ..frame import view_to_pixels
+from ..geometry.mesh_voxels import vertex_normals
 
-__all__ = ["MAX_TEXTURE_SIDE", "PhotoTexture", "project", "zbuffer", "zbuffer_reference", "vertex_normals", "seen_vertices", "photo_texture", "sample_bilinear"]
+__all__ = ["MAX_TEXTURE_SIDE", "PhotoTexture", "project", "zbuffer", "zbuffer_reference", "seen_vertices", "photo_texture", "sample_bilinear"]
 
 # The texture is the photo's crop at its own resolution, capped at this many pixels a side.
 MAX_TEXTURE_SIDE = 2048
@@ -99,18 +100,6 @@ def zbuffer_reference(vertices: np.ndarray, faces: np.ndarray, camera: CameraCon
                     z = 1.0 / (l0 / depth[tri[0]] + l1 / depth[tri[1]] + l2 / depth[tri[2]])
                     zb[py, px] = min(zb[py, px], z)
     return zb
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (V, 3), unit length (zero for unused vertices)."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 × area
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
 def seen_vertices(vertices: np.ndarray, faces: np.ndarray, camera: CameraConfig, mask: np.ndarray, tolerance: float) -> np.ndarray:
