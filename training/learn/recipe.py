@@ -50,6 +50,7 @@ class StageRecipe:
     beta2: float = 0.9
     surface_weight: float = 10.0
     photo_fraction: float = 0.0
+    sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -65,6 +66,8 @@ class StageRecipe:
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
         if not 0.0 <= self.photo_fraction <= 1.0:
             raise ValueError(f"photo_fraction: expected a number in [0, 1], got {self.photo_fraction!r}")
+        if self.sph_loss not in ("mse", "l1"):
+            raise ValueError(f"sph_loss: expected 'mse' or 'l1', got {self.sph_loss!r}")
 
     @classmethod
     def keys(cls) -> tuple[str, ...]:

@@ -89,6 +89,7 @@ class TrainConfig:
     beta2: float | None = None
     surface_weight: float | None = None
     photo_fraction: float | None = None
+    sph_loss: str | None = None
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
@@ -127,9 +128,9 @@ class TrainConfig:
 class StageModule(nn.Module):
     """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
 
-    def __init__(self, model: GenRe, stage: str, surface_weight: float):
+    def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse"):
         super().__init__()
-        self.model, self.stage, self.surface_weight = model, stage, surface_weight
+        self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
         self.baseline = None
         if stage in BASELINE_STAGES:
             from .baselines import CompletionBaseline, OneStepNet
@@ -186,6 +187,8 @@ class StageModule(nn.Module):
     def sph_loss(self, full_padded_pred, batch):
         pad = self.model.config.geometry.sph_pad
         target = pad_sph(batch["full_sph"][:, None], pad)
+        if self.sph_loss_kind == "l1":
+            return F.l1_loss(full_padded_pred, target)
         return F.mse_loss(full_padded_pred, target)
 
     def voxel_loss(self, logits, batch):
@@ -209,7 +212,7 @@ class StageModule(nn.Module):
         if self.stage == "onestep":
             pad = m.config.geometry.sph_pad
             loss = self.sph_loss(pad_sph(self.baseline(batch["rgb"])[:, None], pad), batch)
-            return loss, {"sph_mse": loss}
+            return loss, {f"sph_{self.sph_loss_kind}": loss}
         if self.stage == "completion":
             b = self.baseline
             with torch.no_grad():
@@ -223,7 +226,7 @@ class StageModule(nn.Module):
         if self.stage == "inpaint":
             pred = m.inpaint_net.forward_padded(pad_sph(partial[:, None], pad))
             loss = self.sph_loss(pred, batch)
-            return loss, {"sph_mse": loss}
+            return loss, {f"sph_{self.sph_loss_kind}": loss}
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
             full_padded = m.inpaint_net.forward_padded(pad_sph(partial[:, None], pad))
             full = full_padded[:, 0, pad:-pad, pad:-pad] if pad else full_padded[:, 0]
@@ -232,7 +235,7 @@ class StageModule(nn.Module):
         loss, terms = self.voxel_loss(logits, batch)
         if self.stage == "joint":
             l_sph = self.sph_loss(full_padded, batch)
-            terms["sph_mse"] = l_sph
+            terms[f"sph_{self.sph_loss_kind}"] = l_sph
             loss = loss + l_sph
         return loss, terms
 
@@ -431,7 +434,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         # a change of representation: the nets are the same, the refiner learns the new target
         model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, target=tcfg.target))
     config = model.config
-    module = StageModule(model, tcfg.stage, tcfg.surface_weight).to(device)
+    module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss).to(device)
     params = [p for p in module.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
 
