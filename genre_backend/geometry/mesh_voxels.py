@@ -49,6 +49,7 @@ __all__ = [
     "mesh_to_target",
     "voxels_to_mesh",
     "grid_to_surface",
+    "fill_enclosed",
     "onto_surface",
     "vertex_normals",
     "grid_index_to_view",
@@ -268,15 +269,35 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(acc, length, out=np.zeros_like(acc), where=length > 0)
 
 
+def fill_enclosed(grid, threshold: float) -> np.ndarray:
+    """The grid (N, N, N) float32 with every voxel that no path of voxels at or below ``threshold`` joins to
+    the outside set to 1 (6-neighbourhood; the grid is open at its border).
+
+    Marching cubes of the result has no inner sheets: a distance grid's tube
+    around a closed surface keeps only its outer sheet, even where a blurry
+    prediction joins the two sheets through holes.
+    """
+    from scipy import ndimage
+
+    g = grid.detach().cpu().numpy() if isinstance(grid, torch.Tensor) else np.asarray(grid)
+    g = g.astype(np.float32)
+    low = np.pad(g <= threshold, 1, constant_values=True)
+    labels, _ = ndimage.label(low)  # 6-connectivity
+    outside = (labels == labels[0, 0, 0])[1:-1, 1:-1, 1:-1]
+    return np.where(outside | (g > threshold), g, np.float32(1.0))
+
+
 def grid_to_surface(grid, threshold: float, geometry) -> tuple[np.ndarray, np.ndarray]:
     """The surface (vertices (V, 3) float32, faces (F, 3) int64) a grid of ``geometry.target`` stands for.
 
     ``shell``: marching cubes at ``threshold`` (:func:`voxels_to_mesh`).
-    ``distance``: the same, then every vertex moved ``(1 − threshold)·band −
-    surface_margin`` voxels against its (outward) normal, to just outside the
-    surface the iso-sheets surround (:func:`onto_surface`).  Faces and their
-    count are unchanged.
+    ``distance``: enclosed voxels filled (:func:`fill_enclosed`: the tube's
+    inner sheet goes), marching cubes, then every vertex moved ``(1 −
+    threshold)·band − surface_margin`` voxels against its (outward) normal, to
+    just outside the surface the outer sheet surrounds (:func:`onto_surface`).
     """
+    if geometry.target == "distance":
+        grid = fill_enclosed(grid, threshold)
     verts, faces = voxels_to_mesh(grid, threshold)
     return onto_surface(verts, faces, threshold, geometry), faces
 

@@ -34,7 +34,7 @@ import torch
 from ..config import GenreConfig
 from ..validation import check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
-from ..geometry.mesh_voxels import onto_surface, voxels_to_mesh
+from ..geometry.mesh_voxels import fill_enclosed, onto_surface, voxels_to_mesh
 from ..nets.model import GenRe, WeightsError, load_model
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
@@ -438,6 +438,8 @@ class Reconstructor:
             logits = model.refine(vox_sph, vox_depth)
             stage("mesh")
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
+            if model.config.geometry.target == "distance":
+                prob = torch.from_numpy(fill_enclosed(prob, threshold))  # the outer sheet only
             vertices, faces = voxels_to_mesh(prob, threshold)
             if len(faces) == 0:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
