@@ -265,3 +265,20 @@ def test_the_distance_target_is_nearer_the_truth_than_the_shell(tiny):
             best[kind] = min(m["cd1k"] for m in score_grid(grid, TINY.geometry.thresholds(), scorer).values())
         assert best["distance"] < 0.8 * best["shell"], (shape, best, floor)
         assert best["distance"] < 1.6 * floor, (shape, best, floor)
+
+
+def test_closed_meshes_are_told_from_ones_with_holes_or_tunnels():
+    from training.eval.runner import is_closed
+    from training.eval.statistics import product_threshold
+
+    sphere = trimesh.creation.icosphere(2)
+    torus = trimesh.creation.torus(0.3, 0.1)
+    two = trimesh.util.concatenate([sphere, trimesh.creation.icosphere(1).apply_translation([3, 0, 0])])
+    assert is_closed(sphere.faces) and is_closed(two.faces)
+    assert not is_closed(torus.faces)  # a tunnel
+    assert not is_closed(sphere.faces[1:])  # a hole
+    assert not is_closed(np.zeros((0, 3), int))
+    # the product threshold: lowest CD among the thresholds closed in ≥ 90 % of the views
+    recs = [{"shape": f"s{i}", "cd1k@0.30": "0.2", "closed@0.30": "1", "cd1k@0.50": "0.1", "closed@0.50": str(float(i < 5)),
+             "cd1k@0.70": "0.3", "closed@0.70": "1"} for i in range(10)]
+    assert product_threshold(recs, [0.3, 0.5, 0.7], 0.5) == (0.3, 1.0)

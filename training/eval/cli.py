@@ -24,7 +24,7 @@ from genre_backend.nets.model import WeightsError, load_model
 from .protocol import GROUPS, ROWS, find_eval_views
 from .rows import Models
 from .runner import ModelSpec, evaluate_views
-from .statistics import aggregate, choose_thresholds
+from .statistics import CLOSED_SHARE, aggregate, choose_thresholds
 from .report import format_table, write_csv
 
 __all__ = ['HINTS', 'main']
@@ -96,6 +96,11 @@ def _parser(prog: str) -> argparse.ArgumentParser:
 def _fail(prog: str, message: str) -> int:
     print(f"{prog}: error: {message}", file=sys.stderr)
     return 2
+
+
+def _closed_at(records: list[dict], t: float) -> float:
+    vals = [float(r[f"closed@{t:.2f}"]) for r in records if r["row"] == "GenRe" and "test" in r["groups"].split("|")]
+    return sum(vals) / len(vals) if vals else float("nan")
 
 
 def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
@@ -209,6 +214,15 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
               f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
               "views scored by an earlier, interrupted invocation are not counted).\n")
     table = format_table(per_class, group_means, choice, models.rows(), header)
+    if "GenRe" in choice.get("product", {}):
+        tp, share = choice["product"]["GenRe"]
+        _, _, at_product = aggregate(records, dict(choice, seen=dict(choice["seen"], GenRe=tp)))
+        cds = ", ".join(f"{g} {v['GenRe']:.3f}" for g, v in at_product["seen"].items() if "GenRe" in v)
+        table += (f"\n## The shipped threshold\n\nThe threshold installed for users (`python -m training.eval.install`) is chosen on "
+                  f"seen-test views too, as the lowest mean CD among thresholds whose GenRe meshes are closed (no holes, no tunnels) "
+                  f"in at least {100 * CLOSED_SHARE:.0f} % of the views: t = {tp:.2f}, closed in {100 * share:.0f} % of the "
+                  f"seen-test views (at the CD-optimal {choice['seen']['GenRe']:.2f}: "
+                  f"{100 * _closed_at(records, choice['seen']['GenRe']):.0f} %). GenRe's CD at t = {tp:.2f}: {cds}.\n")
     notes = []
     if not args.no_figures:
         from . import figures

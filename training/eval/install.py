@@ -6,8 +6,10 @@
 The isosurface threshold stored in the installed weights' config
 (``geometry.default_threshold``, what ``genre reconstruct`` and ``genre
 serve`` use unless asked otherwise) becomes GenRe's threshold chosen by
-``genre eval`` on seen-test views only (``thresholds.json`` → ``seen`` →
-``GenRe``): the honest choice, never tuned on unseen classes.  Writes the
+``genre eval`` on seen-test views only, never tuned on unseen classes:
+``thresholds.json`` → ``product`` → ``GenRe`` (the lowest CD among
+thresholds whose meshes are closed in 90 % of the views) when the run has
+it, else → ``seen`` → ``GenRe`` (the lowest CD).  Writes the
 ``.safetensors`` and its ``.json`` atomically (:func:`genre_backend.nets.model.save_model`).
 """
 
@@ -28,8 +30,8 @@ def install(weights: Path, thresholds: Path, out: Path) -> float:
     """Copy ``weights`` to ``out`` with the seen-test threshold of GenRe; returns that threshold."""
     chosen = json.loads(Path(thresholds).read_text())
     try:
-        t = float(chosen["seen"]["GenRe"])
-    except (KeyError, TypeError, ValueError):
+        t = float(chosen["product"]["GenRe"][0]) if "GenRe" in chosen.get("product", {}) else float(chosen["seen"]["GenRe"])
+    except (KeyError, TypeError, ValueError, IndexError):
         raise ValueError(f"{thresholds}: no seen-test threshold for GenRe (run 'genre eval' with seen-test views)") from None
     if not 0.0 < t < 1.0:
         raise ValueError(f"{thresholds}: GenRe's threshold {t} is not in (0, 1)")

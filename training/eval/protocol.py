@@ -55,7 +55,7 @@ def threshold_key(t: float) -> str:
 
 
 def metric_columns(thresholds: list[float]) -> list[str]:
-    return [f"{m}@{threshold_key(t)}" for t in thresholds for m in (*METRICS, "empty")]
+    return [f"{m}@{threshold_key(t)}" for t in thresholds for m in (*METRICS, "empty", "closed")]
 
 
 BASE_COLUMNS = ["key", "shape", "view", "class", "groups", "azimuth", "elevation", "row", "depth_abs_err", "retrieved"]

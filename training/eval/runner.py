@@ -32,20 +32,44 @@ from .protocol import BASE_COLUMNS, EMPTY_CD, EvalView, FLOOR, POINTS_LARGE, POI
 from .rows import Models, predict
 from .report import write_csv
 
-__all__ = ['EMPTY', 'ModelSpec', 'Truth', 'evaluate_views', 'grid_path', 'mesh_metrics', 'score_grid', 'score_view']
+__all__ = ['EMPTY', 'ModelSpec', 'Truth', 'is_closed', 'evaluate_views', 'grid_path', 'mesh_metrics', 'score_grid', 'score_view']
 
 
-EMPTY = {"cd1k": EMPTY_CD, "cd10k": EMPTY_CD, "f1": 0.0, "f2": 0.0, "empty": 1.0}
+EMPTY = {"cd1k": EMPTY_CD, "cd10k": EMPTY_CD, "f1": 0.0, "f2": 0.0, "empty": 1.0, "closed": 0.0}
+
+
+def is_closed(faces) -> bool:
+    """Whether every connected part of a mesh is a closed surface of genus 0 (no holes, no tunnels).
+
+    Each such part has Euler characteristic V − E + F = 2; a part with a hole
+    or a tunnel has less.  faces: (F, 3) int of a mesh whose parts share no
+    vertices (marching cubes').
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        return False
+    used = np.unique(f)
+    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    n = int(used.max()) + 1
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    parts = connected_components(graph, directed=False)[1][used]
+    return len(used) - len(edges) + len(f) == 2 * len(np.unique(parts))
 
 
 def mesh_metrics(verts, faces, target: CloudScorer, seed: int = 0) -> dict[str, float]:
-    """Metrics of a predicted mesh (view frame) against the truth; EMPTY for no usable surface."""
+    """Metrics of a predicted mesh (view frame) against the truth; EMPTY for no usable surface.
+
+    ``closed`` is 1 when every part of the mesh is closed without holes or tunnels (:func:`is_closed`).
+    """
     if len(faces) == 0:
         return dict(EMPTY)
     try:
         ps = sample_surface(verts, faces, POINTS_SMALL, seed=seed)
         pl = sample_surface(verts, faces, POINTS_LARGE, seed=seed + 1)
-        return target.metrics(ps, pl)
+        return {**target.metrics(ps, pl), "closed": float(is_closed(faces))}
     except ValueError:  # zero area or zero extent
         return dict(EMPTY)
 
@@ -163,7 +187,7 @@ def score_view(models: Models, view: EvalView, sample: dict, truth: Truth, devic
     base = {"key": view.key, "shape": view.shape_dir.name, "view": view.view, "class": view.cls, "groups": "|".join(view.groups),
             "azimuth": view.meta.get("azimuth_deg", ""), "elevation": view.meta.get("elevation_deg", ""), "depth_abs_err": "", "retrieved": ""}
     target = CloudScorer(gt_small, gt_large)
-    floor = target.metrics(again_small, again_large)
+    floor = {**target.metrics(again_small, again_large), "closed": float("nan")}
     results = {FLOOR: {t: floor for t in thresholds}}
     for row in models.rows():
         p = pred[row]
@@ -173,7 +197,7 @@ def score_view(models: Models, view: EvalView, sample: dict, truth: Truth, devic
                 _write_grid(grids_dir, view.key, p["prob"])
         else:
             pts = p["points"]
-            m = target.metrics(pts[:POINTS_SMALL], pts)
+            m = {**target.metrics(pts[:POINTS_SMALL], pts), "closed": float("nan")}  # (points: no surface to judge)
             results[row] = {t: m for t in thresholds}
     new = []
     for row, per_t in results.items():

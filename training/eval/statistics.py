@@ -45,17 +45,51 @@ def _argmin(scores: dict[float, float], default: float) -> float:
     return min((t for t, s in finite.items() if s == best), key=lambda t: (abs(t - default), t))
 
 
+CLOSED_SHARE = 0.9  # the product threshold: at least this share of seen-test meshes closed
+
+
+def _closed_share(records: list[dict], thresholds: list[float]) -> dict[float, float]:
+    """Share of records whose mesh is closed (no holes, no tunnels) per threshold; nan for rows without meshes."""
+    out = {}
+    for t in thresholds:
+        vals = [float(r.get(f"closed@{threshold_key(t)}", "nan")) for r in records]
+        vals = [v for v in vals if math.isfinite(v)]
+        out[t] = float(np.mean(vals)) if vals else math.nan
+    return out
+
+
+def product_threshold(records: list[dict], thresholds: list[float], default: float) -> tuple[float, float]:
+    """The threshold shipped for users, chosen on the (seen-test) ``records``: ``(t, closed share at t)``.
+
+    The lowest mean CD among the thresholds whose meshes are closed (no
+    holes or tunnels: :func:`training.eval.runner.is_closed`) in at least
+    ``CLOSED_SHARE`` of the views; when none is, the most often closed (ties:
+    lower CD).  A mesh with a hole costs Chamfer distance little and an
+    artist a lot.
+    """
+    cd, closed = _mean_by_threshold(records, thresholds), _closed_share(records, thresholds)
+    ok = {t: cd[t] for t in thresholds if math.isfinite(closed[t]) and closed[t] >= CLOSED_SHARE}
+    if ok:
+        t = _argmin(ok, default)
+    elif any(math.isfinite(v) for v in closed.values()):
+        t = max((t for t in thresholds if math.isfinite(closed[t])), key=lambda t: (closed[t], -cd[t]))
+    else:
+        return default, math.nan
+    return t, closed[t]
+
+
 def choose_thresholds(records: list[dict], thresholds: list[float], default: float, fixed: dict[str, float] | None = None) -> dict:
-    """``{"seen": {row: t}, "per_class": {row: {class: t}}, "source": ...}``.
+    """``{"seen": {row: t}, "per_class": {row: {class: t}}, "product": {row: [t, closed share]}, "source": ...}``.
 
     ``seen``: the threshold of lowest mean CD over **seen-test views only**
     (group ``test``), or ``fixed`` (from another run's thresholds.json) when
-    given or when there are no seen-test views.
+    given or when there are no seen-test views.  ``product``: the threshold
+    for users, also from seen-test views only (:func:`product_threshold`).
     """
     by_row = defaultdict(list)
     for r in records:
         by_row[r["row"]].append(r)
-    seen, per_class = {}, {}
+    seen, per_class, product = {}, {}, {}
     source = "seen-test views of this run"
     for row, recs in by_row.items():
         test = [r for r in recs if "test" in r["groups"].split("|")]
@@ -64,6 +98,8 @@ def choose_thresholds(records: list[dict], thresholds: list[float], default: flo
             source = "--thresholds-from"
         elif test:
             seen[row] = _argmin(_mean_by_threshold(test, thresholds), default)
+        if test:
+            product[row] = list(product_threshold(test, thresholds, default))
         else:
             seen[row] = default
             source = f"no seen-test views: the default threshold {default}"
@@ -71,7 +107,7 @@ def choose_thresholds(records: list[dict], thresholds: list[float], default: flo
         for r in recs:
             classes[r["class"]].append(r)
         per_class[row] = {c: _argmin(_mean_by_threshold(v, thresholds), default) for c, v in classes.items()}
-    return {"seen": seen, "per_class": per_class, "source": source, "thresholds": thresholds}
+    return {"seen": seen, "per_class": per_class, "product": product, "source": source, "thresholds": thresholds}
 
 
 def _interval(values: list[float]) -> tuple[float, float]:
