@@ -94,7 +94,9 @@ def gallery(out: Path, views, gallery_keys: list[str], choice, samples: int, def
     from genre_backend.geometry.mesh_voxels import grid_to_surface
 
     by_key = {v.key: v for v in views}
-    t = choice["seen"].get("GenRe", default_threshold)  # (no seen-test choice: the weights' own level)
+    # what a user gets: the shipped threshold (closed meshes), else the seen-test CD choice, else the weights' own
+    product = choice.get("product", {}).get("GenRe")
+    t = product[0] if product else choice["seen"].get("GenRe", default_threshold)
     items, meshes = [], []
     for key in gallery_keys:
         grid_file = grid_path(out / "grids", key)

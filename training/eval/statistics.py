@@ -99,7 +99,9 @@ def choose_thresholds(records: list[dict], thresholds: list[float], default: flo
         elif test:
             seen[row] = _argmin(_mean_by_threshold(test, thresholds), default)
         if test:
-            product[row] = list(product_threshold(test, thresholds, default))
+            t, share = product_threshold(test, thresholds, default)
+            if math.isfinite(share):  # (rows that give no meshes have none)
+                product[row] = [t, share]
         else:
             seen[row] = default
             source = f"no seen-test views: the default threshold {default}"
