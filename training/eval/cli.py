@@ -220,7 +220,9 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
         cds = ", ".join(f"{g} {v['GenRe']:.3f}" for g, v in at_product["seen"].items() if "GenRe" in v)
         table += (f"\n## The shipped threshold\n\nThe threshold installed for users (`python -m training.eval.install`) is chosen on "
                   f"seen-test views too, as the lowest mean CD among thresholds whose GenRe meshes are closed (no holes, no tunnels) "
-                  f"in at least {100 * CLOSED_SHARE:.0f} % of the views: t = {tp:.2f}, closed in {100 * share:.0f} % of the "
+                  f"in at least {100 * CLOSED_SHARE:.0f} % of the views"
+                  + ("" if share >= CLOSED_SHARE else " (none is here, so: the threshold whose meshes are most often closed)")
+                  + f": t = {tp:.2f}, closed in {100 * share:.0f} % of the "
                   f"seen-test views (at the CD-optimal {choice['seen']['GenRe']:.2f}: "
                   f"{100 * _closed_at(records, choice['seen']['GenRe']):.0f} %). GenRe's CD at t = {tp:.2f}: {cds}.\n")
     notes = []
