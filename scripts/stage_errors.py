@@ -11,7 +11,11 @@ normalised):
 * ``true spherical map, projected`` the true full map → voxels, every hit voxel kept
 * ``GenRe spherical map, projected`` GenRe's inpainted map → voxels, likewise
 * ``refiner <- true depth + true map`` (GenRe-SphOracle), ``refiner <- true depth``
-  (GenRe-Oracle) and GenRe, each at several isosurface thresholds.
+  (GenRe-Oracle) and GenRe, each at several isosurface thresholds;
+* the inpainting alone: the partial maps of GenRe's and of the true depth
+  projected, the inpainted map of the true depth's partial map projected,
+  and the maps' own errors (MSE against the true full map on the partial
+  map's hits and elsewhere; the spread of the hit values).
 
 Seen-test views only: what it shows is used to change the model, and the
 unseen classes must stay untouched by such choices.
@@ -58,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     pick = np.random.default_rng(args.seed).choice(len(views), min(args.views_count, len(views)), replace=False)
     views = [views[i] for i in sorted(pick)]
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)
-    truth, scores, target_fraction = Truth(), {}, []
+    truth, scores, target_fraction, maps = Truth(), {}, [], {}
 
     def add(name: str, per_t: dict) -> None:
         for t, m in per_t.items():
@@ -79,11 +83,25 @@ def main(argv: list[str] | None = None) -> int:
             add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
             genre = model(rgb, mask=mask)
             add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))
+            # the inpainting alone: the partial maps it starts from, and what it makes of the true depth's
+            partial = model.partial_sph(genre["masked_depth"])
+            partial_true = model.partial_sph(depth)
+            add("partial map (GenRe depth), projected", score_grid(model.sph_voxels(partial)[0, 0], [HIT], target))
+            add("partial map (true depth), projected", score_grid(model.sph_voxels(partial_true)[0, 0], [HIT], target))
+            add("inpainted from true depth, projected", score_grid(model.sph_voxels(model.inpaint_net(partial_true))[0, 0], [HIT], target))
+            seen = partial < 1
+            maps.setdefault("GenRe partial map: MSE on its hits", []).append(float(((partial - full) ** 2)[seen].mean()))
+            maps.setdefault("inpainted map: MSE on those pixels", []).append(float(((genre["full_sph"] - full) ** 2)[seen].mean()))
+            maps.setdefault("inpainted map: MSE elsewhere", []).append(float(((genre["full_sph"] - full) ** 2)[~seen].mean()))
+            maps.setdefault("inpainted map: std of its hits", []).append(float(genre["full_sph"][genre["full_sph"] < 0.9999].std()))
+            maps.setdefault("true map: std of its hits", []).append(float(full[full < 0.9999].std()))
             add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target, model.config.geometry))
     print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
           f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")
     for name, per_t in scores.items():
         print(f"{name:36s} " + "  ".join(f"t={t:.2f}: {np.mean(v):.4f}" for t, v in per_t.items()))
+    for name, values in maps.items():
+        print(f"{name:36s} {np.mean(values):.5f}")
     return 0
 
 

@@ -202,7 +202,11 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
     lines = {line[:36].strip(): line for line in out.splitlines()[1:]}
     assert out.startswith("1 seen-test views")  # the box (test split); the unseen table is never looked at
     assert set(lines) == {"true distance, its surface", "true spherical map, projected", "refiner <- true depth + true map",
-                          "refiner <- true depth", "GenRe spherical map, projected", "GenRe"}
+                          "refiner <- true depth", "GenRe spherical map, projected", "GenRe",
+                          "partial map (GenRe depth), projected", "partial map (true depth), projected",
+                          "inpainted from true depth, projected", "GenRe partial map: MSE on its hits",
+                          "inpainted map: MSE on those pixels", "inpainted map: MSE elsewhere",
+                          "inpainted map: std of its hits", "true map: std of its hits"}
     # the representation's own error of a box at the tiny preset's voxel size: a fraction of a voxel, finite
     shell_cd = float(lines["true distance, its surface"].split(": ")[1])
     sph_cd = float(lines["true spherical map, projected"].split(": ")[1])
