@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
               f"(voxel target: {genre.config.geometry.target}); weights {paths['genre']}.\n\n"
               f"Command: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n\n"
               f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
-              "views scored by an earlier, interrupted invocation are not counted).\n")
+              "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")
     table = format_table(per_class, group_means, choice, models.rows(), header)
     if "GenRe" in choice.get("product", {}):
         tp, share = choice["product"]["GenRe"]
