@@ -33,7 +33,7 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         name="Threshold", description="Isosurface threshold of the voxel grid: lower gives a fuller shape",
         # The shipped weights' level (tests/test_layout.py holds the two together); the field
         # follows the level the backend reports for whatever weights it runs.
-        default=0.75, min=0.01, max=0.99, step=1, precision=2,
+        default=0.45, min=0.01, max=0.99, step=1, precision=2,
     )
     smoothing: IntProperty(
         name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
