@@ -94,8 +94,8 @@ class GeometryConfig:
     # The distance target's surface (geometry.mesh_voxels.onto_surface): the sheets are moved back
     # toward the surface but stop this many voxels short of it, so that a part thinner than a voxel
     # (a wing, a sheet) keeps a thickness of twice this instead of collapsing into two coincident
-    # sheets with opposite normals.  Costs CD 0.030 → 0.033 through the true target (10 seen-test
-    # views; resampling floor 0.030).
+    # sheets with opposite normals.  Costs CD 0.031 → 0.033 at t = 0.5 through the true target (10
+    # seen-test views, scripts/representation_floor.py; resampling floor 0.030).
     surface_margin: float = 0.25
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at

@@ -286,3 +286,19 @@ def test_closed_meshes_are_told_from_ones_with_holes_or_tunnels():
     recs = [{"shape": f"s{i}", "cd1k@0.30": "0.2", "closed@0.30": "1", "cd1k@0.50": "0.1", "closed@0.50": str(float(i < 5)),
              "cd1k@0.70": "0.3", "closed@0.70": "1"} for i in range(10)]
     assert product_threshold(recs, [0.3, 0.5, 0.7], 0.5) == (0.3, 1.0)
+
+
+def test_representation_floor_scores_the_truth_through_each_representation(tiny, capsys):
+    import importlib.util
+
+    root, views, _ = tiny
+    spec = importlib.util.spec_from_file_location("representation_floor", Path(__file__).resolve().parents[1] / "scripts" / "representation_floor.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--views", str(views), "--manifest", str(root / "manifest.json"), "--thresholds", "0.5"]) == 0
+    lines = {line[:36].strip(): float(line[36:]) for line in capsys.readouterr().out.splitlines()[1:]}
+    assert set(lines) == {"noise floor (truth resampled)", "shell, t=0.50", "distance, plain, t=0.50", "distance, moved, t=0.50",
+                          "distance, shipped, t=0.50", "solid (winding number), t=0.50"}
+    # the box at 64³: the moved distance sheets sit on the floor's scale, the shell well above it
+    assert lines["distance, moved, t=0.50"] < lines["distance, plain, t=0.50"] < lines["shell, t=0.50"]
+    assert lines["distance, shipped, t=0.50"] < 1.5 * lines["noise floor (truth resampled)"]

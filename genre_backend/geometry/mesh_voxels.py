@@ -21,9 +21,10 @@ view-frame cube ``[-0.5, 0.5]^3``, voxel centre ``(i + 0.5)/N − 0.5``.
   every vertex is moved back by that distance, less ``surface_margin``,
   against its normal, which puts both sheets just outside the surface (a
   thin part keeps a thickness of ``2·surface_margin`` voxels).  Measured on
-  10 seen-test views through the true target (resampling floor CD 0.030):
-  plain marching cubes 0.037 at t = 0.75 and 0.052 at t = 0.5; moved all
-  the way 0.029 and 0.031; with the margin of 0.25 voxel 0.033 at both.
+  10 seen-test views through the true target (``scripts/representation_floor.py``;
+  resampling floor CD 0.030, the shell 0.082): plain marching cubes 0.052 at
+  t = 0.5 and 0.037 at t = 0.75; moved all the way 0.031 and 0.029; as
+  shipped (filled, margin 0.25 voxel) 0.033 and 0.031.
 * :func:`voxels_to_mesh` runs marching cubes (scikit-image) and places every
   vertex exactly in the view frame.
 """
