@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -34,7 +33,7 @@ from genre_backend import frame  # noqa: E402
 from genre_backend.config import get_preset  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.mesh_voxels import grid_index_to_view, grid_to_surface, mesh_to_target, voxels_to_mesh  # noqa: E402
-from training.eval.protocol import POINTS_SMALL, find_eval_views, resolve_mesh  # noqa: E402
+from training.eval.protocol import POINTS_SMALL, resolve_mesh, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, mesh_metrics  # noqa: E402
 
 
@@ -52,11 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     geometry = get_preset("default").geometry
     n = geometry.voxel_size
     levels = [float(t) for t in args.thresholds.split(",")]
-    views = find_eval_views([Path(args.views)], json.loads(Path(args.manifest).read_text()), ("test",), max_views=1)
-    if not views:
-        p.error(f"no seen-test views under {args.views}")
-    pick = np.random.default_rng(args.seed).choice(len(views), min(args.views_count, len(views)), replace=False)
-    views = [views[i] for i in sorted(pick)]
+    try:
+        views = sample_seen_test_views(Path(args.views), Path(args.manifest), args.views_count, args.seed)
+    except FileNotFoundError as exc:
+        p.error(str(exc))
     centres = grid_index_to_view(np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(np.float64), n)
     truth, scores = Truth(), {}
 

@@ -27,7 +27,6 @@ unseen classes must stay untouched by such choices.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -39,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
-from training.eval.protocol import POINTS_SMALL, find_eval_views  # noqa: E402
+from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
@@ -56,11 +55,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     model = load_model(args.weights)
     thresholds = [float(t) for t in args.thresholds.split(",")]
-    views = find_eval_views([Path(args.views)], json.loads(Path(args.manifest).read_text()), ("test",), max_views=1)
-    if not views:
-        p.error(f"no seen-test views under {args.views}")
-    pick = np.random.default_rng(args.seed).choice(len(views), min(args.views_count, len(views)), replace=False)
-    views = [views[i] for i in sorted(pick)]
+    try:
+        views = sample_seen_test_views(Path(args.views), Path(args.manifest), args.views_count, args.seed)
+    except FileNotFoundError as exc:
+        p.error(str(exc))
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)
     truth, scores, target_fraction, maps = Truth(), {}, [], {}
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ..data.views import manifest_index
 
-__all__ = ['BASE_COLUMNS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'REPRESENTATION', 'ROWS', 'find_eval_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
+__all__ = ['BASE_COLUMNS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'REPRESENTATION', 'ROWS', 'find_eval_views', 'sample_seen_test_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
 
 
 ROWS = ("GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "GenRe-1step", "Nearest training shape",
@@ -104,6 +104,24 @@ def find_eval_views(roots: list[Path], manifest: dict | None, groups: tuple[str,
             per_shape[ref.shape_id] += 1
             out.append(EvalView(ref.shape_dir, ref.view, cls, gs, meta))
     return out
+
+
+def sample_seen_test_views(views_dir: Path, manifest_path: Path, count: int, seed: int = 0) -> list[EvalView]:
+    """A seeded sample of ``count`` seen-test views (one per shape), in their sorted order, for the diagnostics scripts.
+
+    Seen-test only: what the diagnostics show is used to change the model, and
+    the unseen classes must stay untouched by such choices.  Raises
+    FileNotFoundError when there is none.
+    """
+    import json
+
+    import numpy as np
+
+    views = find_eval_views([Path(views_dir)], json.loads(Path(manifest_path).read_text()), ("test",), max_views=1)
+    if not views:
+        raise FileNotFoundError(f"no seen-test views under {views_dir}")
+    pick = np.random.default_rng(seed).choice(len(views), min(count, len(views)), replace=False)
+    return [views[i] for i in sorted(pick)]
 
 
 def resolve_mesh(path: str) -> Path:
