@@ -213,6 +213,29 @@ def test_split_is_deterministic_and_near_15_percent():
     assert corpus.split_of("x", "helicopter") == "unassigned" and corpus.groups_of("helicopter", "unassigned") == []
 
 
+def test_product_split_holds_out_every_class_and_keeps_families_and_seen_test():
+    shapes = [(f"air-{i}", "airplane", corpus.split_of(f"air-{i}", "airplane"), f"air-{i}") for i in range(300)]
+    shapes += [(f"lamp-{i}", "lamp", "unseen", f"lamp-fam-{i // 3}") for i in range(600)]  # families of 3 variants
+    shapes += [("pair-a", "speaker", "unseen", "pair-a"), ("pair-b", "speaker", "unseen", "pair-b")]
+    shapes += [("lonely", "balloon", "unassigned", "lonely")]
+    groups = corpus.product_groups(shapes)
+    assert groups == corpus.product_groups(list(reversed(shapes)))  # order does not matter
+    assert set(groups) == {s[0] for s in shapes} and set(groups.values()) <= set(corpus.PRODUCT_GROUPS)
+    # seen classes: exactly the protocol's test split (the protocol model never trained on a product test shape)
+    assert all((groups[sid] == "product-test") == (split == "test") for sid, cls, split, _ in shapes if cls == "airplane")
+    # other classes: about the fraction, whole families on one side
+    lamps = [s for s in shapes if s[1] == "lamp"]
+    frac = sum(groups[s[0]] == "product-test" for s in lamps) / len(lamps)
+    assert 0.10 < frac < 0.20
+    by_family: dict[str, set] = {}
+    for sid, _, _, fam in lamps:
+        by_family.setdefault(fam, set()).add(groups[sid])
+    assert all(len(v) == 1 for v in by_family.values())
+    # a class of two still holds one out; a class of one trains
+    assert sorted(groups[s] for s in ("pair-a", "pair-b")) == ["product-test", "product-train"]
+    assert groups["lonely"] == "product-train"
+
+
 # ----------------------------------------------------------------------------- whole build on a folder
 
 

@@ -59,6 +59,9 @@ __all__ = [
     "classify",
     "split_of",
     "groups_of",
+    "PRODUCT_TEST_FRACTION",
+    "PRODUCT_GROUPS",
+    "product_groups",
     "normalise_parts",
     "check_geometry",
     "junk_reason",
@@ -252,6 +255,45 @@ def groups_of(cls: str, split: str) -> list[str]:
         out.append("unseen")
     if cls in UNSEEN_PIX3D_CLASSES:
         out.append("unseen-pix3d")
+    return out
+
+
+# The product model (the weights users get) trains on every class; its test split holds out
+# shapes of *every* class, the unassigned ones included.  Seen classes keep the protocol's
+# split, so no shape the protocol model trained on is ever a product test shape; every other
+# class holds out the families whose hash falls below PRODUCT_TEST_FRACTION (a family's variants
+# stay together), and a class of two or more shapes holds out at least its lowest-hash family.
+PRODUCT_TEST_FRACTION = 0.15
+PRODUCT_GROUPS = ("product-train", "product-test")
+
+
+def _product_hash(family: str) -> float:
+    return _unit_hash("product/" + family)
+
+
+def product_groups(shapes: Iterable[tuple[str, str, str, str]]) -> dict[str, str]:
+    """The product split of a whole corpus.
+
+    Args:
+        shapes: ``(id, class, protocol split, family)`` of every kept shape.
+
+    Returns:
+        ``{id: "product-train" | "product-test"}`` for every shape.
+    """
+    shapes = list(shapes)
+    out: dict[str, str] = {}
+    by_class: dict[str, list[tuple[str, str]]] = {}
+    for sid, cls, split, family in shapes:
+        if cls in SEEN_CLASSES:
+            out[sid] = "product-test" if split == "test" else "product-train"
+        else:
+            by_class.setdefault(cls, []).append((sid, family or sid))
+    for cls, members in by_class.items():
+        held = {fam for _, fam in members if _product_hash(fam) < PRODUCT_TEST_FRACTION}
+        if not held and len(members) >= 2:
+            held = {min((fam for _, fam in members), key=_product_hash)}
+        for sid, fam in members:
+            out[sid] = "product-test" if fam in held else "product-train"
     return out
 
 
@@ -706,6 +748,9 @@ def build(
             (shapes_dir / f"{e.id}.glb").unlink(missing_ok=True)
         else:
             kept.append(e)
+    product = product_groups((e.id, e.cls, e.split, e.family) for e in kept)
+    for e in kept:
+        e.groups = [*e.groups, product[e.id]]
     # meshes of shapes no longer in the corpus (an earlier build) are removed
     kept_files = {f"{e.id}.glb" for e in kept}
     for f in shapes_dir.glob("*.glb"):
@@ -723,7 +768,7 @@ def build(
         },
         "splits": {
             name: sorted(e.id for e in kept if name in e.groups)
-            for name in ("train", "test", "unseen", "unseen-pix3d")
+            for name in ("train", "test", "unseen", "unseen-pix3d", *PRODUCT_GROUPS)
         },
         "shapes": [e.to_json() for e in sorted(kept, key=lambda e: e.id)],
         "skipped": [asdict(s) for s in sorted(skips, key=lambda s: s.id)],
