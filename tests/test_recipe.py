@@ -96,7 +96,7 @@ def test_a_recipe_target_moves_the_model_to_it(tmp_path):
 
 
 def test_recipes_validate_their_values():
-    assert set(RECIPES) == {"paper", "shipped", "photo", "sharp"}
+    assert set(RECIPES) == {"paper", "shipped", "photo", "sharp", "product"}
     # sharp = shipped on the distance target, the two voxel nets with equal budgets
     sharp = RECIPES["sharp"]
     assert sharp.target == "distance" and shipped_target_is_the_models(RECIPES)
@@ -106,9 +106,13 @@ def test_recipes_validate_their_values():
     photo, shipped = RECIPES["photo"], RECIPES["shipped"]
     assert {k: v for k, v in photo.stages.items() if k != "depth"} == {k: v for k, v in shipped.stages.items() if k != "depth"}
     assert photo.stages["depth"].photo_fraction == 0.8 and all(s.photo_fraction == 0.0 for s in shipped.stages.values())
+    # product: the distance target; only its joint stage adds the depth loss and composites photos there
+    product = RECIPES["product"]
+    assert product.target == "distance" and product.stages["joint"].depth_weight > 0
+    assert all(s.depth_weight == 0.0 for r in RECIPES.values() for name, s in r.stages.items() if (r.name, name) != ("product", "joint"))
     with pytest.raises(ValueError, match="unknown recipe"):
         get_recipe("fast")
-    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}):
+    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}):
         with pytest.raises(ValueError):
             StageRecipe(**bad)
     with pytest.raises(SystemExit):

@@ -67,6 +67,32 @@ def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
     assert sum(p.grad.abs().sum() for p in model.depth_net.parameters() if p.grad is not None) > 0
 
 
+def test_joint_depth_weight_adds_exactly_the_depth_loss(tiny_views):
+    from training.data.dataset import ViewDataset, find_views
+
+    data = ViewDataset(find_views(tiny_views), TINY)
+    batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
+    model = GenRe(TINY).eval()
+    with torch.no_grad():
+        plain, _ = StageModule(model, "joint", 0.1, "mse", 0.0).eval()(batch)
+        weighted, terms = StageModule(model, "joint", 0.1, "mse", 2.5).eval()(batch)
+        own, _ = StageModule(model, "depth", 0.1).eval().depth_loss(model.depth_net(batch["rgb"]), batch)
+    assert {"depth_mse", "silhouette_bce"} <= set(terms)
+    assert torch.allclose(weighted - plain, 2.5 * own, rtol=1e-5, atol=1e-6)
+
+
+def test_several_views_folders_and_processor_time_that_accumulates(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    s = train(_cfg("joint", tiny_views, run, data=[str(tiny_views), str(tiny_views)], steps=3, depth_weight=1.0), TINY)
+    assert s["train_views"] == 8  # the same four views from each folder
+    assert s["cpu_s"] > 0
+    first = json.loads((run / "joint" / "checkpoint" / "state.json").read_text())["cpu_s"]
+    assert first > 0
+    s2 = train(_cfg("joint", tiny_views, run, steps=6, depth_weight=1.0), TINY)
+    assert s2["resumed_from"] == 3 and s2["cpu_s"] > first  # the resumed run adds to the checkpoint's time
+    assert json.loads((run / "joint" / "final.json").read_text())["extra"]["cpu_s"] == s2["cpu_s"]
+
+
 def _train_cmd(views, out, config_json, steps, extra=()):
     return [sys.executable, "-m", "training.learn.train", "depth", "--data", str(views), "--out", str(out), "--model-config", str(config_json),
             "--steps", str(steps), "--batch-size", "2", "--val-fraction", "0", "--no-progress", "--log-every", "1", *extra]

@@ -17,6 +17,11 @@ its value.  The named recipes:
 * ``sharp``: ``shipped`` with the voxel stages on the truncated-distance
   target (``GeometryConfig.target = "distance"``), continued from the shipped
   weights.
+* ``product``: the weights users get (``scripts/train_product.sh``), on
+  every class of the corpus and the procedural shapes: every stage continues
+  from the shipped weights on photo-composited renders; after the first
+  chain, training accumulates in the joint stage, which then trains all three
+  nets end to end with the depth net's own loss added (``depth_weight``).
 * ``photo``: ``shipped`` with the depth stage continued (``--init`` the
   shipped weights) on renders composited over real photographs, so that the
   silhouette and depth work on photos.
@@ -51,6 +56,7 @@ class StageRecipe:
     surface_weight: float = 10.0
     photo_fraction: float = 0.0
     sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
+    depth_weight: float = 0.0  # the joint stage: the depth net's own loss (depth + silhouette) added with this weight
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -66,6 +72,8 @@ class StageRecipe:
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
         if not 0.0 <= self.photo_fraction <= 1.0:
             raise ValueError(f"photo_fraction: expected a number in [0, 1], got {self.photo_fraction!r}")
+        if not (math.isfinite(self.depth_weight) and self.depth_weight >= 0):
+            raise ValueError(f"depth_weight: expected a finite number >= 0, got {self.depth_weight!r}")
         if self.sph_loss not in ("mse", "l1"):
             raise ValueError(f"sph_loss: expected 'mse' or 'l1', got {self.sph_loss!r}")
 
@@ -147,7 +155,24 @@ _SHARP = Recipe(
     stages={**_SHIPPED.stages},
 )
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO, _SHARP)}
+_PRODUCT = Recipe(
+    name="product",
+    preset="default",
+    target="distance",
+    description="the product model on every class and the procedural shapes (scripts/train_product.sh): the depth net "
+                "2,000 steps on photo-composited renders (80 %), the inpainting net 2,000, the refiner 3,000, all from "
+                "the shipped weights; then the joint stage trains every net end to end (lr 1e-4, the depth loss added, "
+                "photo compositing on), its budget raised round after round",
+    stages={
+        **_SHIPPED.stages,
+        "depth": replace(_PHOTO.stages["depth"], steps=2000),
+        "inpaint": replace(_SHIPPED.stages["inpaint"], steps=2000),
+        "refine": replace(_SHIPPED.stages["refine"], steps=3000),
+        "joint": replace(_SHIPPED.stages["joint"], steps=600, lr=1e-4, photo_fraction=0.8, depth_weight=1.0),
+    },
+)
+
+RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO, _SHARP, _PRODUCT)}
 
 
 def get_recipe(name: str) -> Recipe:

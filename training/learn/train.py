@@ -77,7 +77,7 @@ class TrainConfig:
     """Everything one training stage needs; saved beside every checkpoint."""
 
     stage: str
-    data: str  # folder of rendered views with targets
+    data: str | list[str]  # folder(s) of rendered views with targets
     out: str  # run folder; the stage writes OUT/STAGE/
     recipe: str = "paper"  # training/learn/recipe.py: every None below comes from it
     preset: str | None = None  # used only when not starting from --init weights
@@ -90,6 +90,7 @@ class TrainConfig:
     surface_weight: float | None = None
     photo_fraction: float | None = None
     sph_loss: str | None = None
+    depth_weight: float | None = None
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
@@ -115,6 +116,10 @@ class TrainConfig:
         resolved = dataclasses.replace(recipe.stage(self.stage), **given)  # (validates the values)
         for k in StageRecipe.keys():
             setattr(self, k, getattr(resolved, k))
+        if isinstance(self.data, (list, tuple)):
+            if not self.data:
+                raise ValueError("data: expected at least one views folder")
+            self.data = [str(d) for d in self.data]
         if self.target is None:
             self.target = recipe.target
         if self.target is not None and self.target not in TARGETS:
@@ -128,9 +133,10 @@ class TrainConfig:
 class StageModule(nn.Module):
     """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
 
-    def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse"):
+    def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0):
         super().__init__()
         self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
+        self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
         self.baseline = None
         if stage in BASELINE_STAGES:
             from .baselines import CompletionBaseline, OneStepNet
@@ -220,7 +226,8 @@ class StageModule(nn.Module):
                 vox_depth = b.depth_voxels(depth)
             return self.voxel_loss(b.complete(vox_depth), batch)
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
-            depth = m.masked_depth(m.depth_net(batch["rgb"])["depth"], batch["mask"])
+            depth_out = m.depth_net(batch["rgb"])
+            depth = m.masked_depth(depth_out["depth"], batch["mask"])
             partial = m.partial_sph(depth)
         pad = m.config.geometry.sph_pad
         if self.stage == "inpaint":
@@ -237,6 +244,10 @@ class StageModule(nn.Module):
             l_sph = self.sph_loss(full_padded, batch)
             terms[f"sph_{self.sph_loss_kind}"] = l_sph
             loss = loss + l_sph
+            if self.depth_weight > 0:
+                l_depth, depth_terms = self.depth_loss(depth_out, batch)
+                terms.update(depth_terms)
+                loss = loss + self.depth_weight * l_depth
         return loss, terms
 
 
@@ -277,7 +288,16 @@ class CheckpointMismatch(ValueError):
     """A stage's checkpoint does not fit the model being trained (architecture or stage changed)."""
 
 
-def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer, step: int, best: float, tcfg: TrainConfig) -> None:
+def _cpu_seconds() -> float:
+    """Processor time (user + system, all threads) of this process so far."""
+    import resource
+
+    use = resource.getrusage(resource.RUSAGE_SELF)
+    return use.ru_utime + use.ru_stime
+
+
+def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer, step: int, best: float, tcfg: TrainConfig,
+                     cpu_s: float = 0.0) -> None:
     from safetensors.torch import save_file
 
     prefix, trained = module.checkpointed()
@@ -293,6 +313,7 @@ def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
     meta = {
         "step": step,
         "best_val": best,
+        "cpu_s": cpu_s,  # the stage's processor seconds over every run so far
         "param_groups": opt_state["param_groups"],
         "opt_scalars": scalars,
         "model_config": module.model.config.to_dict(),
@@ -311,14 +332,14 @@ def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer) -> tuple[int, float]:
+def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer) -> tuple[int, float, float]:
     from safetensors.torch import load_file
 
     ck = stage_dir / "checkpoint"
     if not (ck / "state.json").is_file():
         old = sorted(stage_dir.glob("checkpoint.old-*"))  # killed between the two renames
         if not old:
-            return 0, math.inf
+            return 0, math.inf, 0.0
         ck = old[-1]
     meta = json.loads((ck / "state.json").read_text())
     tensors = load_file(str(ck / "state.safetensors"))
@@ -332,7 +353,7 @@ def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
             f"{ck} was written for a different model or optimiser than this run's ({why}); "
             f"to train the {module.stage} stage afresh, delete {ck} (or pass another --out)"
         ) from exc
-    return int(meta["step"]), float(meta["best_val"])
+    return int(meta["step"]), float(meta["best_val"]), float(meta.get("cpu_s", 0.0))
 
 
 def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
@@ -434,7 +455,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         # a change of representation: the nets are the same, the refiner learns the new target
         model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, target=tcfg.target))
     config = model.config
-    module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss).to(device)
+    module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight).to(device)
     params = [p for p in module.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
 
@@ -442,15 +463,23 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     if rank == 0:
         stage_dir.mkdir(parents=True, exist_ok=True)
         (stage_dir / "config.json").write_text(json.dumps({"train": dataclasses.asdict(tcfg), "model": config.to_dict()}, indent=2))
-    start, best = _load_checkpoint(stage_dir, module, opt) if (stage_dir / "checkpoint").exists() or list(stage_dir.glob("checkpoint.old-*")) else (0, math.inf)
+    start, best, cpu_before = (_load_checkpoint(stage_dir, module, opt) if (stage_dir / "checkpoint").exists()
+                               or list(stage_dir.glob("checkpoint.old-*")) else (0, math.inf, 0.0))
+    cpu_start = _cpu_seconds()
+
+    def cpu_total() -> float:
+        """This stage's processor seconds so far, over every run that resumed it (rank 0's process)."""
+        return cpu_before + _cpu_seconds() - cpu_start
 
     shape_ids = None
     if tcfg.shapes:
         shape_ids = {line.strip() for line in Path(tcfg.shapes).read_text().splitlines() if line.strip()}
     need_targets = tcfg.stage != "depth"  # the depth stage needs only the renders
-    refs = find_views(Path(tcfg.data), shape_ids, targets=need_targets)
+    folders = tcfg.data if isinstance(tcfg.data, list) else [tcfg.data]
+    refs = [r for folder in folders for r in find_views(Path(folder), shape_ids, targets=need_targets)]
     train_refs, val_refs = split_views(refs, tcfg.val_fraction)
-    photo = tcfg.photo_fraction if tcfg.augment and tcfg.stage == "depth" else 0.0
+    # photo compositing: the stages that train the depth net on photos (the joint stage only when its recipe asks)
+    photo = tcfg.photo_fraction if tcfg.augment and tcfg.stage in ("depth", "joint") else 0.0
     bank = None
     if photo > 0:
         from ..data.photo_backgrounds import BackgroundBank
@@ -458,7 +487,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         if not tcfg.backgrounds:
             raise ValueError(f"photo_fraction {photo} needs --backgrounds DIR (a 'genre data backgrounds' folder, e.g. data/backgrounds)")
         bank = BackgroundBank(tcfg.backgrounds)
-    train_set = ViewDataset(train_refs, config, augment=tcfg.augment and tcfg.stage == "depth", targets=need_targets,
+    train_set = ViewDataset(train_refs, config, augment=tcfg.augment and (tcfg.stage == "depth" or photo > 0), targets=need_targets,
                             backgrounds=bank, photo_fraction=photo)
     val_set = ViewDataset(val_refs, config, targets=need_targets) if val_refs else None
 
@@ -540,16 +569,17 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
                 writer.add_scalar(f"{tcfg.stage}/val_loss", v, done)
                 if v < best:
                     best = v
-                    module.save_weights(stage_dir / "best.safetensors", {"stage": tcfg.stage, "step": done, "val_loss": v})
+                    module.save_weights(stage_dir / "best.safetensors", {"stage": tcfg.stage, "step": done, "val_loss": v,
+                                                                         "cpu_s": round(cpu_total(), 1)})
             due = time.monotonic() - last_ckpt > 60 * tcfg.checkpoint_minutes
             if due or (tcfg.checkpoint_every and done % tcfg.checkpoint_every == 0) or done == tcfg.steps:
-                _save_checkpoint(stage_dir, module, opt, done, best, tcfg)
+                _save_checkpoint(stage_dir, module, opt, done, best, tcfg, cpu_total())
                 _plot_losses(stage_dir / "log.csv", stage_dir / "loss.png", tcfg.stage)
                 last_ckpt = time.monotonic()
     bar.close()
-    summary = {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": start, "world_size": world}
+    summary = {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": start, "world_size": world, "cpu_s": round(cpu_total(), 1)}
     if rank == 0:
-        module.save_weights(stage_dir / "final.safetensors", {"stage": tcfg.stage, "step": tcfg.steps})
+        module.save_weights(stage_dir / "final.safetensors", {"stage": tcfg.stage, "step": tcfg.steps, "cpu_s": round(cpu_total(), 1)})
         if val_set is None:  # no held-out shapes: the final weights are the best we know
             shutil.copyfile(stage_dir / "final.safetensors", stage_dir / "best.safetensors")
             shutil.copyfile(stage_dir / "final.json", stage_dir / "best.json")
@@ -601,7 +631,8 @@ def weights_digest(model: nn.Module, buffers: bool = True) -> str:
 def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
     parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically).")
     parser.add_argument("stage", choices=STAGES)
-    parser.add_argument("--data", required=True, help="folder of rendered views with targets ('genre data render' + 'genre data targets')")
+    parser.add_argument("--data", required=True, nargs="+",
+                        help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets')")
     parser.add_argument("--out", required=True, help="run folder; this stage writes OUT/STAGE/")
     parser.add_argument("--init", help="weights to start from (e.g. OUT/depth/best.safetensors); default: fresh weights of --preset")
     parser.add_argument("--recipe", choices=sorted(RECIPES), default="paper",
