@@ -76,7 +76,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--train-shapes", help="file of training shape ids (default: every shape in --train-views)")
     p.add_argument("--manifest", help="manifest JSON for classes and splits (default data/corpus/manifest.json if present)")
     p.add_argument("--out", help="results folder (default results/<run name>)")
-    p.add_argument("--groups", default=",".join(GROUPS), help="groups to evaluate: test (seen-test), unseen, unseen-pix3d")
+    p.add_argument("--groups", default="test,unseen,unseen-pix3d", help="groups to evaluate: test (seen-test), unseen, unseen-pix3d (Table 1, the default); product-test (the product model's test split)")
     p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
     p.add_argument("--thresholds-from", help="thresholds.json of a run on seen-test data (when this run has none)")

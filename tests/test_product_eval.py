@@ -1,0 +1,81 @@
+"""The product-vs-protocol table and the learning curve, on hand-made eval folders with known means."""
+
+import csv
+import json
+import math
+
+import pytest
+
+from training.eval import product
+from training.eval.protocol import FLOOR, REPRESENTATION
+
+
+def _eval_dir(path, t, rows):
+    """A 'genre eval' folder: thresholds.json choosing ``t`` for GenRe, per_view.csv with ``rows`` (key, shape, class, row, cd)."""
+    path.mkdir(parents=True)
+    (path / "thresholds.json").write_text(json.dumps({"seen": {"GenRe": t, FLOOR: 0.75, REPRESENTATION: 0.5}}))
+    cols = ["key", "shape", "view", "class", "groups", "row", "cd1k@0.45", "cd1k@0.50", "cd1k@0.75"]
+    with (path / "per_view.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols)
+        w.writeheader()
+        for key, shape, cls, row, cd in rows:
+            other = 9.0  # what the other thresholds say: must never be read
+            w.writerow({"key": key, "shape": shape, "view": key[-3:], "class": cls, "groups": "product-test", "row": row,
+                        "cd1k@0.45": cd if t == 0.45 or row != "GenRe" else other,
+                        "cd1k@0.50": cd if t == 0.50 or row == REPRESENTATION else other,
+                        "cd1k@0.75": cd if row == FLOOR else other})
+    return path
+
+
+MANIFEST = {"shapes": [
+    {"id": "plane", "class": "airplane", "source": "flightgear"},
+    {"id": "lamp", "class": "lamp", "source": "sweethome3d"},
+    {"id": "procedural-primitive-000", "class": "primitive", "source": "procedural", "extra": {"primitive": "cube"}},
+    {"id": "procedural-lathe-000", "class": "lathe", "source": "procedural", "extra": {}},
+]}
+
+
+def _rows(cds):
+    out = []
+    for shape, cls, views in (("plane", "airplane", 2), ("lamp", "lamp", 1), ("procedural-primitive-000", "primitive", 1),
+                              ("procedural-lathe-000", "lathe", 1)):
+        for v in range(views):
+            key = f"{shape}/{v:03d}"
+            out += [(key, shape, cls, "GenRe", cds[shape][v]), (key, shape, cls, FLOOR, 0.02), (key, shape, cls, REPRESENTATION, 0.03)]
+    return out
+
+
+def test_compare_table_means_over_shapes_at_each_models_threshold(tmp_path):
+    a = _eval_dir(tmp_path / "a", 0.45, _rows({"plane": [0.10, 0.20], "lamp": [0.11], "procedural-primitive-000": [0.04],
+                                               "procedural-lathe-000": [0.10]}))
+    b = _eval_dir(tmp_path / "b", 0.50, _rows({"plane": [0.16, 0.14], "lamp": [0.24], "procedural-primitive-000": [0.09],
+                                               "procedural-lathe-000": [0.10]}))
+    text = product.compare_table(a, b, MANIFEST)
+    lines = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in text.splitlines() if line.startswith("| ")}
+    # all: product (0.15 + 0.11 + 0.04 + 0.10) / 4 = 0.100 (plane: its two views first); protocol (0.15 + 0.24 + 0.09 + 0.10) / 4 = 0.145
+    assert lines["all"][:4] == ["4", "0.100", "0.145", "0.690"]
+    assert lines["seen by protocol"][:3] == ["1", "0.150", "0.150"]
+    assert lines["unseen by protocol"][:3] == ["1", "0.110", "0.240"]
+    assert lines["procedural"][:3] == ["2", "0.070", "0.095"]
+    assert lines["regular primitives"][:3] == ["1", "0.040", "0.090"]
+    assert lines["regular primitives"][4:6] == ["0.020", "2.00×"]
+    assert lines["lathe"] == ["procedural", "1", "0.100", "0.100", "1.000"]
+    assert "- cube (1): 0.040 (floor 0.020, 2.00×; protocol 0.090)" in text
+
+
+def test_curve_point_sums_the_stages_processor_time(tmp_path):
+    run = tmp_path / "run"
+    for stage, step, cpu in (("depth", 100, 3600.0), ("refine", 50, 1800.0)):
+        (run / stage / "checkpoint").mkdir(parents=True)
+        (run / stage / "checkpoint" / "state.json").write_text(json.dumps({"step": step, "cpu_s": cpu}))
+    ev = _eval_dir(tmp_path / "e", 0.45, _rows({"plane": [0.1, 0.3], "lamp": [0.1], "procedural-primitive-000": [0.1],
+                                                "procedural-lathe-000": [0.1]}))
+    point = product.curve_point(run, ev)
+    assert point["cpu_h"] == 1.5 and point["depth_steps"] == 100 and point["inpaint_steps"] == 0
+    assert math.isclose(point["mean_cd"], 0.125)
+    rows = product.append_curve(tmp_path / "curve.csv", point, "round 1")
+    rows = product.append_curve(tmp_path / "curve.csv", dict(point, cpu_h=0.0, mean_cd=0.2), "warm start")
+    rows = product.append_curve(tmp_path / "curve.csv", point, "round 1")  # replaced, not duplicated
+    assert [r["label"] for r in rows] == ["warm start", "round 1"]
+    with pytest.raises(ValueError, match="no view in common"):
+        product.compare_table(ev, _eval_dir(tmp_path / "x", 0.45, []), MANIFEST)

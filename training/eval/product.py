@@ -1,0 +1,250 @@
+"""The product model against the protocol model, and the product model's learning curve.
+
+Both read what ``genre eval --groups product-test`` wrote (``per_view.csv`` and
+``thresholds.json``): each model is scored at its own threshold, the one its
+weights install for users, so that nothing is tuned on the product test split.
+
+Groups of the product test split (every class holds out shapes, see
+:func:`training.data.corpus.product_groups`):
+
+=========================  ====================================================================
+seen by protocol           airplane, car, chair: the classes the protocol model trained on
+unseen by protocol         every other class of the corpus (furniture, vessels, the unassigned)
+procedural                 the generated shapes (``training/data/sources/procedural.py``)
+regular primitives         the procedural cubes, cylinders, cones and tori (random poses, colours)
+=========================  ====================================================================
+
+``python -m training.eval.product compare`` writes the side-by-side table;
+``python -m training.eval.product curve`` appends one point (cumulative
+processor hours of a product run, its mean CD on the product test split) to
+the learning curve and plots it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from genre_backend.io import atomic_write_text
+
+from ..data.corpus import SEEN_CLASSES
+from .protocol import FLOOR, REPRESENTATION, threshold_key
+
+__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "curve_point", "main"]
+
+PRIMITIVE_KINDS = ("cube", "cylinder", "cone", "torus")  # the issue's regular primitives
+GROUPS = ("all", "seen by protocol", "unseen by protocol", "procedural", "regular primitives")
+
+
+def group_of_shape(entry: dict) -> tuple[str, ...]:
+    """The comparison groups of one manifest entry (``all`` always)."""
+    out = ["all"]
+    if entry.get("source") == "procedural":
+        out.append("procedural")
+        if _primitive_kind(entry) in PRIMITIVE_KINDS:
+            out.append("regular primitives")
+    elif entry.get("class") in SEEN_CLASSES:
+        out.append("seen by protocol")
+    else:
+        out.append("unseen by protocol")
+    return tuple(out)
+
+
+def _primitive_kind(entry: dict) -> str | None:
+    extra = entry.get("extra") or {}
+    if entry.get("class") != "primitive":
+        return None
+    return extra.get("primitive") or extra.get("sub_kind") or extra.get("subkind") or extra.get("shape")
+
+
+def load_scores(eval_dir: Path, row: str = "GenRe") -> dict[str, dict]:
+    """``{view key: {"shape", "class", "cd", "floor", "representation"}}`` of one ``genre eval`` folder.
+
+    ``cd``: the row's CD (1,024 points) at the run's chosen threshold (``thresholds.json``, ``seen``);
+    ``floor`` and ``representation``: the same view's noise floor and truth through the representation.
+    """
+    eval_dir = Path(eval_dir)
+    chosen = json.loads((eval_dir / "thresholds.json").read_text())["seen"]
+    if row not in chosen:
+        raise ValueError(f"{eval_dir}: no row {row!r} in thresholds.json")
+    out: dict[str, dict] = {}
+    with (eval_dir / "per_view.csv").open(newline="") as fh:
+        for rec in csv.DictReader(fh):
+            if rec["row"] not in (row, FLOOR, REPRESENTATION):
+                continue
+            t = chosen.get(rec["row"], chosen[row])
+            view = out.setdefault(rec["key"], {"shape": rec["shape"], "class": rec["class"]})
+            value = float(rec[f"cd1k@{threshold_key(t)}"])
+            view[{row: "cd", FLOOR: "floor", REPRESENTATION: "representation"}[rec["row"]]] = value
+    return {k: v for k, v in out.items() if "cd" in v}
+
+
+def _mean(values) -> float:
+    values = [v for v in values if math.isfinite(v)]
+    return float(np.mean(values)) if values else math.nan
+
+
+def _shape_means(scores: dict[str, dict], field: str) -> dict[str, float]:
+    per_shape = defaultdict(list)
+    for v in scores.values():
+        if field in v:
+            per_shape[v["shape"]].append(v[field])
+    return {s: float(np.mean(vals)) for s, vals in per_shape.items()}
+
+
+def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: str = "") -> str:
+    """Markdown: mean CD per group and per class of the two models on the views both scored.
+
+    Means are over shapes (a shape's views averaged first).
+    """
+    a, b = load_scores(product_dir), load_scores(protocol_dir)
+    common = sorted(set(a) & set(b))
+    if not common:
+        raise ValueError(f"{product_dir} and {protocol_dir} have no view in common")
+    a = {k: a[k] for k in common}
+    b = {k: b[k] for k in common}
+    entries = {e["id"]: e for e in manifest["shapes"]}
+    cd_a, cd_b = _shape_means(a, "cd"), _shape_means(b, "cd")
+    floor, rep = _shape_means(a, "floor"), _shape_means(a, "representation")
+    shapes = sorted(cd_a)
+    cls_of = {v["shape"]: v["class"] for v in a.values()}
+    groups = {s: group_of_shape(entries.get(s, {"class": cls_of[s]})) for s in shapes}
+    ta = json.loads((Path(product_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
+    tb = json.loads((Path(protocol_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
+    lines = [f"# {title or 'The product model against the protocol model'}", "",
+             f"{len(common)} views of {len(shapes)} shapes of the product test split; each model at the threshold its "
+             f"weights install (product t = {ta:.2f}, protocol t = {tb:.2f}); CD with 1,024 points, means over shapes. "
+             f"Product: `{product_dir}`; protocol: `{protocol_dir}`.", "",
+             "| group | shapes | product | protocol | product ÷ protocol | noise floor | product ÷ floor | truth through the representation |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for g in GROUPS:
+        members = [s for s in shapes if g in groups[s]]
+        if not members:
+            continue
+        ma, mb = _mean(cd_a[s] for s in members), _mean(cd_b[s] for s in members)
+        mf, mr = _mean(floor.get(s, math.nan) for s in members), _mean(rep.get(s, math.nan) for s in members)
+        lines.append(f"| {g} | {len(members)} | {ma:.3f} | {mb:.3f} | {ma / mb:.3f} | {mf:.3f} | {ma / mf:.2f}× | {mr:.3f} |")
+    prims = [s for s in shapes if "regular primitives" in groups[s]]
+    if prims:
+        lines += ["", "Regular primitives by kind (product model; noise floor):", ""]
+        by_kind = defaultdict(list)
+        for s in prims:
+            by_kind[_primitive_kind(entries[s])].append(s)
+        for kind in PRIMITIVE_KINDS:
+            ss = by_kind.get(kind, [])
+            if ss:
+                lines.append(f"- {kind} ({len(ss)}): {_mean(cd_a[s] for s in ss):.3f} (floor {_mean(floor[s] for s in ss):.3f}, "
+                             f"{_mean(cd_a[s] for s in ss) / _mean(floor[s] for s in ss):.2f}×; protocol {_mean(cd_b[s] for s in ss):.3f})")
+    lines += ["", "## Per class", "", "| class | group | shapes | product | protocol | product ÷ protocol |", "| --- | --- | ---: | ---: | ---: | ---: |"]
+    by_class = defaultdict(list)
+    for s in shapes:
+        by_class[cls_of[s]].append(s)
+    for cls in sorted(by_class, key=lambda c: (groups[by_class[c][0]][1], c)):
+        ss = by_class[cls]
+        ma, mb = _mean(cd_a[s] for s in ss), _mean(cd_b[s] for s in ss)
+        lines.append(f"| {cls} | {groups[ss[0]][1]} | {len(ss)} | {ma:.3f} | {mb:.3f} | {ma / mb:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
+    """(steps, processor seconds) a stage has trained so far, from its checkpoint (0, 0 without one)."""
+    state = stage_dir / "checkpoint" / "state.json"
+    if not state.is_file():
+        return 0, 0.0
+    meta = json.loads(state.read_text())
+    return int(meta["step"]), float(meta.get("cpu_s", 0.0))
+
+
+def curve_point(run_dir: Path, eval_dir: Path, stages=("depth", "inpaint", "refine", "joint")) -> dict:
+    """One learning-curve point: the run's steps and processor hours per stage, and the mean CD on the product test split."""
+    point: dict = {"run": str(run_dir), "eval": str(eval_dir)}
+    total = 0.0
+    for stage in stages:
+        steps, cpu = _stage_cpu_seconds(Path(run_dir) / stage)
+        point[f"{stage}_steps"] = steps
+        point[f"{stage}_cpu_h"] = round(cpu / 3600, 3)
+        total += cpu
+    point["cpu_h"] = round(total / 3600, 3)
+    scores = load_scores(Path(eval_dir))
+    point["views"] = len(scores)
+    point["mean_cd"] = round(_mean(_shape_means(scores, "cd").values()), 5)
+    return point
+
+
+CURVE_FIELDS = ["label", "cpu_h", "mean_cd", "views", *(f"{s}_{k}" for s in ("depth", "inpaint", "refine", "joint") for k in ("steps", "cpu_h")),
+                "run", "eval"]
+
+
+def append_curve(csv_path: Path, point: dict, label: str) -> list[dict]:
+    """Add (or replace, by label) one point of the learning curve; returns every point, by processor hours."""
+    rows = []
+    if csv_path.is_file():
+        with csv_path.open(newline="") as fh:
+            rows = [r for r in csv.DictReader(fh) if r["label"] != label]
+    rows.append({k: point.get(k, "") for k in CURVE_FIELDS} | {"label": label})
+    rows.sort(key=lambda r: float(r["cpu_h"]))
+    lines = [",".join(CURVE_FIELDS)] + [",".join(str(r.get(k, "")) for k in CURVE_FIELDS) for r in rows]
+    atomic_write_text(csv_path, "\n".join(lines) + "\n")
+    return rows
+
+
+def plot_curve(rows: list[dict], png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [float(r["cpu_h"]) for r in rows]
+    y = [float(r["mean_cd"]) for r in rows]
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    ax.plot(x, y, "o-")
+    for r, xi, yi in zip(rows, x, y):
+        ax.annotate(r["label"], (xi, yi), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel("product training, processor hours (cumulative)")
+    ax.set_ylabel("mean CD, product test split")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m training.eval.product", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("compare", help="side-by-side table of two 'genre eval --groups product-test' folders")
+    c.add_argument("--product", required=True, help="genre eval folder of the product weights")
+    c.add_argument("--protocol", required=True, help="genre eval folder of the protocol weights (the same views)")
+    c.add_argument("--manifest", required=True)
+    c.add_argument("--out", required=True, help="markdown file to write")
+    k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
+    k.add_argument("--run", required=True, help="the product training run (its stages' checkpoints hold their processor time)")
+    k.add_argument("--eval", required=True, help="genre eval folder of the run's weights on the product test split")
+    k.add_argument("--label", required=True)
+    k.add_argument("--csv", required=True)
+    args = p.parse_args(argv)
+    try:
+        if args.cmd == "compare":
+            manifest = json.loads(Path(args.manifest).read_text())
+            text = compare_table(Path(args.product), Path(args.protocol), manifest)
+            atomic_write_text(Path(args.out), text)
+            print(text)
+        else:
+            point = curve_point(Path(args.run), Path(args.eval))
+            rows = append_curve(Path(args.csv), point, args.label)
+            plot_curve(rows, Path(args.csv).with_suffix(".png"))
+            print(json.dumps(point))
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"{p.prog}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
