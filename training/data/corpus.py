@@ -42,7 +42,7 @@ from genre_backend.io import atomic_write_bytes, atomic_write_text
 
 from .sources import ShapeRecord, rotation_to_list
 from .views import read_manifest
-from .sources import crrcsim, flightgear, gl117, sweethome3d, torcs, trigger_rally
+from .sources import crrcsim, flightgear, gl117, procedural, sweethome3d, torcs, trigger_rally
 
 __all__ = [
     "REPO_ROOT",
@@ -86,6 +86,7 @@ SOURCES = {
     "crrcsim": crrcsim,
     "gl117": gl117,
     "trigger_rally": trigger_rally,
+    "procedural": procedural,
 }
 DEBIAN_PACKAGES: tuple[str, ...] = tuple(p for m in SOURCES.values() for p in m.PACKAGES)
 
