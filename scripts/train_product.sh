@@ -1,0 +1,80 @@
+#!/usr/bin/env bash
+# The product model, the `default` weights users get: trained on every class of the corpus (less
+# the product test split, which holds out shapes of every class) and the procedural shapes, on
+# photo-composited renders.  Training accumulates: data and runs live under $GENRE_HOME (default
+# ~/.cache/genre), a run with no checkpoint starts from the shipped `default` weights, and every
+# invocation adds ROUNDS rounds of ROUND_STEPS joint steps to what is there, scoring the product
+# test split after each round (the learning curve: results/product/learning_curve.csv).
+# Every step resumes where it stopped: run the script again after an interruption.
+#   ROUNDS=2 ROUND_STEPS=600 bash scripts/train_product.sh     # two more rounds
+#   SKIP_TO=NAME starts at the step whose log name is NAME; DRY_RUN=1 prints the steps.
+# Installing the weights is a separate, deliberate step (the rule is fixed in
+# results/product/ship_rule.txt): see the end of this script.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+G=.venv/bin/genre
+PY=.venv/bin/python
+GENRE_HOME=${GENRE_HOME:-${GENRE_DATA_DIR:-$($PY -c 'from training.data.corpus import data_dir; print(data_dir())')}}
+export GENRE_HOME
+M=$GENRE_HOME/corpus/manifest.json
+VIEWS=${VIEWS:-$GENRE_HOME/views/product}
+EVAL_VIEWS=${EVAL_VIEWS:-$GENRE_HOME/views/product_eval}
+RUN=${RUN:-$GENRE_HOME/runs/product}
+SCORES=${SCORES:-$GENRE_HOME/results/product}      # genre eval folders of each round (large; not committed)
+RESULTS=${RESULTS:-results/product}                # the committed tables and the learning curve
+BACKGROUNDS=${BACKGROUNDS:-$GENRE_HOME/backgrounds}
+VIEWS_PER_SHAPE=${VIEWS_PER_SHAPE:-4}
+ROUNDS=${ROUNDS:-1}
+ROUND_STEPS=${ROUND_STEPS:-600}
+EVAL_JOBS=${EVAL_JOBS:-2}
+# Where a run with no checkpoint starts: the shipped product weights, so that training on a fresh
+# machine adds to what was shipped instead of starting over.
+INIT=${INIT:-genre_backend/weights/default.safetensors}
+SKIP_TO=${SKIP_TO:-}
+DRY_RUN=${DRY_RUN:-}
+LOGS=$GENRE_HOME/logs
+[ -n "$DRY_RUN" ] || mkdir -p "$LOGS" "$RESULTS"
+log() { if [ -n "$DRY_RUN" ]; then echo "$*"; else echo "$(date -u +%FT%TZ) $*" | tee -a "$LOGS/product_chain.log"; fi; }
+step() {
+  local name=$1; shift
+  if [ -n "$SKIP_TO" ] && [ "$SKIP_TO" != "$name" ]; then log "skip: $name"; return; fi
+  SKIP_TO=""
+  if [ -n "$DRY_RUN" ]; then log "step $name: $*"; return; fi
+  local t0=$SECONDS; log "start: $name: $*"; "$@"; log "done in $((SECONDS - t0)) s: $name"
+}
+ck_step() {  # the step count of a stage's checkpoint (0 when none)
+  local f=$RUN/$1/checkpoint/state.json
+  if [ -f "$f" ]; then $PY -c "import json,sys; print(json.load(open(sys.argv[1]))['step'])" "$f"; else echo 0; fi
+}
+first() { [ -f "$RUN/$1/checkpoint/state.json" ] && echo "" || echo "--init $2"; }
+
+step fetch   $G data fetch
+step build   $G data build
+step backgrounds $G data backgrounds
+step render  $G data render --shapes "$M" --split product-train --out "$VIEWS" --views "$VIEWS_PER_SHAPE" --preset default --no-progress
+step targets $G data targets --views "$VIEWS" --no-progress
+step render_eval $G data render --shapes "$M" --split product-test --out "$EVAL_VIEWS" --views 1 --preset default --seed 1 --no-progress
+step targets_eval $G data targets --views "$EVAL_VIEWS" --no-progress
+
+T=($G train --recipe product --data "$VIEWS" --out "$RUN" --backgrounds "$BACKGROUNDS" --no-progress)
+# The first chain: each stage once, from the shipped weights (the recipe's budgets).
+step depth   "${T[@]}" depth   $(first depth "$INIT")
+step inpaint "${T[@]}" inpaint $(first inpaint "$RUN/depth/best.safetensors")
+step refine  "${T[@]}" refine  $(first refine "$RUN/inpaint/best.safetensors")
+
+score() {  # score the joint stage's best weights on the product test split; add the point to the learning curve
+  local label=$1 weights=$2 out=$SCORES/$1
+  step "eval_$label" $G eval --data "$EVAL_VIEWS" --weights "$weights" --groups product-test \
+    --rows "GenRe,Truth through the representation" --out "$out" --jobs "$EVAL_JOBS" --no-figures --no-progress
+  step "curve_$label" $PY -m training.eval.product curve --run "$RUN" --eval "$out" --label "$label" --csv "$RESULTS/learning_curve.csv"
+}
+# Then rounds of joint training, every net end to end (the recipe's joint stage), scored after each.
+for _ in $(seq 1 "$ROUNDS"); do
+  done_steps=$( [ -n "$DRY_RUN" ] && echo 0 || ck_step joint )
+  target=$(( done_steps + ROUND_STEPS ))
+  step "joint_$target" "${T[@]}" joint $(first joint "$RUN/refine/best.safetensors") --steps "$target"
+  score "joint_$target" "$RUN/joint/final.safetensors"
+done
+# Installing (deliberately not automatic): when the rule in results/product/ship_rule.txt says so,
+#   $PY -m training.eval.install --name default RUN/joint/final.safetensors ...
+log "done; learning curve: $RESULTS/learning_curve.csv"
