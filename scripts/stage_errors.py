@@ -21,7 +21,7 @@ Seen-test views only: what it shows is used to change the model, and the
 unseen classes must stay untouched by such choices.
 
     .venv/bin/python scripts/stage_errors.py --weights runs/default/joint/best.safetensors \\
-        --views data/views/eval --views-count 8
+        --views ~/.cache/genre/views/eval --views-count 8
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
+from training.data.corpus import data_dir  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 
@@ -48,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", required=True)
     p.add_argument("--views", required=True, help="evaluation views (genre data render + targets of the test split)")
-    p.add_argument("--manifest", default="data/corpus/manifest.json")
+    p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--views-count", type=int, default=8)
     p.add_argument("--thresholds", default="0.5,0.7,0.9")
     p.add_argument("--seed", type=int, default=0)
@@ -56,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     model = load_model(args.weights)
     thresholds = [float(t) for t in args.thresholds.split(",")]
     try:
-        views = sample_seen_test_views(Path(args.views), Path(args.manifest), args.views_count, args.seed)
+        views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else data_dir() / "corpus" / "manifest.json",
+                                       args.views_count, args.seed)
     except FileNotFoundError as exc:
         p.error(str(exc))
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)

@@ -74,8 +74,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--onestep", help="GenRe-1step weights (default RUN/onestep/best.safetensors)")
     p.add_argument("--train-views", nargs="*", default=[], help="training views (nearest-shape baseline and class dissimilarity)")
     p.add_argument("--train-shapes", help="file of training shape ids (default: every shape in --train-views)")
-    p.add_argument("--manifest", help="manifest JSON for classes and splits (default data/corpus/manifest.json if present)")
-    p.add_argument("--out", help="results folder (default results/<run name>)")
+    p.add_argument("--manifest", help="manifest JSON for classes and splits (default $GENRE_HOME/corpus/manifest.json if present)")
+    p.add_argument("--out", help="results folder (default $GENRE_HOME/results/<run name>; results/ in the repository holds the committed ones)")
     p.add_argument("--groups", default=",".join(GROUPS), help="groups to evaluate: test (seen-test), unseen, unseen-pix3d")
     p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
         return _fail(prog, str(exc))
     if not views:
         return _fail(prog, f"no complete eval views (render + targets + surface_points.npz) of groups {list(groups)} under {args.data}; "
-                     "render them with 'genre data render --shapes data/corpus/manifest.json --split test|unseen --views 4 --out DIR' and 'genre data targets --views DIR'")
+                     "render them with 'genre data render --shapes $GENRE_HOME/corpus/manifest.json --split test|unseen --views 4 --out DIR' and 'genre data targets --views DIR'")
     try:
         genre = load_model(paths["genre"], args.device)
         from ..learn.baselines import NearestIndex, build_nearest_index, load_baseline
@@ -154,7 +154,12 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
         models.check()
     except WeightsError as exc:
         return _fail(prog, str(exc))
-    out = Path(args.out) if args.out else Path("results") / (Path(args.run).name if args.run else Path(args.weights).stem)
+    if args.out:
+        out = Path(args.out)
+    else:
+        from ..data.corpus import data_dir
+
+        out = data_dir() / "results" / (Path(args.run).name if args.run else Path(args.weights).stem)
     out.mkdir(parents=True, exist_ok=True)
     train_ids = None
     if args.train_shapes:
