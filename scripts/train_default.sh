@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# The whole chain that produces, evaluates and installs the default weights on
-# the 2-core CPU: corpus, renders, targets, the four GenRe stages, the two
-# trained baselines, the evaluation views and `genre eval`.
+# The research chain: produces, evaluates and installs the `protocol` weights
+# (genre_backend/weights/protocol.*: trained on the seen classes only; every
+# Table-1 number comes from them) on the 2-core CPU: corpus, renders, targets,
+# the four GenRe stages, the two trained baselines, the evaluation views and
+# `genre eval`. (The product model, `default`, is another chain.)
 # Every step resumes where it stopped: run this script again after an
 # interruption. Step counts can be raised to continue training (the
 # checkpoint's step count carries on).
@@ -38,9 +40,10 @@ PHOTO_ARGS=()
 # RECIPE=sharp moves the shipped weights to the truncated-distance voxel target: the depth net is
 # kept as shipped, every other stage (and the 3D Completion net, which starts from the same refiner)
 # continues from SHARP_INIT; the 1-step baseline is trained afresh as in the shipped chain.
-SHARP_INIT=${SHARP_INIT:-genre_backend/weights/default.safetensors}
+# Both continue the research weights, `protocol` (seen classes only), never the product model.
+SHARP_INIT=${SHARP_INIT:-genre_backend/weights/protocol.safetensors}
 if [ "$RECIPE" = photo ]; then
-  DEPTH_INIT=${DEPTH_INIT:-genre_backend/weights/default.safetensors}
+  DEPTH_INIT=${DEPTH_INIT:-genre_backend/weights/protocol.safetensors}
   PHOTO_ARGS=(--backgrounds "$BACKGROUNDS")
 fi
 init() { local v="${1:-}"; [ -n "$v" ] && echo "--init $v" || true; }
@@ -93,6 +96,8 @@ step onestep    "${T[@]}" onestep    --data "$VIEWS" --out "$RUN" $(steps "${ONE
 EVAL_JOBS=${EVAL_JOBS:-2}
 step eval $G eval --data "$EVAL_VIEWS" --out "$RESULTS" --run "$RUN" --train-views "$VIEWS" --manifest "$M" --jobs "$EVAL_JOBS" \
   --heatmap-shapes 2 --gallery 2 --no-progress
+# Installed as the research weights, `protocol`. The product weights, `default`, are rewritten only while
+# they are still the interim copy of `protocol` (their sidecar says "copy_of": "protocol").
 step install .venv/bin/python -m training.eval.install --weights "$RUN/joint/best.safetensors" --thresholds "$RESULTS/thresholds.json" \
-                     --out genre_backend/weights/default.safetensors
-log "weights: genre_backend/weights/default.safetensors; results: $RESULTS; home: $GENRE_HOME"
+                     --name protocol
+log "weights: genre_backend/weights/protocol.safetensors; results: $RESULTS; home: $GENRE_HOME"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from genre_backend.io import atomic_write_text
+from genre_backend.io import DEFAULT_WEIGHTS_NAME, atomic_write_text, resolve_weights, weights_extra
 from genre_backend.nets.model import WeightsError, load_model
 
 from .protocol import GROUPS, ROWS, find_eval_views
@@ -69,7 +69,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="Evaluate GenRe, its oracles and baselines over seen-test and unseen views (the paper's Table 1).")
     p.add_argument("--data", nargs="+", required=True, help="folders of rendered eval views with targets ('genre data render --split test|unseen' + 'genre data targets')")
     p.add_argument("--run", help="training run folder (weights RUN/joint|refine/best.safetensors, RUN/completion/…, RUN/onestep/…)")
-    p.add_argument("--weights", help="GenRe weights (default: RUN/joint/best.safetensors, else RUN/refine/best.safetensors)")
+    p.add_argument("--weights", help="GenRe weights: a file, or 'protocol' (the shipped research weights, seen classes only: "
+                                     "Table 1's) (default: RUN/joint/best.safetensors, else RUN/refine/best.safetensors)")
     p.add_argument("--completion", help="3D Completion baseline weights (default RUN/completion/best.safetensors)")
     p.add_argument("--onestep", help="GenRe-1step weights (default RUN/onestep/best.safetensors)")
     p.add_argument("--train-views", nargs="*", default=[], help="training views (nearest-shape baseline and class dissimilarity)")
@@ -114,8 +115,17 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     if any(g not in GROUPS for g in groups):
         return _fail(prog, f"--groups: choose from {list(GROUPS)}")
     if not args.run and not args.weights:
-        return _fail(prog, "give the training run (--run RUN) or the GenRe weights (--weights FILE)")
+        return _fail(prog, "give the training run (--run RUN) or the GenRe weights (--weights FILE, or --weights protocol)")
+    if args.weights:
+        try:
+            args.weights = str(resolve_weights(args.weights))
+        except WeightsError as exc:
+            return _fail(prog, f"--weights: {exc}")
     paths = _weights_paths(args)
+    shipped_as = weights_extra(paths["genre"]).get("model") if paths["genre"] is not None else None
+    if shipped_as == DEFAULT_WEIGHTS_NAME:
+        print(f"{prog}: warning: {paths['genre']} are the product weights ('default', meant to be trained on every class); "
+              "research numbers come from 'protocol' (--weights protocol)", file=sys.stderr)
     need = {"genre": True, "completion": "3D Completion" in rows_wanted, "onestep": "GenRe-1step" in rows_wanted}
     missing = [f"{k} weights not found: {paths[k]} ({HINTS[k]})" for k, needed in need.items() if needed and (paths[k] is None or not paths[k].is_file())]
     if "Nearest training shape" in rows_wanted and not args.train_views:
@@ -214,7 +224,8 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     write_csv(out / "per_class.csv", per_class)
     n_shapes = len({v.shape_dir.name for v in views})
     header = (f"# GenRe evaluation: {out.name}\n\n{len(views)} views of {n_shapes} shapes; preset {genre.config.preset} "
-              f"(voxel target: {genre.config.geometry.target}); weights {paths['genre']}.\n\n"
+              f"(voxel target: {genre.config.geometry.target}); weights {paths['genre']}"
+              + (f" (the shipped '{shipped_as}' weights)" if shipped_as else "") + ".\n\n"
               f"Command: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n\n"
               f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
               "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")
