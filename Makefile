@@ -7,7 +7,7 @@ setup:
 
 demo: setup
 	@mkdir -p out/demo
-	.venv/bin/genre reconstruct examples/sofa.png -o out/demo/sofa.obj --preview --save-intermediates out/demo/sofa
+	.venv/bin/genre reconstruct examples/sofa.png -o out/demo/sofa.obj --preview --save-intermediates out/demo/sofa --weights default
 	@echo "make demo: mesh out/demo/sofa.obj, preview out/demo/sofa_preview.png, intermediates out/demo/sofa/"
 
 # The deterministic geometry alone on a Cycles render of Suzanne (the true full
@@ -28,7 +28,7 @@ clean:
 
 # The Blender add-on in a real GUI Blender (system `blender` + `xvfb-run`; Debian:
 # apt-get install blender xvfb xauth): builds dist/, presses Reconstruct on
-# examples/sofa.png with the shipped weights, saves screenshots to out/e2e/.
+# examples/sofa.png with the shipped default (product) weights, saves screenshots to out/e2e/.
 .PHONY: e2e
 e2e: setup
 	.venv/bin/python tests/e2e/run_gui_e2e.py

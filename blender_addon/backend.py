@@ -4,7 +4,9 @@ Nothing here imports ``bpy``: the add-on's operators call these classes from
 Blender's main thread, and the tests drive them directly.
 
 * :func:`build_command` turns the add-on preferences (backend command,
-  weights, device) into the argument list of ``genre serve``.
+  weights, device) into the argument list of ``genre serve``;
+  :func:`weights_argument` turns the Model choice (the shipped ``default`` or
+  ``protocol`` weights, or a custom file) into its ``--weights`` value.
 * :class:`BackendClient` owns the subprocess.  A reader thread parses its
   stdout (one JSON object per line, see ``docs/protocol.md``) into a queue;
   a second thread keeps the last lines of stderr for error messages.  The
@@ -38,8 +40,19 @@ __all__ = [
     "BackendManager",
     "Request",
     "build_command",
+    "weights_argument",
+    "MODELS",
     "STAGE_LABELS",
 ]
+
+# The add-on preferences' Model choices (identifier, label, description): the backend's two shipped
+# weights by name (genre_backend/weights/NAME.safetensors, see the README's "Which weights") and a file.
+MODELS = (
+    ("default", "Product", "The product model (the backend's 'default' weights): the one for everyday use"),
+    ("protocol", "Research protocol", "The research weights ('protocol'): trained on the seen classes only, behind every published table"),
+    ("custom", "Custom file", "A weights file (.safetensors) of your own"),
+)
+SHIPPED_WEIGHTS = ("default", "protocol")
 
 # Human names of the server's progress stages (docs/protocol.md).
 STAGE_LABELS = {
@@ -64,6 +77,20 @@ class BackendError(RuntimeError):
     """A one-line, user-facing reason why the backend could not do its job."""
 
 
+def weights_argument(model: str, path: str = "") -> str:
+    """``--weights``' value for the Model preference: ``default``/``protocol`` by name, ``custom`` the file ``path``.
+
+    Raises :class:`BackendError` for a custom model without a file, or an unknown model.
+    """
+    if model in SHIPPED_WEIGHTS:
+        return model
+    if model == "custom":
+        if not (path or "").strip():
+            raise BackendError("Model is 'Custom file' but no weights file is set: choose one in the add-on preferences")
+        return path
+    raise BackendError(f"unknown model {model!r}: choose {', '.join(m[0] for m in MODELS)}")
+
+
 def build_command(command: str, weights: str = "", device: str = "auto", *, which: Callable[[str], str | None] = shutil.which) -> list[str]:
     """The argument list that starts ``genre serve`` from the add-on preferences.
 
@@ -71,7 +98,10 @@ def build_command(command: str, weights: str = "", device: str = "auto", *, whic
     (run as ``python -m genre_backend.cli serve``) or the ``genre`` executable;
     empty means ``genre`` found on ``PATH``.  A value that is not an existing
     file is split like a shell command line, so ``/opt/py/bin/python3 -X utf8``
-    works too.  ``device`` is ``auto`` (the server's choice), ``cpu`` or ``cuda``.
+    works too.  ``weights`` is a shipped weights name (``default``,
+    ``protocol``: passed as it is), a file (passed as an absolute path), or
+    empty (no ``--weights``: the backend's default).  ``device`` is ``auto``
+    (the server's choice), ``cpu`` or ``cuda``.
     Raises :class:`BackendError` when the program cannot be found.
     """
     command = (command or "").strip()
@@ -107,7 +137,9 @@ def build_command(command: str, weights: str = "", device: str = "auto", *, whic
         argv += ["-m", "genre_backend.cli", "serve"]
     else:
         argv += ["serve"]
-    if weights:
+    if weights in SHIPPED_WEIGHTS:
+        argv += ["--weights", weights]
+    elif weights:
         argv += ["--weights", os.path.abspath(os.path.expanduser(weights))]
     if device and device != "auto":
         argv += ["--device", device]

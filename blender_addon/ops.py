@@ -12,7 +12,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from .backend import BackendError, BackendManager, Request, build_command
+from .backend import BackendError, BackendManager, Request, build_command, weights_argument
 from .jobs import Job, JobLimits, UserError, prepare_job, work_root
 from .props import ADDON_PACKAGE, get_preferences
 
@@ -35,8 +35,8 @@ def backend_argv(prefs) -> list[str]:
     """``genre serve``'s command line from the preferences (None: the defaults); :class:`BackendError` when unusable."""
     if prefs is None:
         return build_command("")
-    return build_command(prefs.backend_command and bpy.path.abspath(prefs.backend_command),
-                         prefs.weights and bpy.path.abspath(prefs.weights), prefs.device)
+    weights = weights_argument(prefs.model, prefs.weights and bpy.path.abspath(prefs.weights))
+    return build_command(prefs.backend_command and bpy.path.abspath(prefs.backend_command), weights, prefs.device)
 
 
 def job_limits(prefs) -> JobLimits:

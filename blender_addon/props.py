@@ -5,6 +5,8 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from .backend import MODELS
+
 # The add-on's module name: "genre" as a legacy add-on, "bl_ext.<repo>.genre" as an extension.
 ADDON_PACKAGE = __package__
 
@@ -31,7 +33,7 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
     use_threshold: BoolProperty(name="Custom Threshold", description="Override the weights' isosurface threshold", default=False)
     threshold: FloatProperty(
         name="Threshold", description="Isosurface threshold of the voxel grid: lower gives a fuller shape",
-        # The shipped weights' level (tests/test_layout.py holds the two together); the field
+        # The shipped 'default' weights' level (tests/test_layout.py holds the two together); the field
         # follows the level the backend reports for whatever weights it runs.
         default=0.45, min=0.01, max=0.99, step=1, precision=2,
     )
@@ -83,7 +85,13 @@ class GENRE_AP_preferences(bpy.types.AddonPreferences):
                     "or the 'genre' program; empty: 'genre' on the PATH",
         subtype="FILE_PATH",
     )
-    weights: StringProperty(name="Weights", description="The weights file (.safetensors); empty: the backend's default", subtype="FILE_PATH")
+    model: EnumProperty(
+        name="Model",
+        description="Which weights the backend runs: the product model, the research protocol's, or a file of your own",
+        items=MODELS,
+        default="default",
+    )
+    weights: StringProperty(name="Weights", description="The weights file (.safetensors) used when Model is 'Custom file'", subtype="FILE_PATH")
     device: EnumProperty(
         name="Device",
         items=(
@@ -103,7 +111,9 @@ class GENRE_AP_preferences(bpy.types.AddonPreferences):
     def draw(self, context):
         layout = self.layout
         layout.prop(self, "backend_command")
-        layout.prop(self, "weights")
+        layout.prop(self, "model")
+        if self.model == "custom":
+            layout.prop(self, "weights")
         row = layout.row()
         row.prop(self, "device")
         row = layout.row()

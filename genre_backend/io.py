@@ -6,7 +6,9 @@ over it), so a crash or a kill never leaves a half-written file at a final
 path.  Weights (GenRe's and the baselines') are safetensors files with a
 format tag and the model config in their metadata, plus a JSON sidecar for
 people; :func:`save_weights` and :func:`read_weights` are the only code that
-writes and reads them.  No pickle anywhere.
+writes and reads them.  No pickle anywhere.  The shipped weights are found by
+name (``default``, ``protocol``) through :func:`resolve_weights`, the one
+place that knows where they lie.
 """
 
 from __future__ import annotations
@@ -19,6 +21,13 @@ from typing import Any, BinaryIO, Callable
 
 __all__ = [
     "WeightsError",
+    "WEIGHTS_DIR",
+    "WEIGHTS_NAMES",
+    "DEFAULT_WEIGHTS_NAME",
+    "PROTOCOL_WEIGHTS_NAME",
+    "named_weights",
+    "resolve_weights",
+    "weights_extra",
     "atomic_write",
     "remove_dead_temporaries",
     "tmp_prefix",
@@ -135,6 +144,44 @@ def atomic_savez(path: str | os.PathLike, **arrays) -> Path:
 
 # --------------------------------------------------------------------------- weights
 
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+DEFAULT_WEIGHTS_NAME = "default"
+PROTOCOL_WEIGHTS_NAME = "protocol"
+# The shipped weights, by name (genre_backend/weights/NAME.safetensors + NAME.json; MODEL_CARD.md):
+WEIGHTS_NAMES = {
+    DEFAULT_WEIGHTS_NAME: "the product model for users (make demo, the add-on): trained on every class",
+    PROTOCOL_WEIGHTS_NAME: "the research model: trained on the seen classes only; every Table-1 number comes from it",
+}
+
+
+def named_weights(name: str) -> Path:
+    """The shipped file of the weights called ``name`` (``default`` or ``protocol``); ValueError for another name."""
+    if name not in WEIGHTS_NAMES:
+        raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
+    return WEIGHTS_DIR / f"{name}.safetensors"
+
+
+def resolve_weights(spec: str | os.PathLike | None = None) -> Path:
+    """What ``--weights`` names: a shipped weights name, or a weights file path.
+
+    ``None`` or ``""``: the ``default`` weights.  ``default`` / ``protocol``:
+    the shipped file of that name (a file of that bare name in the current
+    folder is reached as ``./default``).  Anything else that looks like a path
+    (it exists, contains a folder separator, or has a suffix) is that file;
+    whether it loads is :func:`read_weights`' business.  A bare word that is
+    none of these is a :class:`WeightsError` naming the choices.
+    """
+    if spec is None or (isinstance(spec, str) and spec == ""):
+        return named_weights(DEFAULT_WEIGHTS_NAME)
+    if isinstance(spec, str) and spec in WEIGHTS_NAMES:
+        return named_weights(spec)
+    path = Path(spec)
+    text = os.fspath(spec)
+    if path.exists() or os.sep in text or (os.altsep and os.altsep in text) or path.suffix:
+        return path
+    raise WeightsError(f"unknown weights {text!r}: give a name ({', '.join(WEIGHTS_NAMES)}) or a weights file path")
+
+
 
 def save_weights(path: str | os.PathLike, state: dict, meta: dict[str, str], sidecar: dict) -> Path:
     """Write ``state`` (name → tensor) as safetensors with string ``meta``, plus ``path.json`` = ``sidecar``.
@@ -174,6 +221,18 @@ def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weigh
     if meta.get("format") != expect_format:
         raise WeightsError(f"{path}: {what} format {meta.get('format')!r}, this version reads {expect_format!r}")
     return state, meta
+
+
+def weights_extra(path: str | os.PathLike) -> dict:
+    """The ``extra`` a weights file carries in its metadata (``{}`` if none or unreadable): e.g. ``model``, ``source``."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            extra = json.loads((f.metadata() or {}).get("extra") or "{}")
+    except Exception:  # noqa: BLE001  (a missing or damaged file has no extra; loading it says why)
+        return {}
+    return extra if isinstance(extra, dict) else {}
 
 
 def stored_config(path: str | os.PathLike, meta: dict[str, str]):

@@ -24,10 +24,11 @@ CASES = [("examples/sofa.png", None), ("examples/photos/apple.jpg", "examples/ph
 
 def main() -> int:
     from genre_backend.inference.blender import photo_colour_error
-    from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, Reconstructor
+    from genre_backend.inference.reconstruct import Reconstructor
+    from genre_backend.io import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
+    p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")
     args = p.parse_args()
     rec = Reconstructor(args.weights)
     for photo, mask in CASES:

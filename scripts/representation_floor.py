@@ -14,7 +14,7 @@ clouds normalised); the resampling floor is printed beside:
                               signed distance, marching cubes at 0.5 (a road not taken: it
                               loses open and thin shapes)
 
-    .venv/bin/python scripts/representation_floor.py --views data/views/eval --views-count 10
+    .venv/bin/python scripts/representation_floor.py --views ~/.cache/genre/views/eval --views-count 10
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from genre_backend import frame  # noqa: E402
 from genre_backend.config import get_preset  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.mesh_voxels import grid_index_to_view, grid_to_surface, mesh_to_target, voxels_to_mesh  # noqa: E402
+from training.data.corpus import data_dir  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, resolve_mesh, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, mesh_metrics  # noqa: E402
 
@@ -43,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--views", required=True, help="evaluation views (genre data render + targets of the test split)")
-    p.add_argument("--manifest", default="data/corpus/manifest.json")
+    p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--views-count", type=int, default=10)
     p.add_argument("--thresholds", default="0.5,0.75", help="levels of the distance rows")
     p.add_argument("--seed", type=int, default=0)
@@ -52,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     n = geometry.voxel_size
     levels = [float(t) for t in args.thresholds.split(",")]
     try:
-        views = sample_seen_test_views(Path(args.views), Path(args.manifest), args.views_count, args.seed)
+        views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else data_dir() / "corpus" / "manifest.json",
+                                       args.views_count, args.seed)
     except FileNotFoundError as exc:
         p.error(str(exc))
     centres = grid_index_to_view(np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(np.float64), n)

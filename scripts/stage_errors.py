@@ -20,8 +20,10 @@ normalised):
 Seen-test views only: what it shows is used to change the model, and the
 unseen classes must stay untouched by such choices.
 
-    .venv/bin/python scripts/stage_errors.py --weights runs/default/joint/best.safetensors \\
-        --views data/views/eval --views-count 8
+    .venv/bin/python scripts/stage_errors.py --weights protocol --views ~/.cache/genre/views/eval --views-count 8
+
+``--weights`` defaults to the shipped research weights, ``protocol`` (seen classes only); a
+training run's file (``$GENRE_HOME/runs/default/joint/best.safetensors``) works too.
 """
 
 from __future__ import annotations
@@ -35,9 +37,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from genre_backend.io import resolve_weights, weights_extra  # noqa: E402
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
+from training.data.corpus import data_dir  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 
@@ -46,17 +50,25 @@ HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hol
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", required=True)
+    p.add_argument("--weights", default="protocol",
+                   help="'protocol' (default: the shipped research weights, seen classes only) or a weights file")
     p.add_argument("--views", required=True, help="evaluation views (genre data render + targets of the test split)")
-    p.add_argument("--manifest", default="data/corpus/manifest.json")
+    p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--views-count", type=int, default=8)
     p.add_argument("--thresholds", default="0.5,0.7,0.9")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
-    model = load_model(args.weights)
+    try:
+        weights = resolve_weights(args.weights)
+    except ValueError as exc:
+        p.error(str(exc))
+    if weights_extra(weights).get("model") == "default":
+        print(f"warning: {weights} are the product weights ('default'); research figures come from 'protocol'", file=sys.stderr)
+    model = load_model(weights)
     thresholds = [float(t) for t in args.thresholds.split(",")]
     try:
-        views = sample_seen_test_views(Path(args.views), Path(args.manifest), args.views_count, args.seed)
+        views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else data_dir() / "corpus" / "manifest.json",
+                                       args.views_count, args.seed)
     except FileNotFoundError as exc:
         p.error(str(exc))
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)

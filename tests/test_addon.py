@@ -73,7 +73,23 @@ def scenario_install(args: dict) -> dict:
     # the panel draws (a UILayout needs a real region, so check the class is a registered sidebar panel)
     panel = bpy.types.GENRE_PT_panel
     out["panel_place"] = [panel.bl_space_type, panel.bl_region_type, panel.bl_category]
-    out["prefs_idname"] = type(bpy.context.preferences.addons[module].preferences).bl_idname
+    prefs = bpy.context.preferences.addons[module].preferences
+    out["prefs_idname"] = type(prefs).bl_idname
+    # the Model choice: the shipped weights by name, or a custom file (its path used only then)
+    out["model_default"] = prefs.model
+    out["model_items"] = [(i.identifier, i.name) for i in type(prefs).bl_rna.properties["model"].enum_items]
+    prefs.backend_command = sys.executable
+    prefs.weights = "/some/w.safetensors"
+    out["argv"] = {}
+    for model in ("default", "protocol", "custom"):
+        prefs.model = model
+        out["argv"][model] = mod.ops.backend_argv(prefs)[4:]
+    prefs.weights = ""
+    try:
+        mod.ops.backend_argv(prefs)
+    except mod.backend.BackendError as exc:
+        out["custom_without_file"] = str(exc)
+    prefs.model = "default"
     bpy.ops.preferences.addon_disable(module=module)
     out["after_disable"] = _registration_state(bpy, module)
     bpy.ops.preferences.addon_enable(module=module)
@@ -98,6 +114,7 @@ class _Snapshot:
 def _setup_backend(bpy, module: str, args: dict):
     prefs = bpy.context.preferences.addons[module].preferences
     prefs.backend_command = args.get("command", sys.executable)
+    prefs.model = "custom"
     prefs.weights = args["weights"]
     prefs.device = "cpu"
     prefs.startup_timeout = 120.0
@@ -509,6 +526,23 @@ def test_build_command(tmp_path):
         backend.build_command("", which=lambda n: None)
 
 
+def test_model_choice_becomes_the_weights_argument(tmp_path):
+    """Model: Product -> --weights default, Research protocol -> --weights protocol, Custom file -> its absolute path."""
+    backend = _load("genre_addon_backend", ADDON / "backend.py")
+    py = sys.executable
+    assert [m[0] for m in backend.MODELS] == ["default", "protocol", "custom"]
+    for model in ("default", "protocol"):
+        assert backend.weights_argument(model, "/ignored.safetensors") == model
+        assert backend.build_command(py, backend.weights_argument(model), "cpu")[4:] == ["--weights", model, "--device", "cpu"]
+    w = tmp_path / "w.safetensors"
+    assert backend.build_command(py, backend.weights_argument("custom", str(w)))[4:] == ["--weights", str(w)]
+    assert backend.build_command(py, "rel/w.safetensors")[4:] == ["--weights", os.path.abspath("rel/w.safetensors")]
+    with pytest.raises(backend.BackendError, match="no weights file is set"):
+        backend.weights_argument("custom", "  ")
+    with pytest.raises(backend.BackendError, match="unknown model 'product'"):
+        backend.weights_argument("product")
+
+
 def test_build_writes_validated_extension_and_legacy_zip(built):
     import zipfile
 
@@ -532,6 +566,11 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
                                   "prefs": False, "loaded": False}
     assert r["after_reenable"] == everything
     assert r["panel_place"] == ["VIEW_3D", "UI", "GenRe"]
+    assert r["model_default"] == "default"
+    assert r["model_items"] == [["default", "Product"], ["protocol", "Research protocol"], ["custom", "Custom file"]]
+    assert r["argv"] == {"default": ["--weights", "default"], "protocol": ["--weights", "protocol"],
+                         "custom": ["--weights", "/some/w.safetensors"]}
+    assert "no weights file is set" in r["custom_without_file"]
     assert str(tmp_path / "blender-user") in r["installed_at"]
 
 

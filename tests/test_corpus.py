@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import zipfile
 from pathlib import Path
@@ -324,11 +325,41 @@ def test_fetch_downloads_unpacks_then_caches(tmp_path):
     assert corpus.fetch(["Bad Name"], tmp_path, runner=failing)["Bad Name"].startswith("failed")
 
 
-def test_data_dir_env(monkeypatch, tmp_path):
-    monkeypatch.setenv("GENRE_DATA_DIR", str(tmp_path))
-    assert corpus.data_dir() == tmp_path.resolve()
-    monkeypatch.delenv("GENRE_DATA_DIR")
-    assert corpus.data_dir() == corpus.REPO_ROOT / "data"
+def test_data_dir_resolution_order(monkeypatch, tmp_path):
+    """explicit → $GENRE_HOME → $GENRE_DATA_DIR (the old name) → $XDG_CACHE_HOME/genre → ~/.cache/genre."""
+    for name in ("GENRE_HOME", "GENRE_DATA_DIR", "XDG_CACHE_HOME"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert corpus.data_dir() == (tmp_path / "home" / ".cache" / "genre").resolve()
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/cache")  # the XDG spec: a relative path is ignored
+    assert corpus.data_dir() == (tmp_path / "home" / ".cache" / "genre").resolve()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert corpus.data_dir() == (tmp_path / "xdg" / "genre").resolve()
+    monkeypatch.setenv("GENRE_DATA_DIR", str(tmp_path / "old"))
+    assert corpus.data_dir() == (tmp_path / "old").resolve()
+    monkeypatch.setenv("GENRE_HOME", str(tmp_path / "new"))
+    assert corpus.data_dir() == (tmp_path / "new").resolve()
+    assert corpus.data_dir(tmp_path / "explicit") == (tmp_path / "explicit").resolve()
+    monkeypatch.setenv("GENRE_HOME", "")  # empty counts as unset
+    assert corpus.data_dir() == (tmp_path / "old").resolve()
+    monkeypatch.setenv("GENRE_HOME", "~/g")
+    assert corpus.data_dir() == (tmp_path / "home" / "g").resolve()
+    # the home lies outside the checkout unless asked for, and nothing is created
+    monkeypatch.delenv("GENRE_HOME"), monkeypatch.delenv("GENRE_DATA_DIR")
+    assert corpus.REPO_ROOT not in corpus.data_dir().parents and not (tmp_path / "xdg").exists()
+
+
+def test_scripts_resolve_the_home_as_python_does(monkeypatch, tmp_path):
+    """scripts/train_default.sh asks data_dir() (DRY_RUN: nothing written): its paths lie under the same home."""
+    env = {k: v for k, v in os.environ.items() if k not in ("GENRE_HOME", "GENRE_DATA_DIR", "VIEWS", "RUN", "EVAL_VIEWS")}
+    env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), DRY_RUN="1", SKIP_TO="eval")
+    proc = subprocess.run(["bash", "scripts/train_default.sh"], cwd=corpus.REPO_ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    home = (tmp_path / "xdg" / "genre").resolve()
+    eval_line = next(line for line in proc.stdout.splitlines() if line.startswith("step eval:"))
+    assert f"--data {home}/views/eval " in eval_line and f"--run {home}/runs/default " in eval_line
+    assert f"--manifest {home}/corpus/manifest.json " in eval_line and "--out results/default " in eval_line
+    assert not (tmp_path / "xdg").exists()
 
 
 def _entry(shape_id: str, faces: int, vertices: int, extents, family: str = "") -> corpus.ManifestRecord:

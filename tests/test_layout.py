@@ -151,6 +151,7 @@ def test_addon_stage_labels_cover_the_backend_stages():
 
 
 def test_addon_threshold_default_is_the_shipped_weights_level():
+    """The add-on runs the product weights, `default`, by default: its threshold field starts at their level."""
     import json
 
     shipped = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"]["default_threshold"]

@@ -137,7 +137,7 @@ def test_sphere_full_map_is_one_minus_r(tmp_path):
 
 
 def test_a_real_sweet_home_3d_model(tmp_path):
-    """One real catalogue chair, fetched from Debian's archive (120 MB, cached under data/)."""
+    """One real catalogue chair, fetched from Debian's archive (120 MB, cached in the GenRe home: corpus.data_dir())."""
     from training.data import corpus
     from training.data.views import ShapeEntry
     from training.render.scene import BlenderRenderer, render_shape

@@ -238,3 +238,45 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"seen": {}}))
     with pytest.raises(ValueError, match="no seen-test threshold"):
         install(src, tmp_path / "bad.json", tmp_path / "x.safetensors")
+
+
+def _extra(path) -> dict:
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        stored = json.loads((f.metadata() or {}).get("extra", "{}"))
+    sidecar = json.loads(path.with_suffix(".json").read_text())["extra"]
+    assert stored == sidecar  # the file's metadata and its sidecar say the same
+    return stored
+
+
+def test_install_into_a_named_weights_file(tmp_path, monkeypatch, capsys):
+    """--name protocol|default picks genre_backend/weights/NAME.*, tagged extra.model = NAME; installing protocol
+    rewrites the interim default while that is still tagged as a copy of protocol, and leaves a real product model alone."""
+    import genre_backend.io as gio
+    from genre_backend.nets.model import save_model
+    from training.eval.install import install, main
+
+    monkeypatch.setattr(gio, "WEIGHTS_DIR", tmp_path / "shipped")
+    src = tmp_path / "w.safetensors"
+    save_model(GenRe(TINY), src)
+    (tmp_path / "t.json").write_text(json.dumps({"seen": {"GenRe": 0.6}, "product": {"GenRe": [0.5, 0.9]}}))
+    assert install(src, tmp_path / "t.json", name="default") == 0.5
+    assert _extra(tmp_path / "shipped" / "default.safetensors")["model"] == "default"
+    with pytest.raises(ValueError, match="unknown weights name 'product'"):
+        install(src, tmp_path / "t.json", name="product")
+    # the interim default: a copy of protocol, rewritten with it
+    save_model(GenRe(TINY), tmp_path / "shipped" / "default.safetensors", {"model": "default", "copy_of": "protocol"})
+    assert main(["--weights", str(src), "--thresholds", str(tmp_path / "t.json")]) == 0
+    assert "also wrote" in capsys.readouterr().out
+    protocol, default = _extra(tmp_path / "shipped" / "protocol.safetensors"), _extra(tmp_path / "shipped" / "default.safetensors")
+    assert protocol == {"source": str(src), "threshold_from": str(tmp_path / "t.json"), "model": "protocol"}
+    assert default == {**protocol, "model": "default", "copy_of": "protocol"}
+    assert weights_digest(load_model(tmp_path / "shipped" / "default.safetensors")) == weights_digest(load_model(src))
+    # a real product model is never overwritten by the research chain
+    assert main(["--weights", str(src), "--thresholds", str(tmp_path / "t.json"), "--name", "default"]) == 0
+    before = (tmp_path / "shipped" / "default.safetensors").read_bytes()
+    assert main(["--weights", str(src), "--thresholds", str(tmp_path / "t.json")]) == 0
+    assert "also wrote" not in capsys.readouterr().out
+    assert (tmp_path / "shipped" / "default.safetensors").read_bytes() == before
+    assert _extra(tmp_path / "shipped" / "default.safetensors")["model"] == "default"

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ..config import GenreConfig
+from ..io import DEFAULT_WEIGHTS_NAME, named_weights
 from ..validation import check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
 from ..geometry.mesh_voxels import fill_enclosed, onto_surface, voxels_to_mesh
@@ -65,7 +66,7 @@ for _s in STAGES:
     _acc += _STAGE_WEIGHT[_s]
 del _acc, _s
 
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "default.safetensors"
+DEFAULT_WEIGHTS = named_weights(DEFAULT_WEIGHTS_NAME)  # the product weights; --weights protocol|FILE picks others (io.resolve_weights)
 
 ProgressFn = Callable[[str, float], None]
 

@@ -54,7 +54,7 @@ def _one_line(exc: BaseException, limit: int = 2000) -> str:
 
 
 def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
-    from .reconstruct import DEFAULT_WEIGHTS, MESH_FORMATS
+    from .reconstruct import MESH_FORMATS
 
     parser = argparse.ArgumentParser(prog=prog, description="Turn photos of objects into meshes (posed as seen, in the view frame).")
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (PNG, JPEG, …); RGBA images use their alpha as the mask")
@@ -72,7 +72,9 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                         help="write PNGs of depth, mask, spherical maps and voxels here, and mask_in_photo.png: the mask at the photo's size, to correct and give back with --mask")
     parser.add_argument("--preview", action="store_true",
                         help="also write MESH_preview.png beside each mesh: the photo, depth, spherical maps and the mesh rendered from the photo's viewpoint and the side (Blender)")
-    parser.add_argument("--weights", metavar="W", help=f"weights file (default: {DEFAULT_WEIGHTS})")
+    parser.add_argument("--weights", metavar="W",
+                        help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
+                             "model, seen classes only), or a .safetensors file")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     args = parser.parse_args(argv)
 
@@ -106,17 +108,23 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             print(f"{prog}: error: {out_dir}: cannot create the output folder ({exc.strerror or exc}) [output_unwritable]", file=sys.stderr)
             return 1
 
-    weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
-    if args.weights is None and not weights.is_file():
+    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
+
+    try:
+        weights = resolve_weights(args.weights)
+    except WeightsError as exc:
+        print(f"{prog}: error: --weights: {exc} [bad_weights]", file=sys.stderr)
+        return 1
+    name = args.weights or DEFAULT_WEIGHTS_NAME
+    if name in WEIGHTS_NAMES and not weights.is_file():
         print(
-            f"{prog}: error: no default weights at {weights}: the trained weights are not installed yet; "
+            f"{prog}: error: no {name} weights at {weights}: the trained weights are not installed yet; "
             "train them with 'genre train depth|inpaint|refine …' (see 'genre train --help') and pass --weights RUN/refine/best.safetensors [bad_weights]",
             file=sys.stderr,
         )
         return 1
 
     from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
-    from ..nets.model import WeightsError
     from .mesh_export import mesh_files
     from .reconstruct import Reconstructor, check_output_path, error_code
 

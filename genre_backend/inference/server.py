@@ -396,10 +396,12 @@ class Server:
 
 
 def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
-    from .reconstruct import DEFAULT_WEIGHTS
+    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
 
     parser = argparse.ArgumentParser(prog=prog, description="JSON-lines reconstruction server on stdin/stdout (protocol: docs/protocol.md).")
-    parser.add_argument("--weights", metavar="W", help=f"weights file (default: {DEFAULT_WEIGHTS})")
+    parser.add_argument("--weights", metavar="W",
+                        help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
+                             "model, seen classes only), or a .safetensors file")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = parser.parse_args(argv)
@@ -422,10 +424,13 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
             pass
         return 1
 
-    weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
-    if args.weights is None and not weights.is_file():
-        return fatal("bad_weights", f"no default weights at {weights}: the trained weights are not installed yet; train them with 'genre train' and pass --weights")
-    from ..nets.model import WeightsError
+    try:
+        weights = resolve_weights(args.weights)
+    except WeightsError as exc:
+        return fatal("bad_weights", f"--weights: {exc}")
+    name = args.weights or DEFAULT_WEIGHTS_NAME
+    if name in WEIGHTS_NAMES and not weights.is_file():
+        return fatal("bad_weights", f"no {name} weights at {weights}: the trained weights are not installed yet; train them with 'genre train' and pass --weights")
     from .reconstruct import Reconstructor
 
     try:

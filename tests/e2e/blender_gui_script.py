@@ -64,6 +64,7 @@ def setup():
     bpy.ops.preferences.addon_enable(module="genre")
     prefs = bpy.context.preferences.addons["genre"].preferences
     prefs.backend_command = ARGS["backend_python"]
+    prefs.model = "custom"  # the weights file given (run_gui_e2e.py: the shipped default.safetensors, or tiny test weights)
     prefs.weights = ARGS["weights"]
     prefs.device = "cpu"
     for obj in list(bpy.data.objects):  # an empty stage: no default cube, camera or light

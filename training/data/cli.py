@@ -125,7 +125,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--data-dir", default=None,
-                        help="data folder (default: $GENRE_DATA_DIR or <repo>/data; git-ignored)")
+                        help="the GenRe home (default: $GENRE_HOME, else $GENRE_DATA_DIR, else $XDG_CACHE_HOME/genre, else ~/.cache/genre)")
     common.add_argument("-v", "--verbose", action="store_true", help="log every skipped file")
 
     p = sub.add_parser("fetch", parents=[common], help="apt-get download + dpkg -x the model packages")

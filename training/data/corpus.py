@@ -1,8 +1,8 @@
 """The shape corpus: fetch the Debian packages, enumerate, load, normalise,
 classify, filter, de-duplicate, split, and write the manifest and meshes.
 
-Layout under the data folder (``$GENRE_DATA_DIR``, default ``<repo>/data``,
-git-ignored; GPL data never enters git)::
+Layout under the GenRe home (:func:`data_dir`: ``$GENRE_HOME``, default
+``~/.cache/genre``; outside the checkout, GPL data never enters git)::
 
     cache/debs/PKG_*.deb            apt-get download
     cache/unpacked/PKG/             dpkg -x of that .deb (+ .complete marker)
@@ -302,11 +302,24 @@ def product_groups(shapes: Iterable[tuple[str, str, str, str]]) -> dict[str, str
 
 
 def data_dir(explicit: str | Path | None = None) -> Path:
-    """The data folder: ``explicit``, else ``$GENRE_DATA_DIR``, else ``<repo>/data``."""
+    """The GenRe home: where the corpus, views, runs, logs and results in progress live.
+
+    The first of: ``explicit`` (e.g. ``genre data --data-dir``);
+    ``$GENRE_HOME``; ``$GENRE_DATA_DIR`` (the old name, still honoured);
+    ``$XDG_CACHE_HOME/genre``; ``~/.cache/genre``.  Outside the checkout, so
+    GPL data never sits in a git work tree; the shell scripts ask this
+    function too (``scripts/train_default.sh``).  Empty variables count as
+    unset; the path is made absolute (``~`` expanded), never created here.
+    """
     if explicit:
-        return Path(explicit).resolve()
-    env = os.environ.get("GENRE_DATA_DIR")
-    return Path(env).resolve() if env else REPO_ROOT / "data"
+        return Path(explicit).expanduser().resolve()
+    for name in ("GENRE_HOME", "GENRE_DATA_DIR"):
+        env = os.environ.get(name)
+        if env:
+            return Path(env).expanduser().resolve()
+    cache = os.environ.get("XDG_CACHE_HOME")
+    base = Path(cache).expanduser() if cache and os.path.isabs(os.path.expanduser(cache)) else Path.home() / ".cache"
+    return (base / "genre").resolve()
 
 
 def _find_deb(debs: Path, package: str) -> Path | None:

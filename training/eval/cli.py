@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from genre_backend.io import atomic_write_text
+from genre_backend.io import DEFAULT_WEIGHTS_NAME, atomic_write_text, resolve_weights, weights_extra
 from genre_backend.nets.model import WeightsError, load_model
 
 from .protocol import GROUPS, ROWS, find_eval_views
@@ -69,13 +69,14 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="Evaluate GenRe, its oracles and baselines over seen-test and unseen views (the paper's Table 1).")
     p.add_argument("--data", nargs="+", required=True, help="folders of rendered eval views with targets ('genre data render --split test|unseen' + 'genre data targets')")
     p.add_argument("--run", help="training run folder (weights RUN/joint|refine/best.safetensors, RUN/completion/…, RUN/onestep/…)")
-    p.add_argument("--weights", help="GenRe weights (default: RUN/joint/best.safetensors, else RUN/refine/best.safetensors)")
+    p.add_argument("--weights", help="GenRe weights: a file, or 'protocol' (the shipped research weights, seen classes only: "
+                                     "Table 1's) (default: RUN/joint/best.safetensors, else RUN/refine/best.safetensors)")
     p.add_argument("--completion", help="3D Completion baseline weights (default RUN/completion/best.safetensors)")
     p.add_argument("--onestep", help="GenRe-1step weights (default RUN/onestep/best.safetensors)")
     p.add_argument("--train-views", nargs="*", default=[], help="training views (nearest-shape baseline and class dissimilarity)")
     p.add_argument("--train-shapes", help="file of training shape ids (default: every shape in --train-views)")
-    p.add_argument("--manifest", help="manifest JSON for classes and splits (default data/corpus/manifest.json if present)")
-    p.add_argument("--out", help="results folder (default results/<run name>)")
+    p.add_argument("--manifest", help="manifest JSON for classes and splits (default $GENRE_HOME/corpus/manifest.json if present)")
+    p.add_argument("--out", help="results folder (default $GENRE_HOME/results/<run name>; results/ in the repository holds the committed ones)")
     p.add_argument("--groups", default="test,unseen,unseen-pix3d", help="groups to evaluate: test (seen-test), unseen, unseen-pix3d (Table 1, the default); product-test (the product model's test split)")
     p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
@@ -114,8 +115,17 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     if any(g not in GROUPS for g in groups):
         return _fail(prog, f"--groups: choose from {list(GROUPS)}")
     if not args.run and not args.weights:
-        return _fail(prog, "give the training run (--run RUN) or the GenRe weights (--weights FILE)")
+        return _fail(prog, "give the training run (--run RUN) or the GenRe weights (--weights FILE, or --weights protocol)")
+    if args.weights:
+        try:
+            args.weights = str(resolve_weights(args.weights))
+        except WeightsError as exc:
+            return _fail(prog, f"--weights: {exc}")
     paths = _weights_paths(args)
+    shipped_as = weights_extra(paths["genre"]).get("model") if paths["genre"] is not None else None
+    if shipped_as == DEFAULT_WEIGHTS_NAME:
+        print(f"{prog}: warning: {paths['genre']} are the product weights ('default', meant to be trained on every class); "
+              "research numbers come from 'protocol' (--weights protocol)", file=sys.stderr)
     need = {"genre": True, "completion": "3D Completion" in rows_wanted, "onestep": "GenRe-1step" in rows_wanted}
     missing = [f"{k} weights not found: {paths[k]} ({HINTS[k]})" for k, needed in need.items() if needed and (paths[k] is None or not paths[k].is_file())]
     if "Nearest training shape" in rows_wanted and not args.train_views:
@@ -143,7 +153,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
         return _fail(prog, str(exc))
     if not views:
         return _fail(prog, f"no complete eval views (render + targets + surface_points.npz) of groups {list(groups)} under {args.data}; "
-                     "render them with 'genre data render --shapes data/corpus/manifest.json --split test|unseen --views 4 --out DIR' and 'genre data targets --views DIR'")
+                     "render them with 'genre data render --shapes $GENRE_HOME/corpus/manifest.json --split test|unseen --views 4 --out DIR' and 'genre data targets --views DIR'")
     try:
         genre = load_model(paths["genre"], args.device)
         from ..learn.baselines import NearestIndex, build_nearest_index, load_baseline
@@ -154,7 +164,12 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
         models.check()
     except WeightsError as exc:
         return _fail(prog, str(exc))
-    out = Path(args.out) if args.out else Path("results") / (Path(args.run).name if args.run else Path(args.weights).stem)
+    if args.out:
+        out = Path(args.out)
+    else:
+        from ..data.corpus import data_dir
+
+        out = data_dir() / "results" / (Path(args.run).name if args.run else Path(args.weights).stem)
     out.mkdir(parents=True, exist_ok=True)
     train_ids = None
     if args.train_shapes:
@@ -209,7 +224,8 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     write_csv(out / "per_class.csv", per_class)
     n_shapes = len({v.shape_dir.name for v in views})
     header = (f"# GenRe evaluation: {out.name}\n\n{len(views)} views of {n_shapes} shapes; preset {genre.config.preset} "
-              f"(voxel target: {genre.config.geometry.target}); weights {paths['genre']}.\n\n"
+              f"(voxel target: {genre.config.geometry.target}); weights {paths['genre']}"
+              + (f" (the shipped '{shipped_as}' weights)" if shipped_as else "") + ".\n\n"
               f"Command: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n\n"
               f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
               "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")

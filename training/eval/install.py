@@ -1,7 +1,19 @@
-"""Install trained weights as the backend's default, with the threshold chosen on seen-test data.
+"""Install trained weights as one of the backend's shipped weights, with the threshold chosen on seen-test data.
 
-    python -m training.eval.install --weights runs/default/joint/best.safetensors \\
-        --thresholds results/default/thresholds.json --out genre_backend/weights/default.safetensors
+    python -m training.eval.install --weights $GENRE_HOME/runs/default/joint/best.safetensors \\
+        --thresholds results/default/thresholds.json --name protocol
+
+``--name`` picks which shipped weights the file becomes
+(``genre_backend/weights/NAME.safetensors`` + ``NAME.json``): ``protocol``
+(the default here: the research weights, trained on the seen classes only,
+behind every Table-1 number) or ``default`` (the product model for users,
+trained on everything).  ``--out FILE`` writes elsewhere instead (still
+tagged with ``--name``).  The name is stored in the weights' ``extra``
+(``"model": NAME``), in the file's metadata and its JSON sidecar.  While
+the shipped ``default`` is still the interim copy of ``protocol`` (its
+``extra`` says ``"copy_of": "protocol"``), installing ``protocol`` writes
+that copy again, so the two never drift apart before the product model
+exists.
 
 The isosurface threshold stored in the installed weights' config
 (``geometry.default_threshold``, what ``genre reconstruct`` and ``genre
@@ -21,13 +33,27 @@ import json
 import sys
 from pathlib import Path
 
+from genre_backend.io import DEFAULT_WEIGHTS_NAME, PROTOCOL_WEIGHTS_NAME, WEIGHTS_NAMES, named_weights
 from genre_backend.nets.model import WeightsError, load_model, save_model
 
 __all__ = ["install", "main"]
 
 
-def install(weights: Path, thresholds: Path, out: Path) -> float:
-    """Copy ``weights`` to ``out`` with the seen-test threshold of GenRe; returns that threshold."""
+def _is_interim_copy_of_protocol(path: Path) -> bool:
+    try:
+        extra = json.loads(path.with_suffix(".json").read_text()).get("extra") or {}
+    except (OSError, ValueError, AttributeError):
+        return False
+    return extra.get("copy_of") == PROTOCOL_WEIGHTS_NAME
+
+
+def install(weights: Path, thresholds: Path, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME) -> float:
+    """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
+
+    Returns that threshold.  ``name`` (``protocol`` or ``default``) is stored as ``extra.model``.
+    """
+    if name not in WEIGHTS_NAMES:
+        raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
     chosen = json.loads(Path(thresholds).read_text())
     try:
         t = float(chosen["product"]["GenRe"][0]) if "GenRe" in chosen.get("product", {}) else float(chosen["seen"]["GenRe"])
@@ -38,8 +64,15 @@ def install(weights: Path, thresholds: Path, out: Path) -> float:
     model = load_model(weights)
     config = model.config
     model.config = dataclasses.replace(config, geometry=dataclasses.replace(config.geometry, default_threshold=t))
+    shipped = named_weights(name)
+    out = Path(out) if out is not None else shipped
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_model(model, out, {"source": str(weights), "threshold_from": str(thresholds)})
+    extra = {"source": str(weights), "threshold_from": str(thresholds), "model": name}
+    save_model(model, out, extra)
+    if name == PROTOCOL_WEIGHTS_NAME and out.resolve() == shipped.resolve():
+        interim = named_weights(DEFAULT_WEIGHTS_NAME)
+        if interim.is_file() and _is_interim_copy_of_protocol(interim):
+            save_model(model, interim, {**extra, "model": DEFAULT_WEIGHTS_NAME, "copy_of": PROTOCOL_WEIGHTS_NAME})
     return t
 
 
@@ -47,14 +80,23 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.eval.install", description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", required=True, type=Path)
     p.add_argument("--thresholds", required=True, type=Path)
-    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--name", choices=list(WEIGHTS_NAMES), default=PROTOCOL_WEIGHTS_NAME,
+                   help="which shipped weights these become: protocol (default: the research weights, seen classes only) "
+                        "or default (the product model, trained on everything)")
+    p.add_argument("--out", type=Path, default=None, help="write here instead of genre_backend/weights/NAME.safetensors")
     args = p.parse_args(argv)
+    out = args.out if args.out is not None else named_weights(args.name)
+    interim = named_weights(DEFAULT_WEIGHTS_NAME)
+    refresh = (args.name == PROTOCOL_WEIGHTS_NAME and out.resolve() == named_weights(PROTOCOL_WEIGHTS_NAME).resolve()
+               and interim.is_file() and _is_interim_copy_of_protocol(interim))
     try:
-        t = install(args.weights, args.thresholds, args.out)
+        t = install(args.weights, args.thresholds, out, name=args.name)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1
-    print(f"installed {args.weights} as {args.out} (default threshold {t:.2f}, chosen on seen-test views)")
+    print(f"installed {args.weights} as {out} (weights '{args.name}', default threshold {t:.2f}, chosen on seen-test views)")
+    if refresh:
+        print(f"also wrote {interim}: the interim 'default' weights stay a copy of 'protocol' until the product model is installed")
     return 0
 
 

@@ -485,7 +485,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         from ..data.photo_backgrounds import BackgroundBank
 
         if not tcfg.backgrounds:
-            raise ValueError(f"photo_fraction {photo} needs --backgrounds DIR (a 'genre data backgrounds' folder, e.g. data/backgrounds)")
+            raise ValueError(f"photo_fraction {photo} needs --backgrounds DIR (a 'genre data backgrounds' folder, e.g. $GENRE_HOME/backgrounds)")
         bank = BackgroundBank(tcfg.backgrounds)
     train_set = ViewDataset(train_refs, config, augment=tcfg.augment and (tcfg.stage == "depth" or photo > 0), targets=need_targets,
                             backgrounds=bank, photo_fraction=photo)

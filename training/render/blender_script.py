@@ -1,7 +1,7 @@
 """``genre data render`` inside a stock Blender, for machines without the ``bpy`` module::
 
     blender --background --factory-startup --python training/render/blender_script.py -- \\
-        --shapes data/corpus/manifest.json --out data/views/default --views 20
+        --shapes ~/.cache/genre/corpus/manifest.json --out ~/.cache/genre/views/default --views 20
 
 Everything after ``--`` is ``genre data render``'s arguments, and the files
 written are the same (RGB, Z-pass planar depth, mask, camera JSON;

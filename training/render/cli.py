@@ -76,7 +76,7 @@ def _build_parser(prog: str) -> argparse.ArgumentParser:
         prog=prog,
         description="Render RGB, planar depth, mask and camera JSON for every shape (Blender on the CPU).",
     )
-    p.add_argument("--shapes", required=True, help="a manifest JSON (data/corpus/manifest.json) or a folder of meshes")
+    p.add_argument("--shapes", required=True, help="a manifest JSON ($GENRE_HOME/corpus/manifest.json) or a folder of meshes")
     p.add_argument("--out", required=True, help="output folder (one sub-folder per shape)")
     p.add_argument("--views", type=_positive, default=20, help="random views per shape (default 20)")
     p.add_argument("--preset", choices=["default", "paper"], default="default", help="image size preset")

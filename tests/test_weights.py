@@ -1,0 +1,96 @@
+"""The shipped weights: two named files (`default`, the product model; `protocol`, the research weights), found by name.
+
+README, "Which weights": `protocol` is trained on the seen classes only and behind every Table-1 number;
+`default` is what users get (make demo, the add-on).  Until the product model is trained, `default` is a
+copy of `protocol` (its `extra` says `"copy_of": "protocol"`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from genre_backend.io import WEIGHTS_DIR, WEIGHTS_NAMES, WeightsError, named_weights, resolve_weights, weights_extra
+
+REPO = Path(__file__).resolve().parents[1]
+MAX_SHIPPED_BYTES = 40_000_000  # both safetensors together (the repository stays small enough to clone)
+
+
+def test_the_shipped_weights_are_two_named_files_within_the_size_budget():
+    files = sorted(p.name for p in WEIGHTS_DIR.glob("*.safetensors"))
+    assert files == ["default.safetensors", "protocol.safetensors"]
+    total = sum((WEIGHTS_DIR / f).stat().st_size for f in files)
+    assert total <= MAX_SHIPPED_BYTES, f"shipped weights take {total / 1e6:.1f} MB, the budget is {MAX_SHIPPED_BYTES / 1e6:.0f} MB"
+
+
+@pytest.mark.parametrize("name", sorted(WEIGHTS_NAMES))
+def test_each_shipped_file_loads_and_says_which_model_it_is(name):
+    from genre_backend.nets.model import load_model
+
+    path = named_weights(name)
+    model = load_model(path)
+    assert model.config.preset == "default"
+    assert weights_extra(path)["model"] == name  # the file's own metadata…
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    assert sidecar["extra"]["model"] == name  # …and the readable sidecar
+    assert sidecar["config"] == json.loads(json.dumps(model.config.to_dict()))
+
+
+def test_the_interim_default_is_a_copy_of_protocol():
+    """While the product model is not trained, `default` holds the protocol weights; once it is, it says so
+    by dropping `copy_of` (then this test only checks the tag)."""
+    import torch
+
+    from genre_backend.nets.model import load_model
+
+    extra = weights_extra(named_weights("default"))
+    if extra.get("copy_of") != "protocol":
+        assert "copy_of" not in extra
+        return
+    a, b = load_model(named_weights("default")), load_model(named_weights("protocol"))
+    assert a.config == b.config
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_weights_resolve_by_name_or_path(tmp_path, monkeypatch):
+    assert resolve_weights(None) == resolve_weights("") == WEIGHTS_DIR / "default.safetensors"
+    assert resolve_weights("protocol") == WEIGHTS_DIR / "protocol.safetensors"
+    assert resolve_weights("default") == named_weights("default")
+    assert resolve_weights(str(tmp_path / "w.safetensors")) == tmp_path / "w.safetensors"  # a path, even a missing one
+    assert resolve_weights("w.safetensors") == Path("w.safetensors")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mymodel").write_bytes(b"")
+    assert resolve_weights("mymodel") == Path("mymodel")  # an existing file of any name
+    assert resolve_weights("./protocol") == Path("protocol")  # a file called like a name: through ./
+    with pytest.raises(WeightsError, match=r"unknown weights 'product'.*default, protocol"):
+        resolve_weights("product")
+    with pytest.raises(ValueError, match="choose default or protocol"):
+        named_weights("product")
+
+
+def test_reconstruct_and_serve_name_the_choices_for_an_unknown_name(capsys):
+    from genre_backend.inference import reconstruct_cli, server
+
+    assert reconstruct_cli.main([str(REPO / "examples" / "sofa.png"), "--weights", "product"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown weights 'product'" in err[0] and "default, protocol" in err[0] and "[bad_weights]" in err[0]
+    assert server.main(["--weights", "product"]) == 1
+    event = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert event["type"] == "error" and event["code"] == "bad_weights" and "default, protocol" in event["message"]
+
+
+def test_serve_loads_the_protocol_weights_by_name():
+    """`genre serve --weights protocol`: ready names the shipped protocol file."""
+    import os
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "genre_backend.cli", "serve", "--weights", "protocol"], input='{"type": "shutdown"}\n',
+                          capture_output=True, text=True, cwd=REPO, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    ready = json.loads(proc.stdout.splitlines()[0])
+    assert ready["type"] == "ready" and ready["weights"] == str(WEIGHTS_DIR / "protocol.safetensors")
+    assert ready["threshold"] == json.loads((WEIGHTS_DIR / "protocol.json").read_text())["config"]["geometry"]["default_threshold"]
