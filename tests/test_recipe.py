@@ -70,8 +70,25 @@ def test_script_names_the_recipe_and_resolves_to_the_historic_settings(tmp_path)
                                                   **_flags_as_fields(HISTORIC_SCRIPT_FLAGS[r["stage"]])))
         historic.pop("recipe"), r.pop("recipe")
         assert r == historic
-    assert all(r["data"].startswith(str((tmp_path / "home").resolve())) for r in resolved)  # the views lie in the GenRe home
+    home = str((tmp_path / "home").resolve())
+    assert all(d.startswith(home) for r in resolved for d in r["data"])  # the views lie in the GenRe home
     assert not (tmp_path / "home").exists()  # a dry run writes nothing, not even the log folder
+
+
+def test_product_script_starts_from_the_shipped_default_weights_under_the_home(tmp_path):
+    env = {**os.environ, "DRY_RUN": "1", "GENRE_HOME": str(tmp_path / "home"), "ROUNDS": "2"}
+    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
+    home = tmp_path / "home"
+    assert "--split product-train" in steps["render"] and "--split product-test" in steps["render_eval"]
+    assert "--init genre_backend/weights/default.safetensors" in steps["depth"]  # no run yet: the shipped product weights
+    assert f"--init {home}/runs/product/depth/best.safetensors" in steps["inpaint"]
+    train = [line for line in proc.stdout.splitlines() if line.startswith("step ") and "genre train" in line]
+    assert len(train) == 3 + 2 and all("--recipe product" in line and f"--data {home}/views/product " in line for line in train)
+    assert "--steps 600" in steps["joint_600"]  # (a dry run sees no checkpoint: both rounds name the first target)
+    assert "--groups product-test" in steps["eval_joint_600"] and "learning_curve.csv" in steps["curve_joint_600"]
+    assert not home.exists()
 
 
 def _flags_as_fields(flags: list[str]) -> dict:
