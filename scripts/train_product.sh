@@ -62,19 +62,35 @@ step depth   "${T[@]}" depth   $(first depth "$INIT")
 step inpaint "${T[@]}" inpaint $(first inpaint "$RUN/depth/best.safetensors")
 step refine  "${T[@]}" refine  $(first refine "$RUN/inpaint/best.safetensors")
 
-score() {  # score the joint stage's best weights on the product test split; add the point to the learning curve
-  local label=$1 weights=$2 out=$SCORES/$1
-  step "eval_$label" $G eval --data "$EVAL_VIEWS" --weights "$weights" --groups product-test \
-    --rows "GenRe,Truth through the representation" --out "$out" --jobs "$EVAL_JOBS" --no-figures --no-progress
-  step "curve_$label" $PY -m training.eval.product curve --run "$RUN" --eval "$out" --label "$label" --csv "$RESULTS/learning_curve.csv"
+evaluate() {  # score weights on the product test split: genre eval into $SCORES/LABEL
+  step "eval_$1" $G eval --data "$EVAL_VIEWS" --weights "$2" --groups product-test \
+    --rows "GenRe,Truth through the representation" --out "$SCORES/$1" --jobs "$EVAL_JOBS" --no-figures --no-progress
 }
+curve() {  # add the point LABEL to the learning curve (the hours of RUN; none: the starting point, 0 h)
+  step "curve_$1" $PY -m training.eval.product curve ${2:+--run "$2"} --eval "$SCORES/$1" --label "$1" --csv "$RESULTS/learning_curve.csv"
+}
+# Once: the protocol model (the side-by-side table) and the weights the run started from (the curve's first point;
+# while the shipped default weights are a copy of the protocol's, the same scores).
+[ -d "$SCORES/protocol" ] || evaluate protocol protocol
+if [ ! -e "$SCORES/start" ]; then
+  if $PY -c "import sys, torch; from safetensors.torch import load_file as f; a, b = f(sys.argv[1]), f(sys.argv[2]); \
+sys.exit(0 if a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a) else 1)" "$INIT" genre_backend/weights/protocol.safetensors; then
+    [ -n "$DRY_RUN" ] || ln -s protocol "$SCORES/start"
+  else
+    evaluate start "$INIT"
+  fi
+  curve start
+fi
 # Then rounds of joint training, every net end to end (the recipe's joint stage), scored after each.
 for _ in $(seq 1 "$ROUNDS"); do
   done_steps=$( [ -n "$DRY_RUN" ] && echo 0 || ck_step joint )
   target=$(( done_steps + ROUND_STEPS ))
   step "joint_$target" "${T[@]}" joint $(first joint "$RUN/refine/best.safetensors") --steps "$target"
-  score "joint_$target" "$RUN/joint/final.safetensors"
+  evaluate "joint_$target" "$RUN/joint/final.safetensors"
+  curve "joint_$target" "$RUN"
 done
+step compare $PY -m training.eval.product compare --product "$SCORES/joint_$target" --protocol "$SCORES/protocol" \
+  --manifest "$M" --out "$RESULTS/table.md"
 # Installing (deliberately not automatic): when the rule in results/product/ship_rule.txt says so,
 #   $PY -m training.eval.install --name default RUN/joint/final.safetensors ...
 log "done; learning curve: $RESULTS/learning_curve.csv"

@@ -162,12 +162,15 @@ def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
     return int(meta["step"]), float(meta.get("cpu_s", 0.0))
 
 
-def curve_point(run_dir: Path, eval_dir: Path, stages=("depth", "inpaint", "refine", "joint")) -> dict:
-    """One learning-curve point: the run's steps and processor hours per stage, and the mean CD on the product test split."""
-    point: dict = {"run": str(run_dir), "eval": str(eval_dir)}
+def curve_point(run_dir: Path | None, eval_dir: Path, stages=("depth", "inpaint", "refine", "joint")) -> dict:
+    """One learning-curve point: the run's steps and processor hours per stage, and the mean CD on the product test split.
+
+    ``run_dir`` None: the starting point (the weights the run warm-starts from), 0 hours.
+    """
+    point: dict = {"run": str(run_dir or ""), "eval": str(eval_dir)}
     total = 0.0
     for stage in stages:
-        steps, cpu = _stage_cpu_seconds(Path(run_dir) / stage)
+        steps, cpu = _stage_cpu_seconds(Path(run_dir) / stage) if run_dir else (0, 0.0)
         point[f"{stage}_steps"] = steps
         point[f"{stage}_cpu_h"] = round(cpu / 3600, 3)
         total += cpu
@@ -224,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--manifest", required=True)
     c.add_argument("--out", required=True, help="markdown file to write")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
-    k.add_argument("--run", required=True, help="the product training run (its stages' checkpoints hold their processor time)")
+    k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
+                                 "leave out for the starting point (0 hours)")
     k.add_argument("--eval", required=True, help="genre eval folder of the run's weights on the product test split")
     k.add_argument("--label", required=True)
     k.add_argument("--csv", required=True)
@@ -236,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
             atomic_write_text(Path(args.out), text)
             print(text)
         else:
-            point = curve_point(Path(args.run), Path(args.eval))
+            point = curve_point(Path(args.run) if args.run else None, Path(args.eval))
             rows = append_curve(Path(args.csv), point, args.label)
             plot_curve(rows, Path(args.csv).with_suffix(".png"))
             print(json.dumps(point))
