@@ -49,9 +49,13 @@ def format_stats(manifest: dict) -> str:
     shapes = manifest["shapes"]
     skipped = manifest.get("skipped", [])
     splits = ("train", "test", "unseen", "unassigned")
+    product = ("product-train", "product-test")  # the product model's split (every class holds out shapes)
     by_class: dict[str, Counter] = defaultdict(Counter)
     for s in shapes:
         by_class[s["class"]][s["split"]] += 1
+        for g in s.get("groups", ()):
+            if g in product:
+                by_class[s["class"]][g] += 1
     seen = manifest["classes"]["seen"]
     unseen = manifest["classes"]["unseen"]
     pix3d = manifest["classes"]["unseen-pix3d"]
@@ -66,12 +70,15 @@ def format_stats(manifest: dict) -> str:
             g.append("pix3d")
         return "+".join(g) or "-"
 
-    order = sorted(by_class, key=lambda c: (group(c) == "-", -sum(by_class[c].values()), c))
-    rows = [(c, group(c), *(by_class[c][s] for s in splits), sum(by_class[c].values()),
-             "  (<10: small)" if 0 < sum(by_class[c].values()) < 10 and group(c) != "-" else "") for c in order]
-    totals = Counter(s["split"] for s in shapes)
-    rows.append(("TOTAL", "", *(totals[s] for s in splits), len(shapes), ""))
-    lines = _table("Shapes per class and split:", rows, ("class", "group", *splits, "total", ""))
+    def total(cls: str) -> int:
+        return sum(by_class[cls][s] for s in splits)
+
+    order = sorted(by_class, key=lambda c: (group(c) == "-", -total(c), c))
+    rows = [(c, group(c), *(by_class[c][s] for s in (*splits, *product)), total(c),
+             "  (<10: small)" if 0 < total(c) < 10 and group(c) != "-" else "") for c in order]
+    totals = Counter(s["split"] for s in shapes) + Counter(g for s in shapes for g in s.get("groups", ()) if g in product)
+    rows.append(("TOTAL", "", *(totals[s] for s in (*splits, *product)), len(shapes), ""))
+    lines = _table("Shapes per class and split:", rows, ("class", "group", *splits, *product, "total", ""))
     lines.append("")
     lines.append("Split lists (a sofa/table is in both unseen lists): " + ", ".join(
         f"{k} {len(v)}" for k, v in manifest["splits"].items()))
