@@ -93,6 +93,16 @@ def test_several_views_folders_and_processor_time_that_accumulates(tiny_views, t
     assert json.loads((run / "joint" / "final.json").read_text())["extra"]["cpu_s"] == s2["cpu_s"]
 
 
+def test_a_stage_continued_with_another_learning_rate_trains_with_it(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("depth", tiny_views, run, steps=3, lr=1e-3), TINY)
+    state = run / "depth" / "checkpoint" / "state.json"
+    assert json.loads(state.read_text())["param_groups"][0]["lr"] == 1e-3
+    train(_cfg("depth", tiny_views, run, steps=5, lr=2e-5), TINY)
+    saved = json.loads(state.read_text())
+    assert saved["step"] == 5 and saved["param_groups"][0]["lr"] == 2e-5  # not the checkpoint's 1e-3
+
+
 def _train_cmd(views, out, config_json, steps, extra=()):
     return [sys.executable, "-m", "training.learn.train", "depth", "--data", str(views), "--out", str(out), "--model-config", str(config_json),
             "--steps", str(steps), "--batch-size", "2", "--val-fraction", "0", "--no-progress", "--log-every", "1", *extra]

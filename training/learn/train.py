@@ -365,7 +365,12 @@ def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor]
     for k, v in meta["opt_scalars"].items():
         idx, name = k.split(".", 1)
         state.setdefault(int(idx), {})[name] = v
-    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    groups = meta["param_groups"]
+    for saved, current in zip(groups, opt.param_groups):
+        # this run's settings win over the checkpoint's: a stage continued with another --lr (or betas)
+        # trains with it, as log.csv says (the Adam moments carry on)
+        saved["lr"], saved["betas"] = current["lr"], current["betas"]
+    opt.load_state_dict({"state": state, "param_groups": groups})
 
 
 LOG_FIELDS = ["step", "split", "loss", "terms", "lr", "s_per_step", "samples_per_s"]  # log.csv's columns
