@@ -127,10 +127,15 @@ def test_recipes_validate_their_values():
     # product: the distance target; only its joint stage adds the depth loss and composites photos there
     product = RECIPES["product"]
     assert product.target == "distance" and product.stages["joint"].depth_weight > 0
+    from training.learn.train import TrainConfig
+
+    joint = TrainConfig(stage="joint", data="d", out="o", recipe="product")
+    assert joint.lr_at(0) == 1e-4 and joint.lr_at(1200) == pytest.approx(5e-5) and joint.lr_at(3600) == pytest.approx(1.25e-5)
+    assert TrainConfig(stage="joint", data="d", out="o", recipe="shipped").lr_at(5000) == 1e-5  # no half-life: constant
     assert all(s.depth_weight == 0.0 for r in RECIPES.values() for name, s in r.stages.items() if (r.name, name) != ("product", "joint"))
     with pytest.raises(ValueError, match="unknown recipe"):
         get_recipe("fast")
-    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}):
+    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}, {"lr": 1e-3, "lr_halflife": -1}):
         with pytest.raises(ValueError):
             StageRecipe(**bad)
     with pytest.raises(SystemExit):

@@ -101,6 +101,13 @@ def test_a_stage_continued_with_another_learning_rate_trains_with_it(tiny_views,
     train(_cfg("depth", tiny_views, run, steps=5, lr=2e-5), TINY)
     saved = json.loads(state.read_text())
     assert saved["step"] == 5 and saved["param_groups"][0]["lr"] == 2e-5  # not the checkpoint's 1e-3
+    # a half-life: the rate of each step, logged as used
+    train(_cfg("depth", tiny_views, tmp_path / "decay", steps=4, lr=1e-3, lr_halflife=2, log_every=1), TINY)
+    import csv
+
+    with (tmp_path / "decay" / "depth" / "log.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [float(r["lr"]) for r in rows if r["split"] == "train"] == pytest.approx([1e-3, 1e-3 * 2 ** -0.5, 5e-4, 5e-4 * 2 ** -0.5], rel=1e-5)  # (logged to 6 digits)
 
 
 def _train_cmd(views, out, config_json, steps, extra=()):

@@ -57,6 +57,7 @@ class StageRecipe:
     photo_fraction: float = 0.0
     sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
     depth_weight: float = 0.0  # the joint stage: the depth net's own loss (depth + silhouette) added with this weight
+    lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -72,6 +73,8 @@ class StageRecipe:
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
         if not 0.0 <= self.photo_fraction <= 1.0:
             raise ValueError(f"photo_fraction: expected a number in [0, 1], got {self.photo_fraction!r}")
+        if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
+            raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
         if not (math.isfinite(self.depth_weight) and self.depth_weight >= 0):
             raise ValueError(f"depth_weight: expected a finite number >= 0, got {self.depth_weight!r}")
         if self.sph_loss not in ("mse", "l1"):
@@ -162,13 +165,13 @@ _PRODUCT = Recipe(
     description="the product model on every class and the procedural shapes (scripts/train_product.sh): the depth net "
                 "2,000 steps on photo-composited renders (80 %), the inpainting net 2,000, the refiner 3,000, all from "
                 "the shipped weights; then the joint stage trains every net end to end (lr 1e-4, the depth loss added, "
-                "photo compositing on), its budget raised round after round",
+                "photo compositing on; the rate halves every 1,200 steps), its budget raised round after round",
     stages={
         **_SHIPPED.stages,
         "depth": replace(_PHOTO.stages["depth"], steps=2000),
         "inpaint": replace(_SHIPPED.stages["inpaint"], steps=2000),
         "refine": replace(_SHIPPED.stages["refine"], steps=3000),
-        "joint": replace(_SHIPPED.stages["joint"], steps=600, lr=1e-4, photo_fraction=0.8, depth_weight=1.0),
+        "joint": replace(_SHIPPED.stages["joint"], steps=600, lr=1e-4, photo_fraction=0.8, depth_weight=1.0, lr_halflife=1200),
     },
 )
 

@@ -91,6 +91,7 @@ class TrainConfig:
     photo_fraction: float | None = None
     sph_loss: str | None = None
     depth_weight: float | None = None
+    lr_halflife: int | None = None
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
@@ -128,6 +129,10 @@ class TrainConfig:
     @property
     def learning_rate(self) -> float:
         return self.lr
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of step ``step`` (0-based): ``lr``, halved every ``lr_halflife`` steps when that is set."""
+        return self.lr * 0.5 ** (step / self.lr_halflife) if self.lr_halflife else self.lr
 
 
 class StageModule(nn.Module):
@@ -540,6 +545,9 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     step = start
     for step, batch in zip(range(start, tcfg.steps), loader):
         t0 = time.perf_counter()
+        lr_now = tcfg.lr_at(step)
+        for group in opt.param_groups:
+            group["lr"] = lr_now
         batch = _to(batch, device)
         loss, terms = net(batch)
         opt.zero_grad(set_to_none=True)
@@ -560,7 +568,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
                 dt = (time.perf_counter() - window_t) / window_n
                 log_writer.writerow(
                     {"step": done, "split": "train", "loss": f"{lv:.6g}", "terms": json.dumps({k: round(float(v.detach()), 6) for k, v in terms.items()}),
-                     "lr": tcfg.learning_rate, "s_per_step": f"{dt:.4f}", "samples_per_s": f"{tcfg.batch_size * world / dt:.3f}"}
+                     "lr": f"{lr_now:.6g}", "s_per_step": f"{dt:.4f}", "samples_per_s": f"{tcfg.batch_size * world / dt:.3f}"}
                 )
                 log.flush()
                 writer.add_scalar(f"{tcfg.stage}/train_loss", lv, done)
@@ -569,7 +577,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
                 window_t, window_n = time.perf_counter(), 0
             if val_set is not None and (done % tcfg.val_every == 0 or done == tcfg.steps):
                 v = validate()
-                log_writer.writerow({"step": done, "split": "val", "loss": f"{v:.6g}", "terms": "{}", "lr": tcfg.learning_rate, "s_per_step": "", "samples_per_s": ""})
+                log_writer.writerow({"step": done, "split": "val", "loss": f"{v:.6g}", "terms": "{}", "lr": f"{lr_now:.6g}", "s_per_step": "", "samples_per_s": ""})
                 log.flush()
                 writer.add_scalar(f"{tcfg.stage}/val_loss", v, done)
                 if v < best:
