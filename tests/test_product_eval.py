@@ -61,6 +61,9 @@ def test_compare_table_means_over_shapes_at_each_models_threshold(tmp_path):
     assert lines["regular primitives"][4:6] == ["0.020", "2.00×"]
     assert lines["lathe"] == ["procedural", "1", "0.100", "0.100", "1.000"]
     assert "- cube (1): 0.040 (floor 0.020, 2.00×; protocol 0.090)" in text
+    # a level given: the product read at 0.50 is the "other" 9.0 everywhere but the representation
+    at = product.compare_table(a, b, MANIFEST, thresholds=(0.50, None))
+    assert "| all | 4 | 9.000 | 0.145 |" in at and "product t = 0.50" in at
 
 
 def test_curve_point_sums_the_stages_processor_time(tmp_path):

@@ -110,6 +110,21 @@ def test_a_stage_continued_with_another_learning_rate_trains_with_it(tiny_views,
     assert [float(r["lr"]) for r in rows if r["split"] == "train"] == pytest.approx([1e-3, 1e-3 * 2 ** -0.5, 5e-4, 5e-4 * 2 ** -0.5], rel=1e-5)  # (logged to 6 digits)
 
 
+def test_a_resumed_stage_keeps_the_config_it_was_trained_with(tiny_views, tmp_path):
+    """The chain names --init only for a stage's first run: resuming without it keeps the weights' own settings."""
+    import dataclasses
+
+    from genre_backend.nets.model import save_model
+
+    tuned = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, default_threshold=0.35))
+    init = tmp_path / "init.safetensors"
+    save_model(GenRe(tuned), init)
+    run = tmp_path / "run"
+    train(_cfg("refine", tiny_views, run, steps=2, init=str(init)), TINY)
+    train(_cfg("refine", tiny_views, run, steps=4), TINY)  # resumed, no --init: a fresh model of the preset, then the checkpoint
+    assert load_model(run / "refine" / "final.safetensors").config.geometry.default_threshold == 0.35
+
+
 def _train_cmd(views, out, config_json, steps, extra=()):
     return [sys.executable, "-m", "training.learn.train", "depth", "--data", str(views), "--out", str(out), "--model-config", str(config_json),
             "--steps", str(steps), "--batch-size", "2", "--val-fraction", "0", "--no-progress", "--log-every", "1", *extra]

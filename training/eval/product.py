@@ -64,14 +64,16 @@ def _primitive_kind(entry: dict) -> str | None:
     return extra.get("primitive") or extra.get("sub_kind") or extra.get("subkind") or extra.get("shape")
 
 
-def load_scores(eval_dir: Path, row: str = "GenRe") -> dict[str, dict]:
+def load_scores(eval_dir: Path, row: str = "GenRe", threshold: float | None = None) -> dict[str, dict]:
     """``{view key: {"shape", "class", "cd", "floor", "representation"}}`` of one ``genre eval`` folder.
 
-    ``cd``: the row's CD (1,024 points) at the run's chosen threshold (``thresholds.json``, ``seen``);
+    ``cd``: the row's CD (1,024 points) at ``threshold``, else at the run's chosen one (``thresholds.json``, ``seen``);
     ``floor`` and ``representation``: the same view's noise floor and truth through the representation.
     """
     eval_dir = Path(eval_dir)
     chosen = json.loads((eval_dir / "thresholds.json").read_text())["seen"]
+    if threshold is not None:
+        chosen = {**chosen, row: threshold}
     if row not in chosen:
         raise ValueError(f"{eval_dir}: no row {row!r} in thresholds.json")
     out: dict[str, dict] = {}
@@ -99,12 +101,14 @@ def _shape_means(scores: dict[str, dict], field: str) -> dict[str, float]:
     return {s: float(np.mean(vals)) for s, vals in per_shape.items()}
 
 
-def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: str = "") -> str:
+def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: str = "",
+                  thresholds: tuple[float | None, float | None] = (None, None)) -> str:
     """Markdown: mean CD per group and per class of the two models on the views both scored.
 
-    Means are over shapes (a shape's views averaged first).
+    Means are over shapes (a shape's views averaged first). ``thresholds``: the
+    product's and the protocol's level (None: each run's ``thresholds.json``).
     """
-    a, b = load_scores(product_dir), load_scores(protocol_dir)
+    a, b = load_scores(product_dir, threshold=thresholds[0]), load_scores(protocol_dir, threshold=thresholds[1])
     common = sorted(set(a) & set(b))
     if not common:
         raise ValueError(f"{product_dir} and {protocol_dir} have no view in common")
@@ -116,8 +120,8 @@ def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: 
     shapes = sorted(cd_a)
     cls_of = {v["shape"]: v["class"] for v in a.values()}
     groups = {s: group_of_shape(entries.get(s, {"class": cls_of[s]})) for s in shapes}
-    ta = json.loads((Path(product_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
-    tb = json.loads((Path(protocol_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
+    ta = thresholds[0] if thresholds[0] is not None else json.loads((Path(product_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
+    tb = thresholds[1] if thresholds[1] is not None else json.loads((Path(protocol_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
     lines = [f"# {title or 'The product model against the protocol model'}", "",
              f"{len(common)} views of {len(shapes)} shapes of the product test split; each model at the threshold its "
              f"weights install (product t = {ta:.2f}, protocol t = {tb:.2f}); CD with 1,024 points, means over shapes. "
@@ -162,7 +166,8 @@ def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
     return int(meta["step"]), float(meta.get("cpu_s", 0.0))
 
 
-def curve_point(run_dir: Path | None, eval_dir: Path, stages=("depth", "inpaint", "refine", "joint")) -> dict:
+def curve_point(run_dir: Path | None, eval_dir: Path, stages=("depth", "inpaint", "refine", "joint"),
+                threshold: float | None = None) -> dict:
     """One learning-curve point: the run's steps and processor hours per stage, and the mean CD on the product test split.
 
     ``run_dir`` None: the starting point (the weights the run warm-starts from), 0 hours.
@@ -175,7 +180,7 @@ def curve_point(run_dir: Path | None, eval_dir: Path, stages=("depth", "inpaint"
         point[f"{stage}_cpu_h"] = round(cpu / 3600, 3)
         total += cpu
     point["cpu_h"] = round(total / 3600, 3)
-    scores = load_scores(Path(eval_dir))
+    scores = load_scores(Path(eval_dir), threshold=threshold)
     point["views"] = len(scores)
     point["mean_cd"] = round(_mean(_shape_means(scores, "cd").values()), 5)
     return point
@@ -226,21 +231,23 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--protocol", required=True, help="genre eval folder of the protocol weights (the same views)")
     c.add_argument("--manifest", required=True)
     c.add_argument("--out", required=True, help="markdown file to write")
+    c.add_argument("--threshold", type=float, help="score both models at this level (default: each run's thresholds.json)")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
     k.add_argument("--eval", required=True, help="genre eval folder of the run's weights on the product test split")
     k.add_argument("--label", required=True)
     k.add_argument("--csv", required=True)
+    k.add_argument("--threshold", type=float, help="score at this level (default: the run's thresholds.json)")
     args = p.parse_args(argv)
     try:
         if args.cmd == "compare":
             manifest = json.loads(Path(args.manifest).read_text())
-            text = compare_table(Path(args.product), Path(args.protocol), manifest)
+            text = compare_table(Path(args.product), Path(args.protocol), manifest, thresholds=(args.threshold, args.threshold))
             atomic_write_text(Path(args.out), text)
             print(text)
         else:
-            point = curve_point(Path(args.run) if args.run else None, Path(args.eval))
+            point = curve_point(Path(args.run) if args.run else None, Path(args.eval), threshold=args.threshold)
             rows = append_curve(Path(args.csv), point, args.label)
             plot_curve(rows, Path(args.csv).with_suffix(".png"))
             print(json.dumps(point))

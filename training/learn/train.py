@@ -337,6 +337,22 @@ def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _checkpoint_model_config(stage_dir: Path) -> GenreConfig | None:
+    """The model config a stage's checkpoint was written with (None without a readable one)."""
+    for ck in [stage_dir / "checkpoint", *sorted(stage_dir.glob("checkpoint.old-*"))]:
+        try:
+            return GenreConfig.from_dict(json.loads((ck / "state.json").read_text())["model_config"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return None
+
+
+def _same_nets(a: GenreConfig, b: GenreConfig) -> bool:
+    """Whether two configs build networks with the same tensors (widths and resolutions)."""
+    ga, gb = a.geometry, b.geometry
+    return a.network == b.network and (ga.image_size, ga.sph_size, ga.sph_pad, ga.voxel_size) == (gb.image_size, gb.sph_size, gb.sph_pad, gb.voxel_size)
+
+
 def _load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer) -> tuple[int, float, float]:
     from safetensors.torch import load_file
 
@@ -461,6 +477,11 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         model = load_model(tcfg.init).train()
     else:
         model = GenRe(model_config or get_preset(tcfg.preset))
+    resumed = _checkpoint_model_config(Path(tcfg.out) / tcfg.stage)
+    if resumed is not None and _same_nets(resumed, model.config):
+        # a resumed stage keeps the config it was trained with (threshold, target...), whatever --init says
+        # now (the chain names --init only for a stage's first run); other nets: the checkpoint load says so
+        model.config = resumed
     if tcfg.target is not None and model.config.geometry.target != tcfg.target:
         # a change of representation: the nets are the same, the refiner learns the new target
         model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, target=tcfg.target))
