@@ -270,6 +270,9 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"seen": {}}))
     with pytest.raises(ValueError, match="no seen-test threshold"):
         install(src, tmp_path / "bad.json", tmp_path / "x.safetensors")
+    # the level itself (the product model keeps that of the weights it started from)
+    assert install(src, 0.4, tmp_path / "level.safetensors") == 0.4
+    assert load_model(tmp_path / "level.safetensors").config.geometry.default_threshold == 0.4
 
 
 def _extra(path) -> dict:

@@ -47,14 +47,19 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
     return extra.get("copy_of") == PROTOCOL_WEIGHTS_NAME
 
 
-def install(weights: Path, thresholds: Path, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME) -> float:
+def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
+    ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
+    (the product model keeps the level of the weights it started from: results/product/ship_rule.txt).
     Returns that threshold.  ``name`` (``protocol`` or ``default``) is stored as ``extra.model``.
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
-    chosen = json.loads(Path(thresholds).read_text())
+    if isinstance(thresholds, (int, float)):
+        chosen = {"seen": {"GenRe": float(thresholds)}}
+    else:
+        chosen = json.loads(Path(thresholds).read_text())
     try:
         t = float(chosen["product"]["GenRe"][0]) if "GenRe" in chosen.get("product", {}) else float(chosen["seen"]["GenRe"])
     except (KeyError, TypeError, ValueError, IndexError):
@@ -79,7 +84,9 @@ def install(weights: Path, thresholds: Path, out: Path | None = None, *, name: s
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.eval.install", description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", required=True, type=Path)
-    p.add_argument("--thresholds", required=True, type=Path)
+    level = p.add_mutually_exclusive_group(required=True)
+    level.add_argument("--thresholds", type=Path, help="thresholds.json of 'genre eval' on seen-test views")
+    level.add_argument("--threshold", type=float, help="the level itself (the product model: that of the weights it started from)")
     p.add_argument("--name", choices=list(WEIGHTS_NAMES), default=PROTOCOL_WEIGHTS_NAME,
                    help="which shipped weights these become: protocol (default: the research weights, seen classes only) "
                         "or default (the product model, trained on everything)")
@@ -90,11 +97,12 @@ def main(argv: list[str] | None = None) -> int:
     refresh = (args.name == PROTOCOL_WEIGHTS_NAME and out.resolve() == named_weights(PROTOCOL_WEIGHTS_NAME).resolve()
                and interim.is_file() and _is_interim_copy_of_protocol(interim))
     try:
-        t = install(args.weights, args.thresholds, out, name=args.name)
+        t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1
-    print(f"installed {args.weights} as {out} (weights '{args.name}', default threshold {t:.2f}, chosen on seen-test views)")
+    print(f"installed {args.weights} as {out} (weights '{args.name}', default threshold {t:.2f}"
+          + (", chosen on seen-test views)" if args.thresholds is not None else ", as given)"))
     if refresh:
         print(f"also wrote {interim}: the interim 'default' weights stay a copy of 'protocol' until the product model is installed")
     return 0
