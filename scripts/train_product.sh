@@ -30,6 +30,8 @@ EVAL_JOBS=${EVAL_JOBS:-2}
 # Where a run with no checkpoint starts: the shipped product weights, so that training on a fresh
 # machine adds to what was shipped instead of starting over.
 INIT=${INIT:-genre_backend/weights/default.safetensors}
+# The level every score is read at (results/product/ship_rule.txt): the one the starting weights install.
+LEVEL=${LEVEL:-$($PY -c "import sys; from genre_backend.nets.model import load_model; print(load_model(sys.argv[1]).config.geometry.default_threshold)" "$INIT")}
 SKIP_TO=${SKIP_TO:-}
 DRY_RUN=${DRY_RUN:-}
 LOGS=$GENRE_HOME/logs
@@ -67,7 +69,8 @@ evaluate() {  # score weights on the product test split: genre eval into $SCORES
     --rows "GenRe,Truth through the representation" --out "$SCORES/$1" --jobs "$EVAL_JOBS" --no-figures --no-progress
 }
 curve() {  # add the point LABEL to the learning curve (the hours of RUN; none: the starting point, 0 h)
-  step "curve_$1" $PY -m training.eval.product curve ${2:+--run "$2"} --eval "$SCORES/$1" --label "$1" --csv "$RESULTS/learning_curve.csv"
+  step "curve_$1" $PY -m training.eval.product curve ${2:+--run "$2"} --eval "$SCORES/$1" --label "$1" --csv "$RESULTS/learning_curve.csv" \
+    --threshold "$LEVEL"
 }
 # Once: the protocol model (the side-by-side table) and the weights the run started from (the curve's first point;
 # while the shipped default weights are a copy of the protocol's, the same scores).
@@ -90,7 +93,7 @@ for _ in $(seq 1 "$ROUNDS"); do
   curve "joint_$target" "$RUN"
 done
 step compare $PY -m training.eval.product compare --product "$SCORES/joint_$target" --protocol "$SCORES/protocol" \
-  --manifest "$M" --out "$RESULTS/table.md"
+  --manifest "$M" --out "$RESULTS/table.md" --threshold "$LEVEL"
 # Installing (deliberately not automatic): when the rule in results/product/ship_rule.txt says so,
-#   $PY -m training.eval.install --name default RUN/joint/final.safetensors ...
+#   $PY -m training.eval.install --name default --weights $RUN/joint/final.safetensors --threshold $LEVEL
 log "done; learning curve: $RESULTS/learning_curve.csv"

@@ -1,8 +1,8 @@
 """The shipped weights: two named files (`default`, the product model; `protocol`, the research weights), found by name.
 
 README, "Which weights": `protocol` is trained on the seen classes only and behind every Table-1 number;
-`default` is what users get (make demo, the add-on).  Until the product model is trained, `default` is a
-copy of `protocol` (its `extra` says `"copy_of": "protocol"`).
+`default` is what users get (make demo, the add-on), the product model trained on every class
+(scripts/train_product.sh), at the level of the weights it started from (results/product/ship_rule.txt).
 """
 
 from __future__ import annotations
@@ -38,21 +38,20 @@ def test_each_shipped_file_loads_and_says_which_model_it_is(name):
     assert sidecar["config"] == json.loads(json.dumps(model.config.to_dict()))
 
 
-def test_the_interim_default_is_a_copy_of_protocol():
-    """While the product model is not trained, `default` holds the protocol weights; once it is, it says so
-    by dropping `copy_of` (then this test only checks the tag)."""
+def test_default_is_the_trained_product_model_at_the_protocols_level():
+    """`default` is no longer the interim copy of `protocol`: other weights of the same networks, at the same level."""
     import torch
 
     from genre_backend.nets.model import load_model
 
     extra = weights_extra(named_weights("default"))
-    if extra.get("copy_of") != "protocol":
-        assert "copy_of" not in extra
-        return
+    assert "copy_of" not in extra and extra["model"] == "default"
     a, b = load_model(named_weights("default")), load_model(named_weights("protocol"))
-    assert a.config == b.config
+    assert a.config.network == b.config.network and a.config.geometry.default_threshold == b.config.geometry.default_threshold
     sa, sb = a.state_dict(), b.state_dict()
-    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert sa.keys() == sb.keys()
+    changed = sum(not torch.equal(sa[k], sb[k]) for k in sa if sa[k].is_floating_point())
+    assert changed > 0.9 * sum(1 for k in sa if sa[k].is_floating_point())  # every net was trained on
 
 
 def test_weights_resolve_by_name_or_path(tmp_path, monkeypatch):
