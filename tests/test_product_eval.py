@@ -30,7 +30,7 @@ def _eval_dir(path, t, rows):
 MANIFEST = {"shapes": [
     {"id": "plane", "class": "airplane", "source": "flightgear"},
     {"id": "lamp", "class": "lamp", "source": "sweethome3d"},
-    {"id": "procedural-primitive-000", "class": "primitive", "source": "procedural", "extra": {"primitive": "cube"}},
+    {"id": "procedural-primitive-000", "class": "primitive", "source": "procedural", "extra": {"subkind": "cube"}},
     {"id": "procedural-lathe-000", "class": "lathe", "source": "procedural", "extra": {}},
 ]}
 

@@ -58,10 +58,9 @@ def group_of_shape(entry: dict) -> tuple[str, ...]:
 
 
 def _primitive_kind(entry: dict) -> str | None:
-    extra = entry.get("extra") or {}
     if entry.get("class") != "primitive":
         return None
-    return extra.get("primitive") or extra.get("sub_kind") or extra.get("subkind") or extra.get("shape")
+    return (entry.get("extra") or {}).get("subkind")  # (the generating parameters, training/data/sources/procedural.py)
 
 
 def load_scores(eval_dir: Path, row: str = "GenRe", threshold: float | None = None) -> dict[str, dict]:
