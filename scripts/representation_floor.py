@@ -33,7 +33,6 @@ from genre_backend import frame  # noqa: E402
 from genre_backend.config import get_preset  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.mesh_voxels import grid_index_to_view, grid_to_surface, mesh_to_target, voxels_to_mesh  # noqa: E402
-from training.data.corpus import data_dir  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, resolve_mesh, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, mesh_metrics  # noqa: E402
 
@@ -53,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     n = geometry.voxel_size
     levels = [float(t) for t in args.thresholds.split(",")]
     try:
-        views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else data_dir() / "corpus" / "manifest.json",
+        views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else None,
                                        args.views_count, args.seed)
     except FileNotFoundError as exc:
         p.error(str(exc))

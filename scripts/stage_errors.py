@@ -41,7 +41,6 @@ from genre_backend.io import resolve_weights, weights_extra  # noqa: E402
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
-from training.data.corpus import data_dir  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 
@@ -67,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     model = load_model(weights)
     thresholds = [float(t) for t in args.thresholds.split(",")]
     try:
-        views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else data_dir() / "corpus" / "manifest.json",
+        views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else None,
                                        args.views_count, args.seed)
     except FileNotFoundError as exc:
         p.error(str(exc))

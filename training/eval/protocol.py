@@ -107,7 +107,7 @@ def find_eval_views(roots: list[Path], manifest: dict | None, groups: tuple[str,
     return out
 
 
-def sample_seen_test_views(views_dir: Path, manifest_path: Path, count: int, seed: int = 0) -> list[EvalView]:
+def sample_seen_test_views(views_dir: Path, manifest_path: Path | None, count: int, seed: int = 0) -> list[EvalView]:
     """A seeded sample of ``count`` seen-test views (one per shape), in their sorted order, for the diagnostics scripts.
 
     Seen-test only: what the diagnostics show is used to change the model, and
@@ -118,6 +118,10 @@ def sample_seen_test_views(views_dir: Path, manifest_path: Path, count: int, see
 
     import numpy as np
 
+    if manifest_path is None:  # the corpus's, in the GenRe home
+        from training.data.corpus import data_dir
+
+        manifest_path = data_dir() / "corpus" / "manifest.json"
     views = find_eval_views([Path(views_dir)], json.loads(Path(manifest_path).read_text()), ("test",), max_views=1)
     if not views:
         raise FileNotFoundError(f"no seen-test views under {views_dir}")
