@@ -80,5 +80,10 @@ def test_curve_point_sums_the_stages_processor_time(tmp_path):
     rows = product.append_curve(tmp_path / "curve.csv", dict(point, cpu_h=0.0, mean_cd=0.2), "warm start")
     rows = product.append_curve(tmp_path / "curve.csv", point, "round 1")  # replaced, not duplicated
     assert [r["label"] for r in rows] == ["warm start", "round 1"]
+    # a run that started from weights trained before: their hours come first
+    assert product.curve_point(run, ev, base_hours=2.25)["cpu_h"] == 3.75
+    assert product.curve_point(None, ev, base_hours=2.25)["cpu_h"] == 2.25
+    with pytest.raises(ValueError, match="base hours"):
+        product.curve_point(run, ev, base_hours=-1.0)
     with pytest.raises(ValueError, match="no view in common"):
         product.compare_table(ev, _eval_dir(tmp_path / "x", 0.45, []), MANIFEST)

@@ -88,6 +88,20 @@ def test_product_script_starts_from_the_shipped_default_weights_under_the_home(t
     assert len(train) == 3 + 2 and all("--recipe product" in line and f"--data {home}/views/product " in line for line in train)
     assert "--steps 600" in steps["joint_600"]  # (a dry run sees no checkpoint: both rounds name the first target)
     assert "--groups product-test" in steps["eval_joint_600"] and "learning_curve.csv" in steps["curve_joint_600"]
+    # more views of the training primitives, trained on beside the rest; 8 views of each test primitive scored
+    assert "--classes primitive" in steps["render_primitives"] and "--split product-train" in steps["render_primitives"]
+    assert "--classes primitive" in steps["render_primitives_eval"] and "--views 8" in steps["render_primitives_eval"]
+    assert all(f"--data {home}/views/product {home}/views/product_primitives " in line for line in train)
+    assert f"{home}/views/primitives_eval" in steps["eval_primitives_joint_600"]
+    assert not home.exists()
+    # continuing the shipped product model on a fresh machine: joint only, cumulative hours, prefixed labels
+    env.update(FIRST_CHAIN="0", BASE_HOURS="2.44", CURVE_PREFIX="s2_")
+    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
+    assert not {"depth", "inpaint", "refine"} & set(steps)
+    assert "joint --init genre_backend/weights/default.safetensors" in steps["joint_600"]
+    assert "--label s2_joint_600" in steps["curve_joint_600"] and "--base-hours 2.44" in steps["curve_joint_600"]
     assert not home.exists()
 
 

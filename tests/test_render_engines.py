@@ -151,6 +151,23 @@ def test_engine_is_recorded_and_a_folder_keeps_its_engine(meshes, tmp_path, caps
     assert view_files.read_render_settings(out)["engine"] == "cycles"
 
 
+def test_classes_renders_only_those_classes(meshes, tmp_path, capsys):
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    shutil.copy(meshes / "cube.obj", corpus / "cube.obj")
+    manifest = corpus / "manifest.json"
+    manifest.write_text(json.dumps({"shapes": [
+        {"id": "p1", "class": "primitive", "split": "unassigned", "groups": ["product-train"], "mesh": "cube.obj"},
+        {"id": "c1", "class": "chair", "split": "train", "groups": ["product-train"], "mesh": "cube.obj"},
+        {"id": "p2", "class": "primitive", "split": "unassigned", "groups": ["product-test"], "mesh": "cube.obj"}]}))
+    assert _cli(tmp_path, manifest, "--engine", "workbench", "--split", "product-train", "--classes", "primitive") == 0
+    out = tmp_path / "out"
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["p1"]
+    capsys.readouterr()
+    assert _cli(tmp_path, manifest, "--engine", "workbench", "--classes", "sofa") == 2
+    assert "no shape of the classes ['sofa']" in capsys.readouterr().err
+
+
 def test_no_egl_is_one_line_before_blender_could_abort(meshes, tmp_path, capsys, monkeypatch):
     shapes = tmp_path / "shapes"
     shapes.mkdir()

@@ -166,13 +166,17 @@ def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
 
 
 def curve_point(run_dir: Path | None, eval_dir: Path, stages=("depth", "inpaint", "refine", "joint"),
-                threshold: float | None = None) -> dict:
+                threshold: float | None = None, base_hours: float = 0.0) -> dict:
     """One learning-curve point: the run's steps and processor hours per stage, and the mean CD on the product test split.
 
-    ``run_dir`` None: the starting point (the weights the run warm-starts from), 0 hours.
+    ``run_dir`` None: the starting point (the weights the run warm-starts from).  ``base_hours``: the
+    processor hours that made those starting weights (earlier runs, on this machine or another), added
+    to ``cpu_h`` so that the curve's hours are cumulative over every run.
     """
+    if not (math.isfinite(base_hours) and base_hours >= 0):
+        raise ValueError(f"base hours must be a finite number >= 0, got {base_hours}")
     point: dict = {"run": str(run_dir or ""), "eval": str(eval_dir)}
-    total = 0.0
+    total = base_hours * 3600
     for stage in stages:
         steps, cpu = _stage_cpu_seconds(Path(run_dir) / stage) if run_dir else (0, 0.0)
         point[f"{stage}_steps"] = steps
@@ -231,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--manifest", required=True)
     c.add_argument("--out", required=True, help="markdown file to write")
     c.add_argument("--threshold", type=float, help="score both models at this level (default: each run's thresholds.json)")
+    c.add_argument("--title", default="", help="the table's heading (default: 'The product model against the protocol model')")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
@@ -238,15 +243,19 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--label", required=True)
     k.add_argument("--csv", required=True)
     k.add_argument("--threshold", type=float, help="score at this level (default: the run's thresholds.json)")
+    k.add_argument("--base-hours", type=float, default=0.0,
+                   help="processor hours behind the weights the run started from (earlier runs), added to the point's hours")
     args = p.parse_args(argv)
     try:
         if args.cmd == "compare":
             manifest = json.loads(Path(args.manifest).read_text())
-            text = compare_table(Path(args.product), Path(args.protocol), manifest, thresholds=(args.threshold, args.threshold))
+            text = compare_table(Path(args.product), Path(args.protocol), manifest, title=args.title,
+                                 thresholds=(args.threshold, args.threshold))
             atomic_write_text(Path(args.out), text)
             print(text)
         else:
-            point = curve_point(Path(args.run) if args.run else None, Path(args.eval), threshold=args.threshold)
+            point = curve_point(Path(args.run) if args.run else None, Path(args.eval), threshold=args.threshold,
+                                base_hours=args.base_hours)
             rows = append_curve(Path(args.csv), point, args.label)
             plot_curve(rows, Path(args.csv).with_suffix(".png"))
             print(json.dumps(point))

@@ -87,6 +87,8 @@ def _build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--limit", type=_positive, default=None, help="render only the first K shapes")
     p.add_argument("--shard", type=_parse_shard, default=(0, 1), metavar="I/N", help="render every N-th shape from I")
     p.add_argument("--split", default=None, help="only manifest shapes of this split or group (e.g. train, unseen)")
+    p.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
+                   help="only manifest shapes of these classes (e.g. primitive: more views of some shapes)")
     p.add_argument("--samples", type=_positive, default=RenderSettings.samples,
                    help="samples per pixel (Cycles, EEVEE); anti-aliasing samples for Workbench (1: none)")
     p.add_argument("--threads", type=_positive, default=RenderSettings.threads, help="Cycles CPU threads")
@@ -165,6 +167,12 @@ def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> 
         return 2
     if args.split is not None:
         shapes = [s for s in shapes if s.split == args.split or args.split in s.groups]
+    if args.classes is not None:
+        wanted = set(args.classes)
+        shapes = [s for s in shapes if s.cls in wanted]
+        if not shapes:
+            print(f"{prog}: error: no shape of the classes {sorted(wanted)} to render", file=sys.stderr)
+            return 2
     shapes = shapes[args.shard[0]::args.shard[1]]
     if args.limit is not None:
         shapes = shapes[: args.limit]
