@@ -97,6 +97,12 @@ class GeometryConfig:
     # sheets with opposite normals.  Costs CD 0.031 → 0.033 at t = 0.5 through the true target (10
     # seen-test views, scripts/representation_floor.py; resampling floor 0.030).
     surface_margin: float = 0.25
+    # The distance target's holes (geometry.mesh_voxels.fill_enclosed): a blurry prediction leaves
+    # gaps in the tube around the surface, through which the tube's inner sheet joins the outer one
+    # (a hole into the object).  Gaps up to about twice this many voxels across are sealed (a
+    # morphological closing of the object before its inside is filled); openings wider than that
+    # (a torus's hole, a cup's mouth) stay.  0: nothing is sealed.  Weights stored without the key: 0.
+    hole_closing: int = 0
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at
     # the top of that range for every learned row (first weights: 0.70; the shipped ones: 0.75),
@@ -122,6 +128,8 @@ class GeometryConfig:
             raise ValueError(f"geometry.target: expected one of {TARGETS}, got {self.target!r}")
         if not (math.isfinite(self.distance_band) and 0.5 <= self.distance_band <= 8.0):
             raise ValueError(f"geometry.distance_band: expected voxels in [0.5, 8], got {self.distance_band!r}")
+        if not (isinstance(self.hole_closing, int) and 0 <= self.hole_closing <= 8):
+            raise ValueError(f"geometry.hole_closing: expected voxels, an int in [0, 8], got {self.hole_closing!r}")
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")
         for name in ("default_threshold", "threshold_min", "threshold_max"):

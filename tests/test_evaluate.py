@@ -288,6 +288,17 @@ def test_closed_meshes_are_told_from_ones_with_holes_or_tunnels():
     assert product_threshold(recs, [0.3, 0.5, 0.7], 0.5) == (0.3, 1.0)
 
 
+def test_hole_closing_rule_takes_the_least_sealing_that_closes_enough():
+    from training.eval.statistics import choose_hole_closing
+
+    assert choose_hole_closing({0: 0.74, 1: 0.91, 2: 0.95, 3: 0.97}) == 1
+    assert choose_hole_closing({0: 0.95, 1: 0.97}) == 0
+    assert choose_hole_closing({0: 0.74, 1: 0.84, 2: 0.84, 3: 0.83}) == 1  # none reaches 90 %: the most closed, smaller k
+    assert choose_hole_closing({0: float("nan"), 2: 0.5}) == 2
+    with pytest.raises(ValueError, match="no closed share"):
+        choose_hole_closing({0: float("nan")})
+
+
 def test_representation_floor_scores_the_truth_through_each_representation(tiny, capsys):
     import importlib.util
 
@@ -302,3 +313,24 @@ def test_representation_floor_scores_the_truth_through_each_representation(tiny,
     # the box at 64³: the moved distance sheets sit on the floor's scale, the shell well above it
     assert lines["distance, moved, t=0.50"] < lines["distance, plain, t=0.50"] < lines["shell, t=0.50"]
     assert lines["distance, shipped, t=0.50"] < 1.5 * lines["noise floor (truth resampled)"]
+
+
+def test_hole_closing_script_scores_each_setting_and_applies_the_rule(tiny, tmp_path, capsys):
+    import importlib.util
+
+    from training.eval.statistics import choose_hole_closing
+
+    root, views, run = tiny
+    spec = importlib.util.spec_from_file_location("hole_closing", Path(__file__).resolve().parents[1] / "scripts" / "hole_closing.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "hc.json"
+    assert mod.main(["--weights", str(run / "refine" / "final.safetensors"), "--views", str(views), "--manifest",
+                     str(root / "manifest.json"), "--groups", "test,unseen", "--closings", "0,2", "--level", "0.5",
+                     "--json", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert got["level"] == 0.5 and set(got["groups"]["all"]) == {"0", "2"}
+    seen = got["groups"]["seen-test (chooses k)"]
+    assert got["chosen"] == choose_hole_closing({int(k): v["closed"] for k, v in seen.items()})
+    assert all(0 <= v["closed"] <= 1 and v["cd"] > 0 for g in got["groups"].values() for v in g.values())
+    assert "hole_closing = " in capsys.readouterr().out

@@ -1,3 +1,4 @@
+import dataclasses
 import numpy as np
 import pytest
 import torch
@@ -213,3 +214,50 @@ def test_the_distance_grid_surface_lands_on_the_sphere_at_every_level():
     used = np.linalg.norm(ref, axis=1) > 0
     ref[used] /= np.linalg.norm(ref[used], axis=1, keepdims=True)
     assert np.allclose(vertex_normals(v0, f0), ref, atol=1e-9)
+
+
+def _euler_closed(verts, faces):  # (verts unused: the rule is on the faces)
+    from training.eval.runner import is_closed
+
+    return is_closed(faces)
+
+
+def test_hole_closing_seals_small_holes_and_keeps_wide_openings():
+    """A sphere's distance tube with two punched holes: plain filling leaves them (the inner sheet
+    joined to the outer one: a genus-1 surface), closing=2 seals them; a torus's hole (far wider) stays; a grid without holes is
+    left exactly as plain filling leaves it."""
+    from genre_backend.config import GeometryConfig
+    from genre_backend.geometry.mesh_voxels import fill_enclosed, grid_to_surface, mesh_to_target, voxels_to_mesh
+
+    n, level = 40, 0.45
+    g = GeometryConfig(voxel_size=n, target="distance")
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.3)
+    grid = mesh_to_target(torch.tensor(sphere.vertices), torch.tensor(sphere.faces), g).numpy()
+    c = (np.arange(n) + 0.5) / n - 0.5
+    x, y, z = np.meshgrid(c, c, c, indexing="ij")
+    # holes of radius 1.5 voxels through the tube along +x and -x
+    holed = np.where((np.abs(x) > 0.15) & (y ** 2 + z ** 2 < (1.5 / n) ** 2), 0.0, grid).astype(np.float32)
+    pv, pf = voxels_to_mesh(fill_enclosed(holed, level), level)
+    assert not _euler_closed(pv, pf)  # the holes join the sheets: a tunnel
+    assert np.linalg.norm(pv, axis=1).min() < 0.3  # the inner sheet is in the mesh
+    sealed = fill_enclosed(holed, level, closing=2)
+    v, f = voxels_to_mesh(sealed, level)
+    assert _euler_closed(v, f)
+    # the sealed surface is the outer sheet (radius 0.3 + (1 - t)·band voxels), the hole's lid included
+    r = np.linalg.norm(v, axis=1)
+    assert abs(np.median(r) - (0.3 + (1 - level) * g.distance_band / n)) < 0.5 / n and r.min() > 0.3
+    # without holes, closing changes nothing
+    assert np.array_equal(fill_enclosed(grid, level, closing=3), fill_enclosed(grid, level))
+    # a torus keeps its hole (genus 1: not "closed" by the Euler rule) and its inside is filled
+    torus = trimesh.creation.torus(major_radius=0.25, minor_radius=0.08)
+    tgrid = mesh_to_target(torch.tensor(torus.vertices), torch.tensor(torus.faces), g).numpy()
+    tv, tf = voxels_to_mesh(fill_enclosed(tgrid, level, closing=2), level)
+    assert trimesh.Trimesh(tv, tf).is_watertight and not _euler_closed(tv, tf)
+    assert (fill_enclosed(tgrid, level, closing=2)[np.hypot(x, y) < 0.1] < 1).all()  # the hole is still empty
+    # grid_to_surface takes the setting from the config
+    v2, f2 = grid_to_surface(holed, level, dataclasses.replace(g, hole_closing=2))
+    assert _euler_closed(v2, f2) and not _euler_closed(*grid_to_surface(holed, level, g))
+    with pytest.raises(ValueError, match="hole_closing"):
+        GeometryConfig(hole_closing=-1)
+    with pytest.raises(ValueError, match="closing"):
+        fill_enclosed(grid, level, closing=-1)

@@ -273,6 +273,15 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     # the level itself (the product model keeps that of the weights it started from)
     assert install(src, 0.4, tmp_path / "level.safetensors") == 0.4
     assert load_model(tmp_path / "level.safetensors").config.geometry.default_threshold == 0.4
+    # the mesh's hole closing: kept unless given, stored when given, refused out of range
+    assert load_model(tmp_path / "level.safetensors").config.geometry.hole_closing == 0
+    install(src, 0.4, tmp_path / "closed.safetensors", hole_closing=1)
+    closed = load_model(tmp_path / "closed.safetensors")
+    assert closed.config.geometry.hole_closing == 1 and weights_digest(closed) == weights_digest(model)
+    install(tmp_path / "closed.safetensors", 0.45, tmp_path / "again.safetensors")
+    assert load_model(tmp_path / "again.safetensors").config.geometry.hole_closing == 1
+    with pytest.raises(ValueError, match="hole_closing"):
+        install(src, 0.4, tmp_path / "bad.safetensors", hole_closing=99)
 
 
 def _extra(path) -> dict:

@@ -270,21 +270,38 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(acc, length, out=np.zeros_like(acc), where=length > 0)
 
 
-def fill_enclosed(grid, threshold: float) -> np.ndarray:
+def fill_enclosed(grid, threshold: float, closing: int = 0) -> np.ndarray:
     """The grid (N, N, N) float32 with every voxel that no path of voxels at or below ``threshold`` joins to
     the outside set to 1 (6-neighbourhood; the grid is open at its border).
 
     Marching cubes of the result has no inner sheets: a distance grid's tube
     around a closed surface keeps only its outer sheet, even where a blurry
     prediction joins the two sheets through holes.
+
+    ``closing`` (voxels, >= 0): holes in the tube up to about ``2·closing``
+    voxels across are sealed first.  The outside is then the voxels within
+    ``closing`` (6-neighbourhood steps) of the voxels whose whole
+    ``closing``-neighbourhood is at or below ``threshold`` and joined to the
+    border (a morphological closing of the object); wider openings stay open.
     """
     from scipy import ndimage
 
     g = grid.detach().cpu().numpy() if isinstance(grid, torch.Tensor) else np.asarray(grid)
     g = g.astype(np.float32)
-    low = np.pad(g <= threshold, 1, constant_values=True)
-    labels, _ = ndimage.label(low)  # 6-connectivity
-    outside = (labels == labels[0, 0, 0])[1:-1, 1:-1, 1:-1]
+    if g.ndim != 3:
+        raise ValueError(f"grid: expected (N, N, N), got shape {g.shape}")
+    closing = int(closing)
+    if closing < 0:
+        raise ValueError(f"closing: expected voxels >= 0, got {closing}")
+    pad = closing + 1
+    low = np.pad(g <= threshold, pad, constant_values=True)
+    cross = ndimage.generate_binary_structure(3, 1)
+    far = ndimage.binary_erosion(low, cross, iterations=closing, border_value=1) if closing else low
+    labels, _ = ndimage.label(far, cross)
+    outside = labels == labels[0, 0, 0]
+    if closing:
+        outside = ndimage.binary_dilation(outside, cross, iterations=closing) & low
+    outside = outside[pad:-pad, pad:-pad, pad:-pad]
     return np.where(outside | (g > threshold), g, np.float32(1.0))
 
 
@@ -293,12 +310,12 @@ def grid_to_surface(grid, threshold: float, geometry) -> tuple[np.ndarray, np.nd
 
     ``shell``: marching cubes at ``threshold`` (:func:`voxels_to_mesh`).
     ``distance``: enclosed voxels filled (:func:`fill_enclosed`: the tube's
-    inner sheet goes), marching cubes, then every vertex moved ``(1 −
+    inner sheet goes; holes up to ``2·geometry.hole_closing`` voxels sealed), marching cubes, then every vertex moved ``(1 −
     threshold)·band − surface_margin`` voxels against its (outward) normal, to
     just outside the surface the outer sheet surrounds (:func:`onto_surface`).
     """
     if geometry.target == "distance":
-        grid = fill_enclosed(grid, threshold)
+        grid = fill_enclosed(grid, threshold, geometry.hole_closing)
     verts, faces = voxels_to_mesh(grid, threshold)
     return onto_surface(verts, faces, threshold, geometry), faces
 

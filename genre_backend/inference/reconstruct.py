@@ -440,7 +440,7 @@ class Reconstructor:
             stage("mesh")
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
             if model.config.geometry.target == "distance":
-                prob = torch.from_numpy(fill_enclosed(prob, threshold))  # the outer sheet only
+                prob = torch.from_numpy(fill_enclosed(prob, threshold, model.config.geometry.hole_closing))  # the outer sheet only
             vertices, faces = voxels_to_mesh(prob, threshold)
             if len(faces) == 0:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")

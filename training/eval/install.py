@@ -47,12 +47,15 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
     return extra.get("copy_of") == PROTOCOL_WEIGHTS_NAME
 
 
-def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME) -> float:
+def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
+            hole_closing: int | None = None) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
     (the product model keeps the level of the weights it started from: results/product/ship_rule.txt).
     Returns that threshold.  ``name`` (``protocol`` or ``default``) is stored as ``extra.model``.
+    ``hole_closing``: the mesh setting ``geometry.hole_closing`` to store (chosen on seen-test views by
+    ``scripts/hole_closing.py``); None keeps the weights' own.
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -68,11 +71,16 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         raise ValueError(f"{thresholds}: GenRe's threshold {t} is not in (0, 1)")
     model = load_model(weights)
     config = model.config
-    model.config = dataclasses.replace(config, geometry=dataclasses.replace(config.geometry, default_threshold=t))
+    geometry = dataclasses.replace(config.geometry, default_threshold=t)
+    if hole_closing is not None:
+        geometry = dataclasses.replace(geometry, hole_closing=int(hole_closing))  # (validated by the config)
+    model.config = dataclasses.replace(config, geometry=geometry)
     shipped = named_weights(name)
     out = Path(out) if out is not None else shipped
     out.parent.mkdir(parents=True, exist_ok=True)
     extra = {"source": str(weights), "threshold_from": str(thresholds), "model": name}
+    if hole_closing is not None:
+        extra["hole_closing_from"] = "scripts/hole_closing.py on seen-test views"
     save_model(model, out, extra)
     if name == PROTOCOL_WEIGHTS_NAME and out.resolve() == shipped.resolve():
         interim = named_weights(DEFAULT_WEIGHTS_NAME)
@@ -91,13 +99,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="which shipped weights these become: protocol (default: the research weights, seen classes only) "
                         "or default (the product model, trained on everything)")
     p.add_argument("--out", type=Path, default=None, help="write here instead of genre_backend/weights/NAME.safetensors")
+    p.add_argument("--hole-closing", type=int, default=None, metavar="K",
+                   help="store geometry.hole_closing = K (voxels; chosen by scripts/hole_closing.py on seen-test views); "
+                        "default: the weights' own")
     args = p.parse_args(argv)
     out = args.out if args.out is not None else named_weights(args.name)
     interim = named_weights(DEFAULT_WEIGHTS_NAME)
     refresh = (args.name == PROTOCOL_WEIGHTS_NAME and out.resolve() == named_weights(PROTOCOL_WEIGHTS_NAME).resolve()
                and interim.is_file() and _is_interim_copy_of_protocol(interim))
     try:
-        t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name)
+        t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name,
+                    hole_closing=args.hole_closing)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1

@@ -22,7 +22,7 @@ from genre_backend.geometry.metrics import chamfer_distance, normalize_points
 from ..data.views import surface_points_path
 from .protocol import GROUPS, METRICS, POINTS_SMALL, threshold_key
 
-__all__ = ['aggregate', 'choose_thresholds', 'class_dissimilarity']
+__all__ = ['aggregate', 'choose_hole_closing', 'choose_thresholds', 'class_dissimilarity']
 
 
 def _mean_by_threshold(records: list[dict], thresholds: list[float]) -> dict[float, float]:
@@ -76,6 +76,22 @@ def product_threshold(records: list[dict], thresholds: list[float], default: flo
     else:
         return default, math.nan
     return t, closed[t]
+
+
+def choose_hole_closing(closed_share: dict[int, float]) -> int:
+    """The mesh setting ``geometry.hole_closing`` for users, from the seen-test closed share of each candidate k.
+
+    The smallest k whose share of closed meshes reaches ``CLOSED_SHARE``; when
+    none does, the k closed most often (ties: the smaller k).  Sealing more
+    also fills narrow gaps between parts, so no more than needed.
+    """
+    finite = {int(k): float(v) for k, v in closed_share.items() if math.isfinite(v)}
+    if not finite:
+        raise ValueError("no closed share to choose a hole closing from")
+    ok = [k for k in sorted(finite) if finite[k] >= CLOSED_SHARE]
+    if ok:
+        return ok[0]
+    return max(sorted(finite), key=lambda k: (finite[k], -k))
 
 
 def choose_thresholds(records: list[dict], thresholds: list[float], default: float, fixed: dict[str, float] | None = None) -> dict:
