@@ -39,6 +39,7 @@ class JobSpec:
     work_dir: str  # this job's own temporary folder
     mask_path: str = ""
     threshold: float | None = None
+    hole_closing: int | None = None
     smoothing: int = 0
     target_faces: int = 0
     add_camera: bool = True
@@ -57,6 +58,8 @@ class JobSpec:
             payload["mask"] = self.mask_path
         if self.threshold is not None:
             payload["options"]["threshold"] = float(self.threshold)
+        if self.hole_closing is not None:
+            payload["options"]["hole_closing"] = int(self.hole_closing)
         if self.colour_from_photo:
             payload["options"]["texture"] = True
         if self.keep_all_parts:
@@ -153,6 +156,7 @@ def prepare_job(settings, work_base: str) -> JobSpec:
         raise
     spec.mask_path = mask
     spec.threshold = float(settings.threshold) if settings.use_threshold else None
+    spec.hole_closing = int(settings.hole_closing) if getattr(settings, "use_hole_closing", False) else None
     spec.smoothing = int(settings.smoothing)
     spec.target_faces = int(settings.target_faces)
     spec.add_camera = bool(settings.add_camera)

@@ -100,6 +100,10 @@ def _follow_threshold(scene, result: dict) -> None:
     level = result.get("threshold")
     if settings is not None and not settings.use_threshold and isinstance(level, (int, float)) and 0.0 < level < 1.0:
         settings.threshold = float(level)
+    sealing = result.get("hole_closing")  # likewise the hole sealing
+    if (settings is not None and not getattr(settings, "use_hole_closing", True) and isinstance(sealing, int)
+            and not isinstance(sealing, bool) and 0 <= sealing <= 8):
+        settings.hole_closing = sealing
 
 
 def finish_job(job: Job, status, outcome) -> None:

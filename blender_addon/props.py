@@ -37,6 +37,13 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         # follows the level the backend reports for whatever weights it runs.
         default=0.45, min=0.01, max=0.99, step=1, precision=2,
     )
+    use_hole_closing: BoolProperty(name="Custom Hole Sealing", description="Override the weights' hole sealing", default=False)
+    hole_closing: IntProperty(
+        name="Seal Holes", description="Seal holes in the mesh up to about twice this many voxels across "
+                                       "(0: none; more also fills narrow gaps between parts)",
+        # The shipped 'default' weights' setting; the field follows what the backend reports.
+        default=1, min=0, max=8,
+    )
     smoothing: IntProperty(
         name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
     )

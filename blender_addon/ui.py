@@ -38,6 +38,11 @@ class GENRE_PT_panel(bpy.types.Panel):
         sub = row.row()
         sub.enabled = settings.use_threshold
         sub.prop(settings, "threshold")
+        row = box.row(align=True)
+        row.prop(settings, "use_hole_closing", text="")
+        sub = row.row()
+        sub.enabled = settings.use_hole_closing
+        sub.prop(settings, "hole_closing")
         box.prop(settings, "smoothing")
         box.prop(settings, "target_faces")
         box.prop(settings, "colour_from_photo")

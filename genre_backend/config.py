@@ -20,7 +20,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from .validation import check_threshold
+from .validation import check_hole_closing, check_threshold
 
 __all__ = [
     "CameraConfig",
@@ -128,8 +128,7 @@ class GeometryConfig:
             raise ValueError(f"geometry.target: expected one of {TARGETS}, got {self.target!r}")
         if not (math.isfinite(self.distance_band) and 0.5 <= self.distance_band <= 8.0):
             raise ValueError(f"geometry.distance_band: expected voxels in [0.5, 8], got {self.distance_band!r}")
-        if not (isinstance(self.hole_closing, int) and 0 <= self.hole_closing <= 8):
-            raise ValueError(f"geometry.hole_closing: expected voxels, an int in [0, 8], got {self.hole_closing!r}")
+        check_hole_closing("geometry.hole_closing", self.hole_closing)
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")
         for name in ("default_threshold", "threshold_min", "threshold_max"):

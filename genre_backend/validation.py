@@ -91,6 +91,19 @@ def check_threshold(name: str, value) -> float:
     return float(value)
 
 
+MAX_HOLE_CLOSING = 8
+
+
+def check_hole_closing(name: str, value) -> int:
+    """A hole-closing size in voxels: an integer in [0, MAX_HOLE_CLOSING], returned as int (bools refused).
+
+    The one check of ``geometry.hole_closing`` and of every option that overrides it.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 0 <= value <= MAX_HOLE_CLOSING:
+        raise ValueError(f"{name}: expected voxels, an integer in [0, {MAX_HOLE_CLOSING}], got {_short_repr(value)}")
+    return int(value)
+
+
 def _short_repr(value, limit: int = 300) -> str:
     try:
         text = repr(value)

@@ -208,6 +208,7 @@ def scenario_reconstruct(args: dict) -> dict:
         settings.threshold = args["threshold"]
     else:
         settings.threshold = 0.2  # not the weights' level: a plain run should bring the field to it
+    settings.hole_closing = 7  # likewise the hole sealing
     status = bpy.context.window_manager.genre_status
     out = {}
     snap = _Snapshot(bpy)
@@ -215,6 +216,7 @@ def scenario_reconstruct(args: dict) -> dict:
     job, outcome, states = _drive(ops, settings, prefs, status, scene)
     out["first_seconds"] = time.monotonic() - t0
     out["threshold_field_after"] = settings.threshold
+    out["hole_closing_field_after"] = settings.hole_closing
     out["outcome"] = list(outcome)
     out["result_event"] = job.request.result
     out["stages"] = sorted({s[1] for s in states})
@@ -639,6 +641,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
 
     level = load_model(weights).config.geometry.default_threshold
     assert ev["threshold"] == level and r["threshold_field_after"] == pytest.approx(level)
+    assert ev["hole_closing"] == load_model(weights).config.geometry.hole_closing == r["hole_closing_field_after"]
     mesh = r["mesh"]
     assert mesh["name"] == "box"
     assert mesh["collections"] == ["GenRe"]

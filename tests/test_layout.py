@@ -160,3 +160,8 @@ def test_addon_threshold_default_is_the_shipped_weights_level():
     defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "threshold"
                 for kw in node.annotation.keywords if kw.arg == "default"]
     assert defaults == [shipped]
+    # and its hole-sealing field at theirs
+    sealing = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("hole_closing", 0)
+    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "hole_closing"
+                for kw in node.annotation.keywords if kw.arg == "default"]
+    assert defaults == [sealing]

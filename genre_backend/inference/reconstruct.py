@@ -33,7 +33,7 @@ import torch
 
 from ..config import GenreConfig
 from ..io import DEFAULT_WEIGHTS_NAME, named_weights
-from ..validation import check_threshold
+from ..validation import check_hole_closing, check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
 from ..geometry.mesh_voxels import fill_enclosed, onto_surface, voxels_to_mesh
 from ..nets.model import GenRe, WeightsError, load_model
@@ -128,6 +128,7 @@ class Reconstruction:
     the photo's own size).  ``mask_warning``: one line when that mask is
     doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
     of the photo or touches most of its border), else None.
+    ``threshold`` and ``hole_closing``: the level and the hole sealing (voxels) the mesh was made with.
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -159,6 +160,7 @@ class Reconstruction:
     files: list[Path] = field(default_factory=list)
     photo_mask: np.ndarray | None = field(default=None, repr=False)
     mask_warning: str | None = None
+    hole_closing: int = 0
     _texture: PhotoTexture | None = field(default=None, repr=False)
 
     @property
@@ -378,6 +380,7 @@ class Reconstructor:
         keep_fraction: float = DEFAULT_KEEP_FRACTION,
         refine: bool = True,
         seeding: str = DEFAULT_SEEDING,
+        hole_closing: int | None = None,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -391,13 +394,19 @@ class Reconstructor:
         inside the object are always dropped).  ``refine`` and ``seeding``:
         without a mask file or alpha, find the mask by GrabCut
         (:func:`.preprocess.preprocess`); ``refine=False`` takes the depth
-        net's silhouette as it is.  Raises
+        net's silhouette as it is.  ``hole_closing`` (voxels, 0-8): gaps in
+        the distance tube up to about twice this across are sealed
+        (:func:`..geometry.mesh_voxels.fill_enclosed`; default: the config's
+        ``hole_closing``; ignored by shell weights).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
         if threshold is None:
             threshold = g.default_threshold
         threshold = check_threshold("threshold", threshold)
+        if hole_closing is None:
+            hole_closing = g.hole_closing
+        check_hole_closing("hole_closing", hole_closing)
         if isinstance(keep_fraction, bool) or not isinstance(keep_fraction, (int, float)) or not 0.0 <= keep_fraction <= 1.0:
             raise ValueError(f"keep_fraction: expected a number in [0, 1], got {keep_fraction!r}")
         timings: dict[str, float] = {}
@@ -440,7 +449,7 @@ class Reconstructor:
             stage("mesh")
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
             if model.config.geometry.target == "distance":
-                prob = torch.from_numpy(fill_enclosed(prob, threshold, model.config.geometry.hole_closing))  # the outer sheet only
+                prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
             vertices, faces = voxels_to_mesh(prob, threshold)
             if len(faces) == 0:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
@@ -484,4 +493,5 @@ class Reconstructor:
             clean=clean,
             photo_mask=photo_mask,
             mask_warning=warning,
+            hole_closing=int(hole_closing),
         )

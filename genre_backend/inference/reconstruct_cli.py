@@ -61,6 +61,9 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     parser.add_argument("-o", "--output", metavar="OUT", help="mesh file (one image) or folder (default: the current folder)")
     parser.add_argument("--mask", metavar="M", help="mask file for the (single) image: white object on black, same size")
     parser.add_argument("--threshold", type=float, metavar="T", help="isosurface level in (0, 1) (default: the weights' config)")
+    parser.add_argument("--hole-closing", type=int, metavar="K",
+                        help="seal holes in the mesh up to about 2·K voxels across, 0-8 (default: the weights' config; "
+                             "0 seals nothing; more also fills narrow gaps between parts)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
     parser.add_argument("--texture", action="store_true",
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
@@ -86,6 +89,13 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
 
         try:
             check_threshold("--threshold", args.threshold)
+        except ValueError as exc:
+            parser.error(str(exc))
+    if args.hole_closing is not None:
+        from ..validation import check_hole_closing
+
+        try:
+            check_hole_closing("--hole-closing", args.hole_closing)
         except ValueError as exc:
             parser.error(str(exc))
     fmt = args.format
@@ -155,7 +165,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             for p in mesh_files(out, fmt, args.texture):
                 check_output_path(p, (image, args.mask))
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
-                             refine=not args.no_refine)
+                             refine=not args.no_refine, hole_closing=args.hole_closing)
             path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)

@@ -33,7 +33,7 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "format", "save_intermediates", "texture", "all_parts")
+_OPTION_KEYS = ("threshold", "hole_closing", "format", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
 
 
@@ -56,6 +56,7 @@ class Job:
     save_intermediates: str | None
     texture: bool = False
     all_parts: bool = False
+    hole_closing: int | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -189,6 +190,15 @@ class Server:
                 check_threshold("threshold", threshold)
             except ValueError:
                 raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {_show(threshold)}", rid) from None
+        hole_closing = options.get("hole_closing")
+        if hole_closing is not None:
+            from ..validation import check_hole_closing
+
+            try:
+                check_hole_closing("hole_closing", hole_closing)
+            except ValueError:
+                raise RequestError("bad_field", f"option 'hole_closing' must be an integer in [0, 8] (voxels), got {_show(hole_closing)}",
+                                   rid) from None
         fmt = options.get("format")
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
             raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {_show(fmt)}", rid)
@@ -200,7 +210,8 @@ class Server:
             if not isinstance(value, bool):
                 raise RequestError("bad_field", f"option '{name}' must be true or false, got {_show(value)}", rid)
             flags[name] = value
-        return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags)
+        return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
+                   hole_closing=None if hole_closing is None else int(hole_closing))
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -330,6 +341,7 @@ class Server:
                 job.image,
                 mask_path=job.mask,
                 threshold=job.threshold,
+                hole_closing=job.hole_closing,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
                 keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
@@ -372,6 +384,7 @@ class Server:
                 "mask_source": result.mask_source,
                 "mask_warning": result.mask_warning,
                 "threshold": result.threshold,
+                "hole_closing": result.hole_closing,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},
                 "camera": result.camera(),
             }
