@@ -104,15 +104,15 @@ curve() {  # add the point LABEL to the learning curve (the hours of RUN; none: 
 # Once: the protocol model (the side-by-side table) and the weights the run started from (the curve's first point;
 # while the shipped default weights are a copy of the protocol's, the same scores).
 evaluate protocol protocol
-if [ ! -e "$SCORES/start" ]; then
-  if $PY -c "import sys, torch; from safetensors.torch import load_file as f; a, b = f(sys.argv[1]), f(sys.argv[2]); \
+if $PY -c "import sys, torch; from safetensors.torch import load_file as f; a, b = f(sys.argv[1]), f(sys.argv[2]); \
 sys.exit(0 if a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a) else 1)" "$INIT" genre_backend/weights/protocol.safetensors; then
-    [ -n "$DRY_RUN" ] || ln -s protocol "$SCORES/start"
-  else
-    evaluate start "$INIT"
-  fi
-  curve start
+  [ -n "$DRY_RUN" ] || [ -e "$SCORES/start" ] || ln -s protocol "$SCORES/start"
+  [ -n "$DRY_RUN" ] || [ -e "$SCORES/primitives/start" ] || { mkdir -p "$SCORES/primitives"; ln -s protocol "$SCORES/primitives/start"; }
+else
+  evaluate start "$INIT"  # (each part once: see evaluate)
 fi
+# the curve's first point, once per prefix
+grep -q "^${CURVE_PREFIX}start," "$RESULTS/learning_curve.csv" 2>/dev/null || curve start
 # Then rounds of joint training, every net end to end (the recipe's joint stage), scored after each.
 for _ in $(seq 1 "$ROUNDS"); do
   done_steps=$( [ -n "$DRY_RUN" ] && echo 0 || ck_step joint )
