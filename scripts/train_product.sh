@@ -118,6 +118,8 @@ for _ in $(seq 1 "$ROUNDS"); do
   done_steps=$( [ -n "$DRY_RUN" ] && echo 0 || ck_step joint )
   target=$(( done_steps + ROUND_STEPS ))
   step "joint_$target" "${T[@]}" joint $(first joint "$JOINT_INIT") --steps "$target"
+  # each round's weights are kept (the next round overwrites joint/final): the one to install may be an earlier round's
+  step "keep_$target" cp "$RUN/joint/final.safetensors" "$RUN/joint/round_$target.safetensors"
   evaluate "joint_$target" "$RUN/joint/final.safetensors"
   curve "joint_$target" "$RUN"
 done
@@ -127,5 +129,6 @@ step compare_primitives $PY -m training.eval.product compare --product "$SCORES/
   --protocol "$SCORES/primitives/protocol" --manifest "$M" --out "$RESULTS/primitives.md" --threshold "$LEVEL" \
   --title "Regular primitives of the product test split, 8 views each"
 # Installing (deliberately not automatic): when the rule in results/product/ship_rule.txt says so,
-#   $PY -m training.eval.install --name default --weights $RUN/joint/final.safetensors --threshold $LEVEL
+#   $PY -m training.eval.install --name default --weights $RUN/joint/round_N.safetensors --threshold $LEVEL --hole-closing K
+# (K from scripts/hole_closing.py on the seen-test views of those weights)
 log "done; learning curve: $RESULTS/learning_curve.csv"

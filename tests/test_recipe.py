@@ -87,6 +87,7 @@ def test_product_script_starts_from_the_shipped_default_weights_under_the_home(t
     train = [line for line in proc.stdout.splitlines() if line.startswith("step ") and "genre train" in line]
     assert len(train) == 3 + 2 and all("--recipe product" in line and f"--data {home}/views/product " in line for line in train)
     assert "--steps 600" in steps["joint_600"]  # (a dry run sees no checkpoint: both rounds name the first target)
+    assert steps["keep_600"].endswith(f"cp {home}/runs/product/joint/final.safetensors {home}/runs/product/joint/round_600.safetensors")
     assert "--groups product-test" in steps["eval_joint_600"] and "learning_curve.csv" in steps["curve_joint_600"]
     # more views of the training primitives, trained on beside the rest; 8 views of each test primitive scored
     assert "--classes primitive" in steps["render_primitives"] and "--split product-train" in steps["render_primitives"]
