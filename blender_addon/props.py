@@ -42,7 +42,7 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         name="Seal Holes", description="Seal holes in the mesh up to about twice this many voxels across "
                                        "(0: none; more also fills narrow gaps between parts)",
         # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=3, min=0, max=8,
+        default=1, min=0, max=8,
     )
     smoothing: IntProperty(
         name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
