@@ -34,13 +34,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.geometry.mesh_voxels import grid_to_surface  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.io import resolve_weights  # noqa: E402
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, find_eval_views  # noqa: E402
-from training.eval.runner import EMPTY, Truth, mesh_metrics  # noqa: E402
+from training.eval.runner import Truth, score_grid  # noqa: E402
 from training.eval.statistics import CLOSED_SHARE, choose_hole_closing  # noqa: E402
 
 SEEN_TEST = "test"  # the manifest group of the seen classes' test shapes
@@ -89,8 +88,7 @@ def main(argv: list[str] | None = None) -> int:
             if SEEN_TEST in view.groups:
                 groups.append("seen-test (chooses k)")
             for k in closings:
-                v, f = grid_to_surface(prob, level, dataclasses.replace(geometry, hole_closing=k))
-                m = mesh_metrics(v, f, target) if len(f) else EMPTY
+                m = score_grid(prob, [level], target, dataclasses.replace(geometry, hole_closing=k))[level]
                 for g in groups:
                     figures[g][k]["cd"].append(m["cd1k"])
                     figures[g][k]["closed"].append(m["closed"])
