@@ -169,8 +169,18 @@ class NetworkConfig:
     inpaint_decoder_blocks: int = 0
     refiner_nf: int = 8  # refiner base width; level k has nf·2^k channels
     refiner_fc: int = 256  # width of the refiner's fully-connected bottleneck
+    # width of the refiner's non-linear full-resolution branch (0: none; weights stored without the key
+    # have none).  The presets have none; the product recipe grows one (training/learn/recipe.py).
+    refiner_full_nf: int = 0
     # the depth net predicts planar depth as distance + output / depth_output_scale
     depth_output_scale: float = 10.0
+
+    def __post_init__(self):
+        for name in ("refiner_nf", "refiner_fc"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"network.{name}: expected a positive int, got {getattr(self, name)!r}")
+        if self.refiner_full_nf < 0:
+            raise ValueError(f"network.refiner_full_nf: expected an int >= 0 (0: no full-resolution branch), got {self.refiner_full_nf!r}")
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ writes the config beside it as JSON for people to read.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -30,7 +31,7 @@ from ..validation import check_tensor
 from ..geometry.voxels import points_to_voxels
 from ..io import WeightsError, load_state_strict, read_weights, save_weights, stored_config
 
-__all__ = ["GenRe", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
+__all__ = ["GenRe", "grow_refiner", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
 
 WEIGHTS_FORMAT = "genre-weights/1"
 
@@ -42,7 +43,8 @@ class GenRe(nn.Module):
         g = config.geometry
         self.depth_net = DepthNet(config)
         self.inpaint_net = InpaintNet(config)
-        self.refiner = VoxelRefiner(g.voxel_size, config.network.refiner_nf, config.network.refiner_fc)
+        n = config.network
+        self.refiner = VoxelRefiner(g.voxel_size, n.refiner_nf, n.refiner_fc, n.refiner_full_nf)
 
     # -- the projections between the networks --------------------------------------------
     def masked_depth(self, depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -91,6 +93,27 @@ class GenRe(nn.Module):
         out["vox_depth"] = self.depth_voxels(out["masked_depth"])
         out["logits"] = self.refine(out["vox_sph"], out["vox_depth"])
         return out
+
+
+def grow_refiner(model: GenRe, full_nf: int) -> GenRe:
+    """``model`` with a full-resolution refiner branch of ``full_nf`` channels added.
+
+    The depth and inpainting nets and the rest of the refiner are copied; the
+    new branch starts at zero output, so the grown model's logits equal
+    ``model``'s.  A model that already has a branch of that width is returned
+    as it is; one with a branch of another width is refused (ValueError).
+    """
+    have = model.config.network.refiner_full_nf
+    if have == full_nf:
+        return model
+    if have:
+        raise ValueError(f"the refiner already has a full-resolution branch of width {have}; cannot make it {full_nf}")
+    config = dataclasses.replace(model.config, network=dataclasses.replace(model.config.network, refiner_full_nf=full_nf))
+    grown = GenRe(config).to(next(model.parameters()).device)
+    grown.depth_net.load_state_dict(model.depth_net.state_dict())
+    grown.inpaint_net.load_state_dict(model.inpaint_net.state_dict())
+    grown.refiner.load_grown(model.refiner.state_dict())
+    return grown.train(model.training)
 
 
 def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None) -> Path:

@@ -20,6 +20,17 @@ as a blob (the first default weights, commit 5aa4676, on 8 seen-test views:
 CD 0.18 from the true spherical and depth maps, against 0.065 for the
 projected true map alone).  It is linear and one channel wide to keep the
 cost at N³ small on the CPU.
+
+``full_nf > 0`` adds a second, non-linear full-resolution branch (ours too):
+three 3×3×3 convolutions (``full_nf`` channels, then one) over the two input
+grids and the logits above, whose output is added to those logits.  It sees
+a 7³ neighbourhood at N³, enough to put a flat face or a sharp edge where the
+projected surface voxels say it is, which the coarse path (finest features at
+N/2, eight channels in the default preset) blurs: on regular primitives from
+their true spherical maps, the refiner without it came out at 1.7× the
+Chamfer error of the projected map it was given.  Its last convolution starts
+at zero, so a refiner grown from weights without the branch
+(:meth:`VoxelRefiner.load_grown`) starts with their output unchanged.
 At N = 128, nf = 20, fc = 640 (the ``paper`` preset) this has 52.5 M
 parameters (the original: 53.5 M).
 """
@@ -44,7 +55,7 @@ def _block(conv: nn.Module, channels: int) -> nn.Sequential:
 
 
 class VoxelRefiner(nn.Module):
-    def __init__(self, resolution: int, nf: int, fc: int):
+    def __init__(self, resolution: int, nf: int, fc: int, full_nf: int = 0):
         super().__init__()
         levels = int(round(math.log2(resolution))) - 1
         if 2 ** (levels + 1) != resolution or levels < 2:
@@ -80,6 +91,36 @@ class VoxelRefiner(nn.Module):
         # shell): with Adam at lr 1e-4 a randomly initialised tap would take ~10⁴ steps to get there.
         nn.init.constant_(self.skip.weight, SKIP_INIT)
         nn.init.constant_(self.out.bias, OUT_BIAS_INIT)
+        if full_nf < 0:
+            raise ValueError(f"refiner full-resolution width must be >= 0, got {full_nf}")
+        self.full_nf = full_nf
+        self.full = None
+        if full_nf:
+            self.full = nn.Sequential(
+                nn.Conv3d(3, full_nf, 3, 1, 1),
+                nn.LeakyReLU(0.2, inplace=True),
+                nn.Conv3d(full_nf, full_nf, 3, 1, 1),
+                nn.LeakyReLU(0.2, inplace=True),
+                nn.Conv3d(full_nf, 1, 3, 1, 1),
+            )
+            nn.init.zeros_(self.full[-1].weight)
+            nn.init.zeros_(self.full[-1].bias)
+
+    def load_grown(self, state: dict[str, torch.Tensor]) -> list[str]:
+        """Load a state dict of the same refiner without the full-resolution branch.
+
+        Every tensor of ``state`` must match this refiner's; only the branch's own
+        tensors may be missing (they keep their initialisation, under which the
+        output equals the smaller refiner's).  Returns the names left as initialised.
+        """
+        own = self.state_dict()
+        missing = sorted(set(own) - set(state))
+        unknown = sorted(set(state) - set(own))
+        foreign = [k for k in missing if not k.startswith("full.")]
+        if unknown or foreign:
+            raise ValueError(f"cannot grow the refiner: unexpected tensors {unknown[:4]}, missing {foreign[:4]}")
+        self.load_state_dict(state, strict=False)
+        return missing
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 2, N, N, N) float → (B, 1, N, N, N) logits."""
@@ -93,4 +134,7 @@ class VoxelRefiner(nn.Module):
         x = self.fc(x).view(-1, self.deep, 2, 2, 2)
         for up, fuse, skip in zip(self.up, self.fuse, reversed(feats[:-1])):
             x = fuse(torch.cat([up(x), skip], dim=1))
-        return self.out(x) + self.skip(inputs)
+        logits = self.out(x) + self.skip(inputs)
+        if self.full is not None:
+            logits = logits + self.full(torch.cat([inputs, logits], dim=1))
+        return logits

@@ -68,7 +68,8 @@ class CompletionBaseline(nn.Module):
         super().__init__()
         self.config = config
         self.depth_net = DepthNet(config)
-        self.completion = VoxelRefiner(config.geometry.voxel_size, config.network.refiner_nf, config.network.refiner_fc)
+        self.completion = VoxelRefiner(config.geometry.voxel_size, config.network.refiner_nf, config.network.refiner_fc,
+                                       config.network.refiner_full_nf)
 
     def depth_voxels(self, masked_depth: torch.Tensor) -> torch.Tensor:
         pts = frame.depth_to_points(masked_depth, self.config.camera).flatten(1, 2)

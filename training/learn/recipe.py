@@ -22,6 +22,9 @@ its value.  The named recipes:
   from the shipped weights on photo-composited renders; after the first
   chain, training accumulates in the joint stage, which then trains all three
   nets end to end with the depth net's own loss added (``depth_weight``).
+* ``product_full``: ``product`` with the refiner grown by a non-linear
+  full-resolution branch (``NetworkConfig.refiner_full_nf``), trained in a
+  refine stage from the installed default weights before the joint rounds.
 * ``photo``: ``shipped`` with the depth stage continued (``--init`` the
   shipped weights) on renders composited over real photographs, so that the
   silhouette and depth work on photos.
@@ -96,6 +99,9 @@ class Recipe:
     # the voxel representation the voxel stages learn (GeometryConfig.target); None: the model's own
     # (the preset's, or what --init weights were trained on)
     target: str | None = None
+    # the width of the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the model's
+    # own.  A model without one that starts a stage of this recipe is grown (genre_backend.nets.model.grow_refiner).
+    refiner_full_nf: int | None = None
 
     def __post_init__(self):
         missing = [s for s in STAGES if s not in self.stages]
@@ -175,7 +181,18 @@ _PRODUCT = Recipe(
     },
 )
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO, _SHARP, _PRODUCT)}
+_PRODUCT_FULL = Recipe(
+    name="product_full",
+    preset="default",
+    target="distance",
+    refiner_full_nf=8,
+    description="the product model with a full-resolution refiner branch (8 channels): the refine stage grows it on the "
+                "installed default weights and trains the refiner (the other nets frozen) 2,400 steps, lr 1e-3 halving "
+                "every 800; then the product's joint rounds",
+    stages={**_PRODUCT.stages, "refine": replace(_PRODUCT.stages["refine"], steps=2400, lr_halflife=800)},
+)
+
+RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO, _SHARP, _PRODUCT, _PRODUCT_FULL)}
 
 
 def get_recipe(name: str) -> Recipe:

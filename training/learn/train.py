@@ -60,7 +60,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from genre_backend.config import PRESETS, TARGETS, GenreConfig, get_preset
-from genre_backend.nets.model import GenRe, load_model, save_model
+from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model
 from genre_backend.geometry.spherical import pad_sph
 from genre_backend.io import atomic_write, atomic_write_bytes
 
@@ -93,6 +93,7 @@ class TrainConfig:
     depth_weight: float | None = None
     lr_halflife: int | None = None
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
+    refiner_full_nf: int | None = None  # the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the recipe's, else the model's
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
     val_every: int = 200
@@ -125,6 +126,11 @@ class TrainConfig:
             self.target = recipe.target
         if self.target is not None and self.target not in TARGETS:
             raise ValueError(f"target: expected one of {TARGETS}, got {self.target!r}")
+        if self.refiner_full_nf is None:
+            self.refiner_full_nf = recipe.refiner_full_nf
+        if self.refiner_full_nf is not None and (isinstance(self.refiner_full_nf, bool) or not isinstance(self.refiner_full_nf, int)
+                                                 or self.refiner_full_nf < 0):
+            raise ValueError(f"refiner_full_nf: expected an int >= 0, got {self.refiner_full_nf!r}")
 
     @property
     def learning_rate(self) -> float:
@@ -477,6 +483,9 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         model = load_model(tcfg.init).train()
     else:
         model = GenRe(model_config or get_preset(tcfg.preset))
+    if tcfg.refiner_full_nf is not None:
+        # a recipe with a full-resolution refiner branch grows one on weights without it (same output at step 0)
+        model = grow_refiner(model, tcfg.refiner_full_nf)
     resumed = _checkpoint_model_config(Path(tcfg.out) / tcfg.stage)
     if resumed is not None and _same_nets(resumed, model.config):
         # a resumed stage keeps the config it was trained with (threshold, target...), whatever --init says
