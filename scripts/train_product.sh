@@ -12,6 +12,9 @@
 #   FIRST_CHAIN=0 BASE_HOURS=2.44 CURVE_PREFIX=s2_ ROUNDS=3 ROUND_STEPS=1000 bash scripts/train_product.sh
 # (joint rounds straight from the shipped weights; the curve's hours continue from the 2.44 h behind them,
 # and its labels get a prefix so they do not replace the earlier run's points).
+# The refiner grown by a full-resolution branch (recipe product_full), its refine stage from the shipped weights,
+# then joint rounds:
+#   RECIPE=product_full FIRST_CHAIN=refine RUN=$GENRE_HOME/runs/product_full ROUNDS=0 bash scripts/train_product.sh
 # Installing the weights is a separate, deliberate step (the rule is fixed in
 # results/product/ship_rule.txt): see the end of this script.
 set -euo pipefail
@@ -43,8 +46,9 @@ INIT=${INIT:-genre_backend/weights/default.safetensors}
 # hours stay cumulative when a fresh machine starts over from the shipped weights.
 BASE_HOURS=${BASE_HOURS:-0}
 # FIRST_CHAIN=0: start with the joint stage from INIT (weights that are already a joint-trained product
-# model) instead of re-running depth, inpaint and refine from it.
+# model) instead of re-running depth, inpaint and refine from it; FIRST_CHAIN=refine: the refine stage only.
 FIRST_CHAIN=${FIRST_CHAIN:-1}
+RECIPE=${RECIPE:-product}  # training/learn/recipe.py: product, or product_full (the refiner grown)
 CURVE_PREFIX=${CURVE_PREFIX:-}
 # The level every score is read at (results/product/ship_rule.txt): the one the starting weights install.
 LEVEL=${LEVEL:-$($PY -c "import sys; from genre_backend.nets.model import load_model; print(load_model(sys.argv[1]).config.geometry.default_threshold)" "$INIT")}
@@ -80,13 +84,16 @@ step render_primitives_eval $G data render --shapes "$M" --split product-test --
   --views 8 --preset default --seed 3 --no-progress
 step targets_primitives_eval $G data targets --views "$PRIM_EVAL_VIEWS" --no-progress
 
-T=($G train --recipe product --data "$VIEWS" "$PRIM_VIEWS" --out "$RUN" --backgrounds "$BACKGROUNDS" --no-progress)
+T=($G train --recipe "$RECIPE" --data "$VIEWS" "$PRIM_VIEWS" --out "$RUN" --backgrounds "$BACKGROUNDS" --no-progress)
 # The first chain: each stage once, from the shipped weights (the recipe's budgets).
 JOINT_INIT=$INIT
 if [ "$FIRST_CHAIN" = 1 ]; then
   step depth   "${T[@]}" depth   $(first depth "$INIT")
   step inpaint "${T[@]}" inpaint $(first inpaint "$RUN/depth/best.safetensors")
   step refine  "${T[@]}" refine  $(first refine "$RUN/inpaint/best.safetensors")
+  JOINT_INIT=$RUN/refine/best.safetensors
+elif [ "$FIRST_CHAIN" = refine ]; then
+  step refine  "${T[@]}" refine  $(first refine "$INIT")
   JOINT_INIT=$RUN/refine/best.safetensors
 fi
 
@@ -113,6 +120,12 @@ else
 fi
 # the curve's first point, once per prefix
 grep -q "^${CURVE_PREFIX}start," "$RESULTS/learning_curve.csv" 2>/dev/null || curve start
+LAST=start  # the label of the last weights scored (the tables below are theirs)
+if [ "$FIRST_CHAIN" = refine ]; then  # the refine stage's weights are a point of the curve of their own
+  evaluate refine "$JOINT_INIT"
+  curve refine "$RUN"
+  LAST=refine
+fi
 # Then rounds of joint training, every net end to end (the recipe's joint stage), scored after each.
 for _ in $(seq 1 "$ROUNDS"); do
   done_steps=$( [ -n "$DRY_RUN" ] && echo 0 || ck_step joint )
@@ -122,10 +135,11 @@ for _ in $(seq 1 "$ROUNDS"); do
   step "keep_$target" cp "$RUN/joint/final.safetensors" "$RUN/joint/round_$target.safetensors"
   evaluate "joint_$target" "$RUN/joint/final.safetensors"
   curve "joint_$target" "$RUN"
+  LAST=joint_$target
 done
-step compare $PY -m training.eval.product compare --product "$SCORES/joint_$target" --protocol "$SCORES/protocol" \
+step compare $PY -m training.eval.product compare --product "$SCORES/$LAST" --protocol "$SCORES/protocol" \
   --manifest "$M" --out "$RESULTS/table.md" --threshold "$LEVEL"
-step compare_primitives $PY -m training.eval.product compare --product "$SCORES/primitives/joint_$target" \
+step compare_primitives $PY -m training.eval.product compare --product "$SCORES/primitives/$LAST" \
   --protocol "$SCORES/primitives/protocol" --manifest "$M" --out "$RESULTS/primitives.md" --threshold "$LEVEL" \
   --title "Regular primitives of the product test split, 8 views each"
 # Installing (deliberately not automatic): when the rule in results/product/ship_rule.txt says so,

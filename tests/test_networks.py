@@ -109,3 +109,68 @@ def test_weights_round_trip_and_bad_files(tmp_path):
     save_file({"x": torch.zeros(2)}, str(other), metadata={"format": "genre-weights/0"})
     with pytest.raises(WeightsError, match="format"):
         load_model(other)
+
+
+def test_grown_refiner_starts_with_the_same_output_and_then_learns_a_sharp_band():
+    """grow_refiner adds the full-resolution branch with the logits unchanged; the branch then fits,
+    within a few hundred steps, a one-voxel band around an input surface that the coarse path
+    (frozen here) and the linear skip cannot sharpen further: the loss falls well below where it starts."""
+    import dataclasses
+
+    from genre_backend.nets.model import grow_refiner
+    from tiny_data import TINY
+
+    torch.manual_seed(0)
+    model = GenRe(TINY).eval()
+    grown = grow_refiner(model, 4).eval()
+    assert grown.config.network.refiner_full_nf == 4 and model.config.network.refiner_full_nf == 0
+    n = TINY.geometry.voxel_size
+    # an input grid: the surface voxels of an axis-aligned box (a cube's faces), on both channels
+    box = torch.zeros(n, n, n, dtype=torch.bool)
+    lo, hi = n // 4, 3 * n // 4
+    box[lo:hi, lo:hi, lo:hi] = True
+    inner = torch.zeros_like(box)
+    inner[lo + 1:hi - 1, lo + 1:hi - 1, lo + 1:hi - 1] = True
+    surface = (box & ~inner).float()
+    x = surface.expand(1, 2, n, n, n).clone()
+    with torch.no_grad():
+        assert torch.equal(model.refiner(x), grown.refiner(x))
+    assert grow_refiner(grown, 4) is grown
+    with pytest.raises(ValueError, match="already has"):
+        grow_refiner(grown, 8)
+    with pytest.raises(ValueError, match="unexpected"):
+        grown.refiner.load_grown({**model.refiner.state_dict(), "extra.weight": torch.zeros(1)})
+    with pytest.raises(ValueError, match="refiner_full_nf"):
+        dataclasses.replace(TINY.network, refiner_full_nf=-1)
+    # train the branch alone toward the surface itself (1 on the box's faces, 0 elsewhere)
+    ref = grown.refiner.train()
+    for name, p in ref.named_parameters():
+        p.requires_grad_(name.startswith("full."))
+    opt = torch.optim.Adam([p for p in ref.parameters() if p.requires_grad], lr=1e-2)
+    target = surface[None, None]
+    losses = []
+    for _ in range(200):
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(ref(x), target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.2 * losses[0], (losses[0], losses[-1])
+    with torch.no_grad():
+        ref.eval()
+        pred = torch.sigmoid(ref(x))[0, 0] > 0.5
+    iou = float((pred & surface.bool()).sum() / (pred | surface.bool()).sum())
+    assert iou > 0.95, iou
+
+
+def test_weights_with_a_full_resolution_branch_round_trip(tmp_path):
+    from genre_backend.nets.model import grow_refiner
+    from tiny_data import TINY
+
+    grown = grow_refiner(GenRe(TINY), 4)
+    with torch.no_grad():
+        grown.refiner.full[-1].weight.normal_()  # not the zero initialisation
+    loaded = load_model(save_model(grown, tmp_path / "g.safetensors"))
+    assert loaded.config == grown.config and loaded.config.network.refiner_full_nf == 4
+    for (k, a), (_, b) in zip(sorted(grown.state_dict().items()), sorted(loaded.state_dict().items())):
+        assert torch.equal(a, b), k

@@ -104,6 +104,17 @@ def test_product_script_starts_from_the_shipped_default_weights_under_the_home(t
     assert "joint --init genre_backend/weights/default.safetensors" in steps["joint_600"]
     assert "--label s2_joint_600" in steps["curve_joint_600"] and "--base-hours 2.44" in steps["curve_joint_600"]
     assert not home.exists()
+    # the refiner grown: the refine stage of product_full from the shipped weights, scored, then no joint round
+    env.update(FIRST_CHAIN="refine", RECIPE="product_full", ROUNDS="0", RUN=str(home / "runs" / "product_full"))
+    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
+    assert not {"depth", "inpaint"} & set(steps) and not any(k.startswith("joint_") for k in steps)
+    assert "--recipe product_full" in steps["refine"] and "refine --init genre_backend/weights/default.safetensors" in steps["refine"]
+    assert f"--weights {home}/runs/product_full/refine/best.safetensors" in steps["eval_refine"]
+    assert "--label s2_refine" in steps["curve_refine"] and f"--run {home}/runs/product_full" in steps["curve_refine"]
+    assert "results/product/refine " in steps["compare"] and "primitives/refine " in steps["compare_primitives"]
+    assert not home.exists()
 
 
 def _flags_as_fields(flags: list[str]) -> dict:
@@ -129,7 +140,12 @@ def test_a_recipe_target_moves_the_model_to_it(tmp_path):
 
 
 def test_recipes_validate_their_values():
-    assert set(RECIPES) == {"paper", "shipped", "photo", "sharp", "product"}
+    assert set(RECIPES) == {"paper", "shipped", "photo", "sharp", "product", "product_full"}
+    # product_full = product with the refiner grown; only its refine stage differs
+    full, product = RECIPES["product_full"], RECIPES["product"]
+    assert full.refiner_full_nf == 8 and all(RECIPES[n].refiner_full_nf is None for n in RECIPES if n != "product_full")
+    assert {k: v for k, v in full.stages.items() if k != "refine"} == {k: v for k, v in product.stages.items() if k != "refine"}
+    assert full.target == product.target
     # sharp = shipped on the distance target, the two voxel nets with equal budgets
     sharp = RECIPES["sharp"]
     assert sharp.target == "distance" and shipped_target_is_the_models(RECIPES)
@@ -147,7 +163,7 @@ def test_recipes_validate_their_values():
     joint = TrainConfig(stage="joint", data="d", out="o", recipe="product")
     assert joint.lr_at(0) == 1e-4 and joint.lr_at(1200) == pytest.approx(5e-5) and joint.lr_at(3600) == pytest.approx(1.25e-5)
     assert TrainConfig(stage="joint", data="d", out="o", recipe="shipped").lr_at(5000) == 1e-5  # no half-life: constant
-    assert all(s.depth_weight == 0.0 for r in RECIPES.values() for name, s in r.stages.items() if (r.name, name) != ("product", "joint"))
+    assert all(s.depth_weight == 0.0 for r in RECIPES.values() for name, s in r.stages.items() if not (r.name.startswith("product") and name == "joint"))
     with pytest.raises(ValueError, match="unknown recipe"):
         get_recipe("fast")
     for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}, {"lr": 1e-3, "lr_halflife": -1}):
@@ -155,3 +171,30 @@ def test_recipes_validate_their_values():
             StageRecipe(**bad)
     with pytest.raises(SystemExit):
         main(["refine", "--data", "d", "--out", "o", "--lr", "-1", "--dry-run"])
+
+
+def test_a_recipe_grows_the_refiner_of_its_init_weights(tiny_views, tmp_path):
+    """A product_full stage started from weights without the full-resolution branch trains with
+    it and stores it; the option overrides the recipe and refuses a negative width."""
+    from genre_backend.nets.model import GenRe, load_model, save_model
+    import torch
+    from tiny_data import TINY
+    from training.learn.train import train
+
+    assert TrainConfig(stage="refine", data="d", out="o", recipe="product_full").refiner_full_nf == 8
+    assert TrainConfig(stage="refine", data="d", out="o", recipe="product").refiner_full_nf is None
+    assert TrainConfig(stage="refine", data="d", out="o", recipe="product", refiner_full_nf=4).refiner_full_nf == 4
+    with pytest.raises(ValueError, match="refiner_full_nf"):
+        TrainConfig(stage="refine", data="d", out="o", refiner_full_nf=-1)
+    views = tiny_views
+    init = save_model(GenRe(TINY), tmp_path / "init.safetensors")
+    cfg = TrainConfig(stage="refine", data=str(views), out=str(tmp_path / "run"), recipe="product_full", init=str(init),
+                      steps=2, batch_size=2, val_fraction=0.0, augment=False, progress=False, refiner_full_nf=3)
+    train(cfg)
+    grown = load_model(tmp_path / "run" / "refine" / "final.safetensors")
+    assert grown.config.network.refiner_full_nf == 3 and grown.refiner.full is not None
+    assert grown.config.geometry.target == "distance"
+    # the depth net was frozen and copied: its tensors are the init's
+    before = load_model(init)
+    for k, v in before.depth_net.state_dict().items():
+        assert torch.equal(v, grown.depth_net.state_dict()[k]), k
