@@ -12,6 +12,10 @@ normalised):
 * ``GenRe spherical map, projected`` GenRe's inpainted map → voxels, likewise
 * ``refiner <- true depth + true map`` (GenRe-SphOracle), ``refiner <- true depth``
   (GenRe-Oracle) and GenRe, each at several isosurface thresholds;
+* the depth net's error inside the true mask, taken apart: its median absolute
+  value, what is left after removing the view's median offset (the object's
+  distance), and after removing the best-fitting plane (offset and tilt:
+  the surface turned as a whole), all in world units (a voxel is 1/N);
 * the inpainting alone: the partial maps of GenRe's and of the true depth
   projected, the inpainted map of the true depth's partial map projected,
   and the maps' own errors (MSE against the true full map on the partial
@@ -45,6 +49,21 @@ from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa:
 from training.eval.runner import Truth, score_grid  # noqa: E402
 
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
+
+
+def depth_error_parts(pred: torch.Tensor, true: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
+    """Median |pred − true| over the mask (S, S) pixels with a true depth: as it is, less its median, less its least-squares plane."""
+    m = mask & (true > 0)
+    err = (pred - true)[m].double()
+    yy, xx = torch.nonzero(m, as_tuple=True)
+    n = m.shape[0]
+    a = torch.stack([torch.ones_like(err), xx.double() / n, yy.double() / n], 1)
+    plane = torch.linalg.lstsq(a, err[:, None]).solution[:, 0]
+    return {
+        "depth |error| (median)": float(err.abs().median()),
+        "depth |error| less its offset": float((err - err.median()).abs().median()),
+        "depth |error| less its plane": float((err - a @ plane).abs().median()),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
             oracle = model(rgb, mask=mask, depth=depth)
             add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
             genre = model(rgb, mask=mask)
+            for name, value in depth_error_parts(genre["depth"][0], depth[0], mask[0]).items():
+                maps.setdefault(name, []).append(value)
             add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))
             # the inpainting alone: the partial maps it starts from, and what it makes of the true depth's
             partial = model.partial_sph(genre["masked_depth"])

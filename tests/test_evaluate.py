@@ -206,11 +206,25 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
                           "partial map (GenRe depth), projected", "partial map (true depth), projected",
                           "inpainted from true depth, projected", "GenRe partial map: MSE on its hits",
                           "inpainted map: MSE on those pixels", "inpainted map: MSE elsewhere",
-                          "inpainted map: std of its hits", "true map: std of its hits"}
+                          "inpainted map: std of its hits", "true map: std of its hits", "depth |error| (median)",
+                          "depth |error| less its offset", "depth |error| less its plane"}
     # the representation's own error of a box at the tiny preset's voxel size: a fraction of a voxel, finite
     shell_cd = float(lines["true distance, its surface"].split(": ")[1])
     sph_cd = float(lines["true spherical map, projected"].split(": ")[1])
     assert 0.0 < shell_cd < 0.25 and 0.0 < sph_cd < 0.25
+    parts = [float(lines[k].split()[-1]) for k in ("depth |error| (median)", "depth |error| less its offset", "depth |error| less its plane")]
+    assert parts[0] >= 0 and parts[2] <= parts[1] + 1e-9  # a plane fits at least as well as an offset
+    # the parts of an analytic error: an offset and a tilt are taken out exactly, a bump is not
+    n = 32
+    yy, xx = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
+    true = 2.0 + 0.01 * torch.sin(xx / 3.0)
+    mask = (xx - 16) ** 2 + (yy - 16) ** 2 < 100
+    tilted = mod.depth_error_parts(true + 0.05 + 0.2 * xx / n, true, mask)
+    assert tilted["depth |error| (median)"] == pytest.approx(0.05 + 0.2 * 16 / n, abs=0.01)
+    assert tilted["depth |error| less its offset"] == pytest.approx(float((0.2 * (xx[mask] - 16).abs() / n).median()), abs=1e-6)
+    assert tilted["depth |error| less its plane"] < 1e-6
+    bump = (mask & ((xx - 16) ** 2 + (yy - 16) ** 2 < 30)).double() * 0.1
+    assert 0.01 < mod.depth_error_parts(true + bump, true, mask)["depth |error| less its plane"] < 0.1
 
 
 def test_score_grid_sweeps_the_configured_range():
