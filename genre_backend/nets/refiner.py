@@ -97,7 +97,6 @@ class VoxelRefiner(nn.Module):
         nn.init.constant_(self.out.bias, OUT_BIAS_INIT)
         if full_nf < 0:
             raise ValueError(f"refiner full-resolution width must be >= 0, got {full_nf}")
-        self.full_nf = full_nf
         self.full = None
         if full_nf:
             self.full = nn.Sequential(
