@@ -26,6 +26,7 @@ __all__ = [
     "CameraConfig",
     "GeometryConfig",
     "NetworkConfig",
+    "INPAINT_HEADS",
     "GenreConfig",
     "PRESETS",
     "TARGETS",
@@ -153,6 +154,9 @@ class GeometryConfig:
         return [round(self.threshold_min + i * self.threshold_step, 6) for i in range(n + 1)]
 
 
+INPAINT_HEADS = ("value", "hit")
+
+
 @dataclass(frozen=True)
 class NetworkConfig:
     """Widths of the three networks (see :mod:`genre_backend.nets.uresnet` and :mod:`genre_backend.nets.refiner`).
@@ -167,6 +171,11 @@ class NetworkConfig:
     depth_decoder_blocks: int = 1  # basic blocks after each decoder fusion (one decoder per head)
     inpaint_widths: tuple[int, int, int, int] = (16, 32, 64, 128)
     inpaint_decoder_blocks: int = 0
+    # what the inpainting net predicts (genre_backend.nets.inpaint_net): "value", the paper's one map
+    # regressed with "no hit" = 1 as a value; or "hit", a hit probability and the radius as two outputs
+    # (a third of a full map is "no hit", and regressing it as a value blurs it into the radii).
+    # Weights stored without the key are "value".
+    inpaint_head: str = "value"
     refiner_nf: int = 8  # refiner base width; level k has nf·2^k channels
     refiner_fc: int = 256  # width of the refiner's fully-connected bottleneck
     # width of the refiner's non-linear full-resolution branch (0: none; weights stored without the key
@@ -179,6 +188,8 @@ class NetworkConfig:
         for name in ("refiner_nf", "refiner_fc"):
             if getattr(self, name) < 1:
                 raise ValueError(f"network.{name}: expected a positive int, got {getattr(self, name)!r}")
+        if self.inpaint_head not in INPAINT_HEADS:
+            raise ValueError(f"network.inpaint_head: expected one of {INPAINT_HEADS}, got {self.inpaint_head!r}")
         if self.refiner_full_nf < 0:
             raise ValueError(f"network.refiner_full_nf: expected an int >= 0 (0: no full-resolution branch), got {self.refiner_full_nf!r}")
 

@@ -19,7 +19,9 @@ normalised):
 * the inpainting alone: the partial maps of GenRe's and of the true depth
   projected, the inpainted map of the true depth's partial map projected,
   and the maps' own errors (MSE against the true full map on the partial
-  map's hits and elsewhere; the spread of the hit values).
+  map's hits and elsewhere; the spread of the hit values; the share of pixels
+  whose hit/no-hit agrees with the true map, and the MSE on the unseen pixels
+  that both call hits).
 
 Seen-test views only: what it shows is used to change the model, and the
 unseen classes must stay untouched by such choices.
@@ -125,6 +127,10 @@ def main(argv: list[str] | None = None) -> int:
             maps.setdefault("inpainted map: MSE elsewhere", []).append(float(((genre["full_sph"] - full) ** 2)[~seen].mean()))
             maps.setdefault("inpainted map: std of its hits", []).append(float(genre["full_sph"][genre["full_sph"] < 0.9999].std()))
             maps.setdefault("true map: std of its hits", []).append(float(full[full < 0.9999].std()))
+            pred_hit, true_hit = genre["full_sph"] < 0.9999, full < 0.9999
+            maps.setdefault("inpainted map: hit/no-hit as the true map", []).append(float((pred_hit == true_hit).float().mean()))
+            both = pred_hit & true_hit & ~seen
+            maps.setdefault("inpainted map: MSE on unseen true hits", []).append(float(((genre["full_sph"] - full) ** 2)[both].mean()))
             add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target, model.config.geometry))
     print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
           f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")

@@ -174,3 +174,63 @@ def test_weights_with_a_full_resolution_branch_round_trip(tmp_path):
     assert loaded.config == grown.config and loaded.config.network.refiner_full_nf == 4
     for (k, a), (_, b) in zip(sorted(grown.state_dict().items()), sorted(loaded.state_dict().items())):
         assert torch.equal(a, b), k
+
+
+def test_hit_head_composes_its_map_from_the_hit_logits_and_the_seen_radius(tmp_path):
+    """With the decoder's output zeroed and the hit bias set, the "hit" head returns the seen
+    pixels' values unchanged, radius 0 (clamped to MAX_HIT_VALUE) on the unseen ones, and
+    exactly "no hit" wherever the hit logit is negative; its weights round-trip and config
+    dicts written before the key existed load with the paper's "value" head."""
+    import dataclasses
+
+    from genre_backend.config import GenreConfig
+    from genre_backend.geometry.spherical import pad_sph
+    from genre_backend.nets.inpaint_net import MAX_HIT_VALUE
+    from tiny_data import TINY
+
+    cfg = dataclasses.replace(TINY, network=dataclasses.replace(TINY.network, inpaint_head="hit"))
+    net = InpaintNet(cfg).eval()
+    assert net.encoder.stem[0].in_channels == 2 and net.decoder.head[-1].out_channels == 2
+    size, pad = cfg.geometry.sph_size, cfg.geometry.sph_pad
+    partial = torch.ones(1, size, size)
+    partial[0, 8:20, 10:22] = torch.linspace(0.6, 0.95, 12)[:, None]
+    last = net.decoder.head[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([1.0, 0.0]))  # hit everywhere, radius unchanged
+        full = net(partial)
+        seen = partial < 1
+        assert torch.equal(full[seen], partial[seen])
+        assert torch.all(full[~seen] == MAX_HIT_VALUE)
+        last.bias.copy_(torch.tensor([-1.0, 0.0]))  # no hit anywhere
+        assert torch.all(net(partial) == 1.0)
+        # the map is where(hit logit > 0, 1 − radius, 1) for trained-looking outputs too
+        last.weight.normal_(std=0.1)
+        last.bias.zero_()
+        parts = net.forward_parts(pad_sph(partial[:, None], pad))
+        want = torch.where(parts["hit_logits"] > 0, (1 - parts["radius"]).clamp(0, MAX_HIT_VALUE), torch.ones_like(parts["radius"]))
+        assert torch.equal(parts["map"], want)
+        assert 0 < float((parts["map"] < 1).float().mean()) < 1
+    model = GenRe(cfg)
+    loaded = load_model(save_model(model, tmp_path / "hit.safetensors"))
+    assert loaded.config.network.inpaint_head == "hit"
+    for (k, a), (_, b) in zip(sorted(model.state_dict().items()), sorted(loaded.state_dict().items())):
+        assert torch.equal(a, b), k
+    old = TINY.to_dict()
+    del old["network"]["inpaint_head"]
+    assert GenreConfig.from_dict(old).network.inpaint_head == "value"
+    with pytest.raises(ValueError, match="inpaint_head"):
+        dataclasses.replace(TINY.network, inpaint_head="mask")
+
+
+def test_with_inpaint_head_keeps_the_other_nets():
+    from genre_backend.nets.model import with_inpaint_head
+    from tiny_data import TINY
+
+    model = GenRe(TINY)
+    assert with_inpaint_head(model, "value") is model
+    new = with_inpaint_head(model, "hit")
+    assert new.config.network.inpaint_head == "hit"
+    for part in ("depth_net", "refiner"):
+        for k, v in getattr(model, part).state_dict().items():
+            assert torch.equal(v, getattr(new, part).state_dict()[k]), (part, k)

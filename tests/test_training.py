@@ -324,3 +324,22 @@ def test_install_into_a_named_weights_file(tmp_path, monkeypatch, capsys):
     assert "also wrote" not in capsys.readouterr().out
     assert (tmp_path / "shipped" / "default.safetensors").read_bytes() == before
     assert _extra(tmp_path / "shipped" / "default.safetensors")["model"] == "default"
+
+
+def test_the_hit_head_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewhere(tiny_views, tmp_path):
+    """--inpaint-head hit on weights with the paper's head: the inpaint stage starts a fresh
+    inpainting net (the depth net kept) and fits four samples (hit BCE + radius MSE fall ≥ 5×);
+    a later stage on the new weights keeps the head; another stage asked for a head change refuses."""
+    from genre_backend.nets.model import save_model
+
+    init = save_model(GenRe(TINY), tmp_path / "init.safetensors")
+    run = tmp_path / "run"
+    s = train(_cfg("inpaint", tiny_views, run, steps=80, lr=1e-3, init=str(init), inpaint_head="hit"))
+    assert s["first_loss"] / s["last_loss"] >= 5, s
+    trained = load_model(run / "inpaint" / "final.safetensors")
+    assert trained.config.network.inpaint_head == "hit"
+    assert weights_digest(trained.depth_net) == weights_digest(load_model(init).depth_net)
+    train(_cfg("refine", tiny_views, run, steps=2, init=str(run / "inpaint" / "final.safetensors")))
+    assert load_model(run / "refine" / "final.safetensors").config.network.inpaint_head == "hit"
+    with pytest.raises(ValueError, match="train the inpaint stage first"):
+        train(_cfg("refine", tiny_views, tmp_path / "other", steps=2, init=str(init), inpaint_head="hit"))

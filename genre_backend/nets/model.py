@@ -31,7 +31,7 @@ from ..validation import check_tensor
 from ..geometry.voxels import points_to_voxels
 from ..io import WeightsError, load_state_strict, read_weights, save_weights, stored_config
 
-__all__ = ["GenRe", "grow_refiner", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
+__all__ = ["GenRe", "grow_refiner", "with_inpaint_head", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
 
 WEIGHTS_FORMAT = "genre-weights/1"
 
@@ -114,6 +114,21 @@ def grow_refiner(model: GenRe, full_nf: int) -> GenRe:
     grown.inpaint_net.load_state_dict(model.inpaint_net.state_dict())
     grown.refiner.load_grown(model.refiner.state_dict())
     return grown.train(model.training)
+
+
+def with_inpaint_head(model: GenRe, head: str) -> GenRe:
+    """``model`` with a freshly initialised inpainting net of ``head`` (NetworkConfig.inpaint_head).
+
+    The depth net and the refiner are copied.  A model whose inpainting net
+    already has that head is returned as it is.
+    """
+    if model.config.network.inpaint_head == head:
+        return model
+    config = dataclasses.replace(model.config, network=dataclasses.replace(model.config.network, inpaint_head=head))
+    new = GenRe(config).to(next(model.parameters()).device)
+    new.depth_net.load_state_dict(model.depth_net.state_dict())
+    new.refiner.load_state_dict(model.refiner.state_dict())
+    return new.train(model.training)
 
 
 def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None) -> Path:

@@ -59,9 +59,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from genre_backend.config import PRESETS, TARGETS, GenreConfig, get_preset
-from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model
-from genre_backend.geometry.spherical import pad_sph
+from genre_backend.config import INPAINT_HEADS, PRESETS, TARGETS, GenreConfig, get_preset
+from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model, with_inpaint_head
+from genre_backend.geometry.spherical import crop_sph, pad_sph
+from genre_backend.nets.inpaint_net import RADIUS_SCALE
 from genre_backend.io import atomic_write, atomic_write_bytes
 
 from ..data.dataset import ViewDataset, find_views, split_views
@@ -94,6 +95,7 @@ class TrainConfig:
     lr_halflife: int | None = None
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     refiner_full_nf: int | None = None  # the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the recipe's, else the model's
+    inpaint_head: str | None = None  # the inpainting net's head (NetworkConfig.inpaint_head); None: the recipe's, else the model's
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
     val_every: int = 200
@@ -131,6 +133,10 @@ class TrainConfig:
         if self.refiner_full_nf is not None and (isinstance(self.refiner_full_nf, bool) or not isinstance(self.refiner_full_nf, int)
                                                  or self.refiner_full_nf < 0):
             raise ValueError(f"refiner_full_nf: expected an int >= 0, got {self.refiner_full_nf!r}")
+        if self.inpaint_head is None:
+            self.inpaint_head = recipe.inpaint_head
+        if self.inpaint_head is not None and self.inpaint_head not in INPAINT_HEADS:
+            raise ValueError(f"inpaint_head: expected one of {INPAINT_HEADS}, got {self.inpaint_head!r}")
 
     @property
     def learning_rate(self) -> float:
@@ -201,12 +207,25 @@ class StageModule(nn.Module):
         l_sil = F.binary_cross_entropy_with_logits(out["silhouette_logits"], batch["mask"].float())
         return l_depth + l_sil, {"depth_mse": l_depth, "silhouette_bce": l_sil}
 
-    def sph_loss(self, full_padded_pred, batch):
-        pad = self.model.config.geometry.sph_pad
-        target = pad_sph(batch["full_sph"][:, None], pad)
-        if self.sph_loss_kind == "l1":
-            return F.l1_loss(full_padded_pred, target)
-        return F.mse_loss(full_padded_pred, target)
+    def sph_loss(self, parts: dict[str, torch.Tensor], batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The spherical maps' loss on padded maps; ``parts`` is :meth:`InpaintNet.forward_parts`'s output.
+
+        The ``"value"`` head: the map's MSE (or L1) against the true full map.
+        The ``"hit"`` head: the hit logits' BCE against the true map's hits,
+        plus the radius's MSE (or L1, ×RADIUS_SCALE) on the true hits.
+        """
+        g = self.model.config.geometry
+        target = pad_sph(batch["full_sph"][:, None], g.sph_pad)
+        err = F.l1_loss if self.sph_loss_kind == "l1" else F.mse_loss
+        name = f"sph_{self.sph_loss_kind}"
+        if "hit_logits" not in parts:
+            loss = err(parts["map"], target)
+            return loss, {name: loss}
+        hit = target < g.sph_nohit_min
+        l_hit = F.binary_cross_entropy_with_logits(parts["hit_logits"], hit.to(target.dtype))
+        per_pixel = err(parts["radius"] * RADIUS_SCALE, (1.0 - target) * RADIUS_SCALE, reduction="none")
+        l_radius = (per_pixel * hit).sum() / hit.sum().clamp(min=1)
+        return l_hit + l_radius, {"sph_hit_bce": l_hit, f"sph_radius_{self.sph_loss_kind}": l_radius}
 
     def voxel_loss(self, logits, batch):
         """BCE over the grid + ``surface_weight`` × the BCE weighted by the target (the shell's voxels, or the distance's ramp).
@@ -228,8 +247,7 @@ class StageModule(nn.Module):
             return self.depth_loss(m.depth_net(batch["rgb"]), batch)
         if self.stage == "onestep":
             pad = m.config.geometry.sph_pad
-            loss = self.sph_loss(pad_sph(self.baseline(batch["rgb"])[:, None], pad), batch)
-            return loss, {f"sph_{self.sph_loss_kind}": loss}
+            return self.sph_loss({"map": pad_sph(self.baseline(batch["rgb"])[:, None], pad)}, batch)
         if self.stage == "completion":
             b = self.baseline
             with torch.no_grad():
@@ -242,18 +260,16 @@ class StageModule(nn.Module):
             partial = m.partial_sph(depth)
         pad = m.config.geometry.sph_pad
         if self.stage == "inpaint":
-            pred = m.inpaint_net.forward_padded(pad_sph(partial[:, None], pad))
-            loss = self.sph_loss(pred, batch)
-            return loss, {f"sph_{self.sph_loss_kind}": loss}
+            return self.sph_loss(m.inpaint_net.forward_parts(pad_sph(partial[:, None], pad)), batch)
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
-            full_padded = m.inpaint_net.forward_padded(pad_sph(partial[:, None], pad))
-            full = full_padded[:, 0, pad:-pad, pad:-pad] if pad else full_padded[:, 0]
+            sph_parts = m.inpaint_net.forward_parts(pad_sph(partial[:, None], pad))
+            full = crop_sph(sph_parts["map"], pad)[:, 0]
             vox_sph, vox_depth = m.sph_voxels(full), m.depth_voxels(depth)
         logits = m.refine(vox_sph, vox_depth)
         loss, terms = self.voxel_loss(logits, batch)
         if self.stage == "joint":
-            l_sph = self.sph_loss(full_padded, batch)
-            terms[f"sph_{self.sph_loss_kind}"] = l_sph
+            l_sph, sph_terms = self.sph_loss(sph_parts, batch)
+            terms.update(sph_terms)
             loss = loss + l_sph
             if self.depth_weight > 0:
                 l_depth, depth_terms = self.depth_loss(depth_out, batch)
@@ -486,6 +502,11 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     if tcfg.refiner_full_nf is not None:
         # a recipe with a full-resolution refiner branch grows one on weights without it (same output at step 0)
         model = grow_refiner(model, tcfg.refiner_full_nf)
+    if tcfg.inpaint_head is not None and model.config.network.inpaint_head != tcfg.inpaint_head:
+        if tcfg.stage != "inpaint":
+            raise ValueError(f"the {tcfg.stage} stage needs an inpainting net with the {tcfg.inpaint_head!r} head; "
+                             f"the model has {model.config.network.inpaint_head!r}: train the inpaint stage first")
+        model = with_inpaint_head(model, tcfg.inpaint_head)  # a fresh inpainting net; the other nets kept
     resumed = _checkpoint_model_config(Path(tcfg.out) / tcfg.stage)
     if resumed is not None and _same_nets(resumed, model.config):
         # a resumed stage keeps the config it was trained with (threshold, target...), whatever --init says
