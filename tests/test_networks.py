@@ -179,7 +179,7 @@ def test_weights_with_a_full_resolution_branch_round_trip(tmp_path):
 def test_hit_head_composes_its_map_from_the_hit_logits_and_the_seen_radius(tmp_path):
     """With the decoder's output zeroed and the hit bias set, the "hit" head returns the seen
     pixels' values unchanged, radius 0 (clamped to MAX_HIT_VALUE) on the unseen ones, and
-    exactly "no hit" wherever the hit logit is negative; its weights round-trip and config
+    exactly "no hit" wherever the hit probability is at most geometry.sph_hit_probability; its weights round-trip and config
     dicts written before the key existed load with the paper's "value" head."""
     import dataclasses
 
@@ -202,13 +202,13 @@ def test_hit_head_composes_its_map_from_the_hit_logits_and_the_seen_radius(tmp_p
         seen = partial < 1
         assert torch.equal(full[seen], partial[seen])
         assert torch.all(full[~seen] == MAX_HIT_VALUE)
-        last.bias.copy_(torch.tensor([-1.0, 0.0]))  # no hit anywhere
+        last.bias.copy_(torch.tensor([-3.0, 0.0]))  # no hit anywhere
         assert torch.all(net(partial) == 1.0)
         # the map is where(hit logit > 0, 1 − radius, 1) for trained-looking outputs too
         last.weight.normal_(std=0.1)
-        last.bias.zero_()
+        last.bias.copy_(torch.tensor([net.hit_logit_min, 0.0]))  # around the decision, so both kinds appear
         parts = net.forward_parts(pad_sph(partial[:, None], pad))
-        want = torch.where(parts["hit_logits"] > 0, (1 - parts["radius"]).clamp(0, MAX_HIT_VALUE), torch.ones_like(parts["radius"]))
+        want = torch.where(torch.sigmoid(parts["hit_logits"]) > cfg.geometry.sph_hit_probability, (1 - parts["radius"]).clamp(0, MAX_HIT_VALUE), torch.ones_like(parts["radius"]))
         assert torch.equal(parts["map"], want)
         assert 0 < float((parts["map"] < 1).float().mean()) < 1
     model = GenRe(cfg)

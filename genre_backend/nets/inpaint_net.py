@@ -13,14 +13,16 @@ the loss covers the padded map.  Two heads, chosen by
     two input channels, the seen pixels' radius ``r = 1 − s`` (0 elsewhere,
     scaled by :data:`RADIUS_SCALE`) and the seen mask; two outputs, the logit
     that a ray meets the surface at all and the radius where it does.  The full
-    map is ``1 − r`` where the hit probability is above 0.5 and ``1`` (no hit)
-    elsewhere.  Measured on 16 seen-test views (``scripts/stage_errors.py``):
+    map is ``1 − r`` where the hit probability is above
+    ``geometry.sph_hit_probability`` and ``1`` (no hit) elsewhere.  Measured on 16 seen-test views (``scripts/stage_errors.py``):
     a third of a true full map is "no hit", and the value head, which must
     place those pixels on the same scale as radii a few voxels apart, put hits
     on 91 % of the map.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
@@ -44,6 +46,7 @@ class InpaintNet(nn.Module):
         super().__init__()
         net, g = config.network, config.geometry
         self.size, self.pad, self.head = g.sph_size, g.sph_pad, net.inpaint_head
+        self.hit_logit_min = math.log(g.sph_hit_probability / (1.0 - g.sph_hit_probability))
         if g.sph_padded_size % 32:
             raise ValueError(f"padded spherical map side {g.sph_padded_size} must be a multiple of 32")
         channels = 1 if self.head == "value" else 2
@@ -70,7 +73,7 @@ class InpaintNet(nn.Module):
         radius = radius_in + out[:, 1:2] / RADIUS_SCALE  # the change from the seen radius
         hit_logits = out[:, :1]
         value = (1.0 - radius).clamp(0.0, MAX_HIT_VALUE)
-        full = torch.where(hit_logits > 0, value, torch.full_like(value, NO_HIT))
+        full = torch.where(hit_logits > self.hit_logit_min, value, torch.full_like(value, NO_HIT))
         return {"map": full, "hit_logits": hit_logits, "radius": radius}
 
     def forward_padded(self, padded: torch.Tensor) -> torch.Tensor:
