@@ -341,5 +341,11 @@ def test_the_hit_head_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewher
     assert weights_digest(trained.depth_net) == weights_digest(load_model(init).depth_net)
     train(_cfg("refine", tiny_views, run, steps=2, init=str(run / "inpaint" / "final.safetensors")))
     assert load_model(run / "refine" / "final.safetensors").config.network.inpaint_head == "hit"
+    train(_cfg("joint", tiny_views, run, steps=2, log_every=1, init=str(run / "refine" / "final.safetensors")))
+    import csv
+
+    with (run / "joint" / "log.csv").open(newline="") as fh:
+        terms = json.loads(list(csv.DictReader(fh))[-1]["terms"])
+    assert {"sph_hit_bce", "sph_radius_mse", "voxel_bce"} <= set(terms), terms
     with pytest.raises(ValueError, match="train the inpaint stage first"):
         train(_cfg("refine", tiny_views, tmp_path / "other", steps=2, init=str(init), inpaint_head="hit"))
