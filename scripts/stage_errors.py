@@ -130,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
             pred_hit, true_hit = genre["full_sph"] < 0.9999, full < 0.9999
             maps.setdefault("inpainted map: hit/no-hit as the true map", []).append(float((pred_hit == true_hit).float().mean()))
             both = pred_hit & true_hit & ~seen
-            maps.setdefault("inpainted map: MSE on unseen true hits", []).append(float(((genre["full_sph"] - full) ** 2)[both].mean()))
+            if both.any():  # (a view whose unseen part the map calls empty has none)
+                maps.setdefault("inpainted map: MSE on unseen true hits", []).append(float(((genre["full_sph"] - full) ** 2)[both].mean()))
             add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target, model.config.geometry))
     print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
           f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")
