@@ -42,7 +42,10 @@ def test_each_shipped_file_loads_and_says_which_model_it_is(name):
 
 
 def test_default_is_the_trained_product_model_at_the_protocols_level():
-    """`default` is no longer the interim copy of `protocol`: other weights of the same networks, at the same level."""
+    """`default` is no longer the interim copy of `protocol`: other weights of the same networks (but for the
+    inpainting net's head: `protocol` has the hit head, `default` the paper's), at the same level."""
+    import dataclasses
+
     import torch
 
     from genre_backend.nets.model import load_model
@@ -50,7 +53,9 @@ def test_default_is_the_trained_product_model_at_the_protocols_level():
     extra = weights_extra(named_weights("default"))
     assert "copy_of" not in extra and extra["model"] == "default"
     a, b = load_model(named_weights("default")), load_model(named_weights("protocol"))
-    assert a.config.network == b.config.network and a.config.geometry.default_threshold == b.config.geometry.default_threshold
+    assert (a.config.network.inpaint_head, b.config.network.inpaint_head) == ("value", "hit")
+    assert dataclasses.replace(a.config.network, inpaint_head="hit") == b.config.network
+    assert a.config.geometry.default_threshold == b.config.geometry.default_threshold
     sa, sb = a.state_dict(), b.state_dict()
     assert sa.keys() == sb.keys()
     changed = sum(not torch.equal(sa[k], sb[k]) for k in sa if sa[k].is_floating_point())
