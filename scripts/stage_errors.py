@@ -21,7 +21,9 @@ normalised):
   and the maps' own errors (MSE against the true full map on the partial
   map's hits and elsewhere; the spread of the hit values; the share of pixels
   whose hit/no-hit agrees with the true map, and the MSE on the unseen pixels
-  that both call hits).
+  that both call hits; the shares of no-hit pixels in the true map and of hits
+  in the inpainted one; for the hit head, the true depth's inpainted map
+  projected at several hit-probability levels).
 
 Seen-test views only: what it shows is used to change the model, and the
 unseen classes must stay untouched by such choices.
@@ -49,6 +51,8 @@ from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
+from genre_backend.geometry.spherical import crop_sph, pad_sph  # noqa: E402
+from genre_backend.nets.inpaint_net import MAX_HIT_VALUE  # noqa: E402
 
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
 
@@ -121,12 +125,22 @@ def main(argv: list[str] | None = None) -> int:
             add("partial map (GenRe depth), projected", score_grid(model.sph_voxels(partial)[0, 0], [HIT], target))
             add("partial map (true depth), projected", score_grid(model.sph_voxels(partial_true)[0, 0], [HIT], target))
             add("inpainted from true depth, projected", score_grid(model.sph_voxels(model.inpaint_net(partial_true))[0, 0], [HIT], target))
+            if model.config.network.inpaint_head == "hit":  # the hit head's decision level (geometry.sph_hit_probability)
+                g = model.config.geometry
+                parts = model.inpaint_net.forward_parts(pad_sph(partial_true[:, None], g.sph_pad))
+                prob = crop_sph(torch.sigmoid(parts["hit_logits"]), g.sph_pad)[:, 0]
+                value = crop_sph((1.0 - parts["radius"]).clamp(0.0, MAX_HIT_VALUE), g.sph_pad)[:, 0]
+                for p_min in (0.1, 0.2, 0.3, 0.5):
+                    swept = torch.where(prob > p_min, value, torch.ones_like(value))
+                    add(f"  the same, hit where p > {p_min}", score_grid(model.sph_voxels(swept)[0, 0], [HIT], target))
             seen = partial < 1
             maps.setdefault("GenRe partial map: MSE on its hits", []).append(float(((partial - full) ** 2)[seen].mean()))
             maps.setdefault("inpainted map: MSE on those pixels", []).append(float(((genre["full_sph"] - full) ** 2)[seen].mean()))
             maps.setdefault("inpainted map: MSE elsewhere", []).append(float(((genre["full_sph"] - full) ** 2)[~seen].mean()))
             maps.setdefault("inpainted map: std of its hits", []).append(float(genre["full_sph"][genre["full_sph"] < 0.9999].std()))
             maps.setdefault("true map: std of its hits", []).append(float(full[full < 0.9999].std()))
+            maps.setdefault("true map: share of no-hit pixels", []).append(float((full >= 0.9999).float().mean()))
+            maps.setdefault("inpainted map: share of hit pixels", []).append(float((genre["full_sph"] < 0.9999).float().mean()))
             pred_hit, true_hit = genre["full_sph"] < 0.9999, full < 0.9999
             maps.setdefault("inpainted map: hit/no-hit as the true map", []).append(float((pred_hit == true_hit).float().mean()))
             both = pred_hit & true_hit & ~seen

@@ -208,7 +208,8 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
                           "inpainted map: MSE on those pixels", "inpainted map: MSE elsewhere",
                           "inpainted map: std of its hits", "true map: std of its hits", "depth |error| (median)",
                           "depth |error| less its offset", "depth |error| less its plane",
-                          "inpainted map: hit/no-hit as the tru", "inpainted map: MSE on unseen true hi"}
+                          "inpainted map: hit/no-hit as the tru", "inpainted map: MSE on unseen true hi",
+                          "true map: share of no-hit pixels", "inpainted map: share of hit pixels"}
     # the representation's own error of a box at the tiny preset's voxel size: a fraction of a voxel, finite
     shell_cd = float(lines["true distance, its surface"].split(": ")[1])
     sph_cd = float(lines["true spherical map, projected"].split(": ")[1])
