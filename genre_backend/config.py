@@ -79,7 +79,8 @@ class GeometryConfig:
     # The inpainting net's "hit" head (network.inpaint_head): a ray of the full map hits the
     # surface where the head's hit probability exceeds this.  A dropped part of the back costs
     # Chamfer far more than a point near the true radius; on 16 seen-test views the projected
-    # map scored CD 0.111 at 0.1–0.2, 0.112 at 0.3 and 0.191 at 0.5 (first hit-head weights).
+    # map of the true depth scored CD 0.111 at 0.1–0.2, 0.112 at 0.3 and 0.191 at 0.5 (the
+    # protocol weights; scripts/stage_errors.py).  At 0.2 nearly every ray hits.
     sph_hit_probability: float = 0.2
     # Depth → surface triangulation: a triangle of neighbouring pixels is kept only
     # if its longest 3D edge is at most this many times the pixel footprint at its

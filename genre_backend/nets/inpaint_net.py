@@ -14,10 +14,13 @@ the loss covers the padded map.  Two heads, chosen by
     scaled by :data:`RADIUS_SCALE`) and the seen mask; two outputs, the logit
     that a ray meets the surface at all and the radius where it does.  The full
     map is ``1 − r`` where the hit probability is above
-    ``geometry.sph_hit_probability`` and ``1`` (no hit) elsewhere.  Measured on 16 seen-test views (``scripts/stage_errors.py``):
-    a third of a true full map is "no hit", and the value head, which must
-    place those pixels on the same scale as radii a few voxels apart, put hits
-    on 91 % of the map.
+    ``geometry.sph_hit_probability`` and ``1`` (no hit) elsewhere.
+
+Measured on 16 seen-test views (``scripts/stage_errors.py``): a third of a
+true full map is "no hit", which the value head must place on the same scale
+as radii a few voxels apart; fed the true depth's partial map, the value
+head's map projects to CD 0.121 and the hit head's to 0.111 (the partial map
+alone: 0.116).
 """
 
 from __future__ import annotations
