@@ -52,7 +52,6 @@ from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 from genre_backend.geometry.spherical import crop_sph, pad_sph  # noqa: E402
-from genre_backend.nets.inpaint_net import MAX_HIT_VALUE  # noqa: E402
 
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
 
@@ -128,10 +127,8 @@ def main(argv: list[str] | None = None) -> int:
             if model.config.network.inpaint_head == "hit":  # the hit head's decision level (geometry.sph_hit_probability)
                 g = model.config.geometry
                 parts = model.inpaint_net.forward_parts(pad_sph(partial_true[:, None], g.sph_pad))
-                prob = crop_sph(torch.sigmoid(parts["hit_logits"]), g.sph_pad)[:, 0]
-                value = crop_sph((1.0 - parts["radius"]).clamp(0.0, MAX_HIT_VALUE), g.sph_pad)[:, 0]
                 for p_min in (0.1, 0.2, 0.3, 0.5):
-                    swept = torch.where(prob > p_min, value, torch.ones_like(value))
+                    swept = crop_sph(model.inpaint_net.compose(parts["hit_logits"], parts["radius"], p_min), g.sph_pad)[:, 0]
                     add(f"  the same, hit where p > {p_min}", score_grid(model.sph_voxels(swept)[0, 0], [HIT], target))
             seen = partial < 1
             maps.setdefault("GenRe partial map: MSE on its hits", []).append(float(((partial - full) ** 2)[seen].mean()))

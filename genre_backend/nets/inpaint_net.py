@@ -75,9 +75,15 @@ class InpaintNet(nn.Module):
         out = self.decoder(skips, deep)
         radius = radius_in + out[:, 1:2] / RADIUS_SCALE  # the change from the seen radius
         hit_logits = out[:, :1]
+        return {"map": self.compose(hit_logits, radius), "hit_logits": hit_logits, "radius": radius}
+
+    def compose(self, hit_logits: torch.Tensor, radius: torch.Tensor, hit_probability: float | None = None) -> torch.Tensor:
+        """The hit head's map from its outputs (any equal shapes): ``1 − radius`` (kept below
+        ``geometry.sph_nohit_min``) where the hit probability exceeds ``hit_probability``
+        (default ``geometry.sph_hit_probability``), ``1`` (no hit) elsewhere."""
+        logit_min = self.hit_logit_min if hit_probability is None else math.log(hit_probability / (1.0 - hit_probability))
         value = (1.0 - radius).clamp(0.0, MAX_HIT_VALUE)
-        full = torch.where(hit_logits > self.hit_logit_min, value, torch.full_like(value, NO_HIT))
-        return {"map": full, "hit_logits": hit_logits, "radius": radius}
+        return torch.where(hit_logits > logit_min, value, torch.full_like(value, NO_HIT))
 
     def forward_padded(self, padded: torch.Tensor) -> torch.Tensor:
         """(B, 1, P, P) padded partial maps → (B, 1, P, P) padded full maps (P = size + 2·pad)."""

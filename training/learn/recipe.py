@@ -35,8 +35,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 
-from genre_backend.config import INPAINT_HEADS
-
 __all__ = ["STAGES", "StageRecipe", "Recipe", "RECIPES", "get_recipe"]
 
 STAGES = ("depth", "inpaint", "refine", "joint", "completion", "onestep")
@@ -104,14 +102,8 @@ class Recipe:
     # the width of the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the model's
     # own.  A model without one that starts a stage of this recipe is grown (genre_backend.nets.model.grow_refiner).
     refiner_full_nf: int | None = None
-    # the inpainting net's head (NetworkConfig.inpaint_head); None: the model's own.  A model with
-    # another head gets a fresh inpainting net at this recipe's inpaint stage
-    # (genre_backend.nets.model.with_inpaint_head); the other stages refuse it.
-    inpaint_head: str | None = None
 
     def __post_init__(self):
-        if self.inpaint_head is not None and self.inpaint_head not in INPAINT_HEADS:
-            raise ValueError(f"recipe {self.name!r}: inpaint_head: expected one of {INPAINT_HEADS}, got {self.inpaint_head!r}")
         missing = [s for s in STAGES if s not in self.stages]
         unknown = [s for s in self.stages if s not in STAGES]
         if missing or unknown:

@@ -95,7 +95,9 @@ class TrainConfig:
     lr_halflife: int | None = None
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     refiner_full_nf: int | None = None  # the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the recipe's, else the model's
-    inpaint_head: str | None = None  # the inpainting net's head (NetworkConfig.inpaint_head); None: the recipe's, else the model's
+    # the inpainting net's head (NetworkConfig.inpaint_head); None: the model's.  Another head than the
+    # model's gives a fresh inpainting net at the inpaint stage (nets.model.with_inpaint_head); other stages refuse it.
+    inpaint_head: str | None = None
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
     val_every: int = 200
@@ -133,8 +135,6 @@ class TrainConfig:
         if self.refiner_full_nf is not None and (isinstance(self.refiner_full_nf, bool) or not isinstance(self.refiner_full_nf, int)
                                                  or self.refiner_full_nf < 0):
             raise ValueError(f"refiner_full_nf: expected an int >= 0, got {self.refiner_full_nf!r}")
-        if self.inpaint_head is None:
-            self.inpaint_head = recipe.inpaint_head
         if self.inpaint_head is not None and self.inpaint_head not in INPAINT_HEADS:
             raise ValueError(f"inpaint_head: expected one of {INPAINT_HEADS}, got {self.inpaint_head!r}")
 
