@@ -12,6 +12,12 @@ normalised):
 * ``GenRe spherical map, projected`` GenRe's inpainted map → voxels, likewise
 * ``refiner <- true depth + true map`` (GenRe-SphOracle), ``refiner <- true depth``
   (GenRe-Oracle) and GenRe, each at several isosurface thresholds;
+* with ``--completion FILE`` (a ``genre train completion`` run's weights), the
+  3D Completion baseline from the true depth and from its own predicted depth
+  at the same thresholds: whether a better depth would widen GenRe's margin
+  over it, or lift both alike; and, for GenRe and (with ``--completion``) the
+  baseline, the predicted depth less its offset from the truth (the view's
+  median error): the object's distance against the surface's shape;
 * the depth net's error inside the true mask, taken apart: its median absolute
   value, what is left after removing the view's median offset (the object's
   distance), and after removing the best-fitting plane (offset and tilt:
@@ -80,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views-count", type=int, default=8)
     p.add_argument("--thresholds", default="0.5,0.7,0.9")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--completion", default=None,
+                   help="a 3D Completion baseline's weights (OUT/completion/best.safetensors): adds its rows")
     args = p.parse_args(argv)
     try:
         weights = resolve_weights(args.weights)
@@ -88,6 +96,10 @@ def main(argv: list[str] | None = None) -> int:
     if weights_extra(weights).get("model") == "default":
         print(f"warning: {weights} are the product weights ('default'); research figures come from 'protocol'", file=sys.stderr)
     model = load_model(weights)
+    completion = None
+    if args.completion:
+        from training.learn.baselines import load_baseline
+        completion = load_baseline(args.completion, "completion")
     thresholds = [float(t) for t in args.thresholds.split(",")]
     try:
         views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else None,
@@ -115,6 +127,21 @@ def main(argv: list[str] | None = None) -> int:
             oracle = model(rgb, mask=mask, depth=depth)
             add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
             genre = model(rgb, mask=mask)
+            # the predicted depth less its offset from the truth (the view's median error inside the mask): is the
+            # object's distance, which one photo leaves ambiguous, what GenRe loses on, or the surface's shape?
+            valid = mask & (depth > 0)
+            offset = (genre["depth"] - depth)[valid].median()
+            shifted = genre["depth"] - offset
+            add("GenRe, depth offset removed", score_grid(torch.sigmoid(model(rgb, mask=mask, depth=shifted)["logits"])[0, 0],
+                                                          thresholds, target, model.config.geometry))
+            if completion is not None:
+                for name, d in (("3D Completion <- true depth", depth), ("3D Completion, depth offset removed", None),
+                                ("3D Completion", None)):
+                    if name.endswith("removed"):
+                        d = completion.depth_net(rgb)["depth"]
+                        d = d - (d - depth)[valid].median()
+                    logits = completion(rgb, mask=mask, depth=d)["logits"]
+                    add(name, score_grid(torch.sigmoid(logits)[0, 0], thresholds, target, model.config.geometry))
             for name, value in depth_error_parts(genre["depth"][0], depth[0], mask[0]).items():
                 maps.setdefault(name, []).append(value)
             add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))

@@ -101,6 +101,31 @@ def _read(path):
         return list(csv.DictReader(fh))
 
 
+def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_one(tiny):
+    from genre_backend.nets.model import load_model
+    from training.data.dataset import ViewDataset, ViewRef
+    from training.eval.rows import Models, predict
+    from training.learn.baselines import load_baseline
+
+    _, views, run = tiny
+    genre = load_model(run / "refine" / "final.safetensors")
+    completion = load_baseline(run / "completion" / "final.safetensors", "completion")
+    sample = ViewDataset([ViewRef(views / "table", 0)], genre.config).sample(0, None)
+    out = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
+    with torch.no_grad():
+        expected = {
+            "GenRe": genre(rgb, mask=mask)["logits"],
+            "GenRe-Oracle": genre(rgb, mask=mask, depth=depth)["logits"],
+            "3D Completion": completion(rgb, mask=mask)["logits"],
+            "3D Completion-Oracle": completion(rgb, mask=mask, depth=depth)["logits"],
+        }
+    for row, logits in expected.items():
+        assert torch.allclose(out[row]["prob"], torch.sigmoid(logits)[0, 0]), row
+    # the true depth is not what the depth net predicts, so the oracle row is a different input, not a copy
+    assert not torch.allclose(out["3D Completion-Oracle"]["prob"], out["3D Completion"]["prob"])
+
+
 def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     _, views, _ = tiny
     meta = json.loads((views / "table" / "view_000.json").read_text())

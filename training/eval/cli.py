@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     if shipped_as == DEFAULT_WEIGHTS_NAME:
         print(f"{prog}: warning: {paths['genre']} are the product weights ('default', meant to be trained on every class); "
               "research numbers come from 'protocol' (--weights protocol)", file=sys.stderr)
-    need = {"genre": True, "completion": "3D Completion" in rows_wanted, "onestep": "GenRe-1step" in rows_wanted}
+    need = {"genre": True, "completion": bool({"3D Completion", "3D Completion-Oracle"} & set(rows_wanted)), "onestep": "GenRe-1step" in rows_wanted}
     missing = [f"{k} weights not found: {paths[k]} ({HINTS[k]})" for k, needed in need.items() if needed and (paths[k] is None or not paths[k].is_file())]
     if "Nearest training shape" in rows_wanted and not args.train_views:
         missing.append("the nearest-training-shape row needs the training views: pass --train-views DIR (or leave the row out with --rows)")

@@ -18,7 +18,7 @@ from ..data.views import manifest_index
 __all__ = ['BASE_COLUMNS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'REPRESENTATION', 'ROWS', 'find_eval_views', 'sample_seen_test_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
 
 
-ROWS = ("GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "GenRe-1step", "Nearest training shape",
+ROWS = ("GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle", "GenRe-1step", "Nearest training shape",
         "Truth through the representation")
 REPRESENTATION = "Truth through the representation"  # the true voxel target → marching cubes: the best a refiner can do
 

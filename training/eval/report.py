@@ -63,7 +63,8 @@ def format_table(per_class: list[dict], groups: dict, choice: dict, rows: list[s
         num, den = groups["seen"][g].get(a, math.nan), groups["seen"][g].get(b, math.nan)
         return f"{num / den:.3f}" if math.isfinite(num) and math.isfinite(den) and den > 0 else "–"
 
-    ratios = [(a, b) for a, b in ((REPRESENTATION, FLOOR), ("GenRe", "3D Completion"), ("GenRe", "Nearest training shape")) if a in rows and b in rows]
+    ratios = [(a, b) for a, b in ((REPRESENTATION, FLOOR), ("GenRe", "3D Completion"),
+                                          ("GenRe-Oracle", "3D Completion-Oracle"), ("GenRe", "Nearest training shape")) if a in rows and b in rows]
     if ratios:
         lines += ["", "Ratios of group means (seen t*): " + "; ".join(
             f"{a} ÷ {b}: " + ", ".join(f"{GROUP_LABEL[g]} {ratio(a, b, g)}" for g in present) for a, b in ratios) + "."]

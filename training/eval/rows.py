@@ -49,7 +49,7 @@ class Models:
     def rows(self) -> list[str]:
         rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle"]
         if self.completion is not None:
-            rows.append("3D Completion")
+            rows += ["3D Completion", "3D Completion-Oracle"]
         if self.onestep is not None:
             rows.append("GenRe-1step")
         if self.nearest is not None:
@@ -85,6 +85,8 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
         out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full)["logits"])[0, 0].cpu()}
     if models.completion is not None:
         out["3D Completion"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask)["logits"])[0, 0].cpu()}
+        if "3D Completion-Oracle" in models.wanted:  # the baseline from the true depth: GenRe-Oracle's counterpart
+            out["3D Completion-Oracle"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu()}
     if models.onestep is not None:
         sph = models.onestep(rgb).clamp(0.0, 1.0)
         logits = m.refine(m.sph_voxels(sph), m.depth_voxels(pred_depth))
