@@ -18,6 +18,8 @@ normalised):
   over it, or lift both alike; and, for GenRe and (with ``--completion``) the
   baseline, the predicted depth less its offset from the truth (the view's
   median error): the object's distance against the surface's shape;
+* GenRe with the refiner's spherical channel emptied (zeros): how much the
+  refiner leans on the inpainted map at all;
 * the depth net's error inside the true mask, taken apart: its median absolute
   value, what is left after removing the view's median offset (the object's
   distance), and after removing the best-fitting plane (offset and tilt:
@@ -127,6 +129,9 @@ def main(argv: list[str] | None = None) -> int:
             oracle = model(rgb, mask=mask, depth=depth)
             add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
             genre = model(rgb, mask=mask)
+            # how much the refiner leans on the spherical channel: the same depth voxels, the spherical ones emptied
+            emptied = model.refine(torch.zeros_like(genre["vox_sph"]), genre["vox_depth"])
+            add("GenRe, spherical channel emptied", score_grid(torch.sigmoid(emptied)[0, 0], thresholds, target, model.config.geometry))
             # the predicted depth less its offset from the truth (the view's median error inside the mask): is the
             # object's distance, which one photo leaves ambiguous, what GenRe loses on, or the surface's shape?
             valid = mask & (depth > 0)
