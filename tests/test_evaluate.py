@@ -15,7 +15,7 @@ from genre_backend.geometry.metrics import chamfer_distance, fscore, fscore_refe
 from tiny_data import TINY, make_tiny_views
 from genre_backend.geometry.metrics import CloudScorer
 from training.eval.cli import main
-from training.eval.protocol import FLOOR, ROWS, EvalView
+from training.eval.protocol import EMPTY_CD, FLOOR, ROWS, EvalView
 from training.eval.runner import Truth, mesh_metrics, score_grid
 from training.eval.statistics import aggregate, choose_thresholds
 from training.learn.train import TrainConfig, train
@@ -222,7 +222,8 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     assert mod.main(["--weights", str(run / "refine" / "final.safetensors"), "--views", str(views),
-                     "--manifest", str(root / "manifest.json"), "--thresholds", "0.5"]) == 0
+                     "--manifest", str(root / "manifest.json"), "--thresholds", "0.5",
+                     "--completion", str(run / "completion" / "final.safetensors")]) == 0
     out = capsys.readouterr().out
     lines = {line[:36].strip(): line for line in out.splitlines()[1:]}
     assert out.startswith("1 seen-test views")  # the box (test split); the unseen table is never looked at
@@ -234,7 +235,12 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
                           "inpainted map: std of its hits", "true map: std of its hits", "depth |error| (median)",
                           "depth |error| less its offset", "depth |error| less its plane",
                           "inpainted map: hit/no-hit as the tru", "inpainted map: MSE on unseen true hi",
-                          "true map: share of no-hit pixels", "inpainted map: share of hit pixels"}
+                          "true map: share of no-hit pixels", "inpainted map: share of hit pixels",
+                          "GenRe, spherical channel emptied", "GenRe, depth offset removed",
+                          "3D Completion <- true depth", "3D Completion, depth offset removed", "3D Completion"}
+    for row in ("GenRe, spherical channel emptied", "GenRe, depth offset removed", "3D Completion <- true depth",
+                "3D Completion, depth offset removed", "3D Completion"):
+        assert 0.0 < float(lines[row].split(": ")[1]) <= EMPTY_CD, row  # scored (an empty grid scores EMPTY_CD)
     # the representation's own error of a box at the tiny preset's voxel size: a fraction of a voxel, finite
     shell_cd = float(lines["true distance, its surface"].split(": ")[1])
     sph_cd = float(lines["true spherical map, projected"].split(": ")[1])

@@ -85,5 +85,10 @@ def test_curve_point_sums_the_stages_processor_time(tmp_path):
     assert product.curve_point(None, ev, base_hours=2.25)["cpu_h"] == 2.25
     with pytest.raises(ValueError, match="base hours"):
         product.curve_point(run, ev, base_hours=-1.0)
+    # weights taken from the depth stage, before the refiner ran: only the depth stage's hours count
+    depth_only = product.curve_point(run, ev, stages=("depth",))
+    assert depth_only["cpu_h"] == 1.0 and depth_only["refine_steps"] == 0 and depth_only["depth_steps"] == 100
+    with pytest.raises(ValueError, match="stages"):
+        product.curve_point(run, ev, stages=("depht",))
     with pytest.raises(ValueError, match="no view in common"):
         product.compare_table(ev, _eval_dir(tmp_path / "x", 0.45, []), MANIFEST)

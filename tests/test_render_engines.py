@@ -219,6 +219,11 @@ SCRIPT = ROOT / "training" / "render" / "blender_script.py"
 def _blender_env(tmp: Path, **extra) -> dict:
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "user"), XDG_CACHE_HOME=str(tmp / "xdg"),
                GENRE_BLENDER_CACHE=str(tmp / "cache"))
+    # an activated virtual environment puts its bin/ first on PATH, and Blender's embedded Python then finds
+    # the environment's pyvenv.cfg and its packages by itself: the stock Blender must not be run that way here
+    venv = env.pop("VIRTUAL_ENV", None)
+    if venv:
+        env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep) if Path(p).parent != Path(venv))
     env.update(extra)
     return env
 

@@ -165,20 +165,27 @@ def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
     return int(meta["step"]), float(meta.get("cpu_s", 0.0))
 
 
-def curve_point(run_dir: Path | None, eval_dir: Path, stages=("depth", "inpaint", "refine", "joint"),
+CURVE_STAGES = ("depth", "inpaint", "refine", "joint")
+
+
+def curve_point(run_dir: Path | None, eval_dir: Path, stages=CURVE_STAGES,
                 threshold: float | None = None, base_hours: float = 0.0) -> dict:
     """One learning-curve point: the run's steps and processor hours per stage, and the mean CD on the product test split.
 
-    ``run_dir`` None: the starting point (the weights the run warm-starts from).  ``base_hours``: the
+    ``run_dir`` None: the starting point (the weights the run warm-starts from).  ``stages``: those of the
+    run behind the scored weights (a stage's output scored before the later stages ran: ``("depth",)``).  ``base_hours``: the
     processor hours that made those starting weights (earlier runs, on this machine or another), added
     to ``cpu_h`` so that the curve's hours are cumulative over every run.
     """
     if not (math.isfinite(base_hours) and base_hours >= 0):
         raise ValueError(f"base hours must be a finite number >= 0, got {base_hours}")
+    unknown = [s for s in stages if s not in CURVE_STAGES]
+    if unknown or not stages:
+        raise ValueError(f"stages: expected some of {', '.join(CURVE_STAGES)}, got {', '.join(stages) or 'none'}")
     point: dict = {"run": str(run_dir or ""), "eval": str(eval_dir)}
     total = base_hours * 3600
-    for stage in stages:
-        steps, cpu = _stage_cpu_seconds(Path(run_dir) / stage) if run_dir else (0, 0.0)
+    for stage in CURVE_STAGES:  # a stage left out (its weights are not in the scored file) counts 0
+        steps, cpu = _stage_cpu_seconds(Path(run_dir) / stage) if run_dir and stage in stages else (0, 0.0)
         point[f"{stage}_steps"] = steps
         point[f"{stage}_cpu_h"] = round(cpu / 3600, 3)
         total += cpu
@@ -189,7 +196,7 @@ def curve_point(run_dir: Path | None, eval_dir: Path, stages=("depth", "inpaint"
     return point
 
 
-CURVE_FIELDS = ["label", "cpu_h", "mean_cd", "views", *(f"{s}_{k}" for s in ("depth", "inpaint", "refine", "joint") for k in ("steps", "cpu_h")),
+CURVE_FIELDS = ["label", "cpu_h", "mean_cd", "views", *(f"{s}_{k}" for s in CURVE_STAGES for k in ("steps", "cpu_h")),
                 "run", "eval"]
 
 
@@ -243,6 +250,9 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--label", required=True)
     k.add_argument("--csv", required=True)
     k.add_argument("--threshold", type=float, help="score at this level (default: the run's thresholds.json)")
+    k.add_argument("--stages", default=",".join(CURVE_STAGES),
+                   help="the run's stages behind the scored weights, comma-separated (default: all; e.g. 'depth' for "
+                        "a depth stage's output scored before the later stages ran)")
     k.add_argument("--base-hours", type=float, default=0.0,
                    help="processor hours behind the weights the run started from (earlier runs), added to the point's hours")
     args = p.parse_args(argv)
@@ -255,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
             print(text)
         else:
             point = curve_point(Path(args.run) if args.run else None, Path(args.eval), threshold=args.threshold,
-                                base_hours=args.base_hours)
+                                base_hours=args.base_hours, stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()))
             rows = append_curve(Path(args.csv), point, args.label)
             plot_curve(rows, Path(args.csv).with_suffix(".png"))
             print(json.dumps(point))
