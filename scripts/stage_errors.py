@@ -140,11 +140,10 @@ def main(argv: list[str] | None = None) -> int:
             add("GenRe, depth offset removed", score_grid(torch.sigmoid(model(rgb, mask=mask, depth=shifted)["logits"])[0, 0],
                                                           thresholds, target, model.config.geometry))
             if completion is not None:
-                for name, d in (("3D Completion <- true depth", depth), ("3D Completion, depth offset removed", None),
-                                ("3D Completion", None)):
-                    if name.endswith("removed"):
-                        d = completion.depth_net(rgb)["depth"]
-                        d = d - (d - depth)[valid].median()
+                own = completion.depth_net(rgb)["depth"]  # the baseline's own (frozen) depth net
+                for name, d in (("3D Completion <- true depth", depth),
+                                ("3D Completion, depth offset removed", own - (own - depth)[valid].median()),
+                                ("3D Completion", own)):
                     logits = completion(rgb, mask=mask, depth=d)["logits"]
                     add(name, score_grid(torch.sigmoid(logits)[0, 0], thresholds, target, model.config.geometry))
             for name, value in depth_error_parts(genre["depth"][0], depth[0], mask[0]).items():
