@@ -40,6 +40,7 @@ class JobSpec:
     mask_path: str = ""
     threshold: float | None = None
     hole_closing: int | None = None
+    silhouette_carve: bool | None = None
     smoothing: int = 0
     target_faces: int = 0
     add_camera: bool = True
@@ -60,6 +61,8 @@ class JobSpec:
             payload["options"]["threshold"] = float(self.threshold)
         if self.hole_closing is not None:
             payload["options"]["hole_closing"] = int(self.hole_closing)
+        if self.silhouette_carve is not None:
+            payload["options"]["silhouette_carve"] = bool(self.silhouette_carve)
         if self.colour_from_photo:
             payload["options"]["texture"] = True
         if self.keep_all_parts:
@@ -157,6 +160,7 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     spec.mask_path = mask
     spec.threshold = float(settings.threshold) if settings.use_threshold else None
     spec.hole_closing = int(settings.hole_closing) if getattr(settings, "use_hole_closing", False) else None
+    spec.silhouette_carve = bool(settings.silhouette_carve) if getattr(settings, "use_silhouette_carve", False) else None
     spec.smoothing = int(settings.smoothing)
     spec.target_faces = int(settings.target_faces)
     spec.add_camera = bool(settings.add_camera)

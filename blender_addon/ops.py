@@ -104,6 +104,9 @@ def _follow_threshold(scene, result: dict) -> None:
     if (settings is not None and not getattr(settings, "use_hole_closing", True) and isinstance(sealing, int)
             and not isinstance(sealing, bool) and 0 <= sealing <= 8):
         settings.hole_closing = sealing
+    carve = result.get("silhouette_carve")  # and the outline trim
+    if settings is not None and not getattr(settings, "use_silhouette_carve", True) and isinstance(carve, bool):
+        settings.silhouette_carve = carve
 
 
 def finish_job(job: Job, status, outcome) -> None:

@@ -44,6 +44,13 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         # The shipped 'default' weights' setting; the field follows what the backend reports.
         default=1, min=0, max=8,
     )
+    use_silhouette_carve: BoolProperty(name="Custom Outline Trim", description="Override the weights' outline trim", default=False)
+    silhouette_carve: BoolProperty(
+        name="Trim to Outline", description="Cut away whatever would stick out past the object's outline in the photo "
+                                            "(the mask), so the mesh matches the photo from its viewpoint",
+        # The shipped 'default' weights' setting; the field follows what the backend reports.
+        default=False,
+    )
     smoothing: IntProperty(
         name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
     )

@@ -43,6 +43,11 @@ class GENRE_PT_panel(bpy.types.Panel):
         sub = row.row()
         sub.enabled = settings.use_hole_closing
         sub.prop(settings, "hole_closing")
+        row = box.row(align=True)
+        row.prop(settings, "use_silhouette_carve", text="")
+        sub = row.row()
+        sub.enabled = settings.use_silhouette_carve
+        sub.prop(settings, "silhouette_carve")
         box.prop(settings, "smoothing")
         box.prop(settings, "target_faces")
         box.prop(settings, "colour_from_photo")

@@ -88,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views-count", type=int, default=8)
     p.add_argument("--thresholds", default="0.5,0.7,0.9")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--hit-levels", default="0.1,0.2,0.3,0.5",
+                   help="the hit head's decision levels (geometry.sph_hit_probability) to sweep: the inpainted map, from "
+                        "the true depth and from GenRe's own, projected at each (hit-head weights only)")
     p.add_argument("--completion", default=None,
                    help="a 3D Completion baseline's weights (OUT/completion/best.safetensors): adds its rows")
     args = p.parse_args(argv)
@@ -103,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         from training.learn.baselines import load_baseline
         completion = load_baseline(args.completion, "completion")
     thresholds = [float(t) for t in args.thresholds.split(",")]
+    hit_levels = [float(h) for h in args.hit_levels.split(",")]
+    if not all(0.0 < h < 1.0 for h in hit_levels):
+        p.error(f"--hit-levels: every level must be in (0, 1), got {args.hit_levels}")
     try:
         views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else None,
                                        args.views_count, args.seed)
@@ -157,10 +163,12 @@ def main(argv: list[str] | None = None) -> int:
             add("inpainted from true depth, projected", score_grid(model.sph_voxels(model.inpaint_net(partial_true))[0, 0], [HIT], target))
             if model.config.network.inpaint_head == "hit":  # the hit head's decision level (geometry.sph_hit_probability)
                 g = model.config.geometry
-                parts = model.inpaint_net.forward_parts(pad_sph(partial_true[:, None], g.sph_pad))
-                for p_min in (0.1, 0.2, 0.3, 0.5):
-                    swept = crop_sph(model.inpaint_net.compose(parts["hit_logits"], parts["radius"], p_min), g.sph_pad)[:, 0]
-                    add(f"  the same, hit where p > {p_min}", score_grid(model.sph_voxels(swept)[0, 0], [HIT], target))
+                for source, part in (("true depth", partial_true), ("GenRe depth", partial)):
+                    parts = model.inpaint_net.forward_parts(pad_sph(part[:, None], g.sph_pad))
+                    for p_min in hit_levels:
+                        swept = crop_sph(model.inpaint_net.compose(parts["hit_logits"], parts["radius"], p_min), g.sph_pad)[:, 0]
+                        add(f"  inpainted from {source}, hit where p > {p_min}",
+                            score_grid(model.sph_voxels(swept)[0, 0], [HIT], target))
             seen = partial < 1
             maps.setdefault("GenRe partial map: MSE on its hits", []).append(float(((partial - full) ** 2)[seen].mean()))
             maps.setdefault("inpainted map: MSE on those pixels", []).append(float(((genre["full_sph"] - full) ** 2)[seen].mean()))

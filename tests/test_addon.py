@@ -209,6 +209,7 @@ def scenario_reconstruct(args: dict) -> dict:
     else:
         settings.threshold = 0.2  # not the weights' level: a plain run should bring the field to it
     settings.hole_closing = 7  # likewise the hole sealing
+    settings.silhouette_carve = True  # and the outline trim (the test weights do not carve)
     status = bpy.context.window_manager.genre_status
     out = {}
     snap = _Snapshot(bpy)
@@ -217,6 +218,7 @@ def scenario_reconstruct(args: dict) -> dict:
     out["first_seconds"] = time.monotonic() - t0
     out["threshold_field_after"] = settings.threshold
     out["hole_closing_field_after"] = settings.hole_closing
+    out["silhouette_carve_field_after"] = settings.silhouette_carve
     out["outcome"] = list(outcome)
     out["result_event"] = job.request.result
     out["stages"] = sorted({s[1] for s in states})
@@ -642,6 +644,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     level = load_model(weights).config.geometry.default_threshold
     assert ev["threshold"] == level and r["threshold_field_after"] == pytest.approx(level)
     assert ev["hole_closing"] == load_model(weights).config.geometry.hole_closing == r["hole_closing_field_after"]
+    assert ev["silhouette_carve"] is load_model(weights).config.geometry.silhouette_carve is r["silhouette_carve_field_after"] is False
     mesh = r["mesh"]
     assert mesh["name"] == "box"
     assert mesh["collections"] == ["GenRe"]

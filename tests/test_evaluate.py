@@ -126,6 +126,32 @@ def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_on
     assert not torch.allclose(out["3D Completion-Oracle"]["prob"], out["3D Completion"]["prob"])
 
 
+def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_not_the_truth(tiny):
+    import dataclasses
+
+    from genre_backend.geometry.voxels import silhouette_voxels
+    from genre_backend.nets.model import load_model
+    from training.data.dataset import ViewDataset, ViewRef
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+    from training.learn.baselines import load_baseline
+
+    _, views, run = tiny
+    genre = load_model(run / "refine" / "final.safetensors")
+    completion = load_baseline(run / "completion" / "final.safetensors", "completion")
+    sample = ViewDataset([ViewRef(views / "table", 0)], genre.config).sample(0, None)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(genre.config.geometry, silhouette_carve=True))
+    carved = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    inside = silhouette_voxels(sample["mask"][None], genre.config.camera, genre.config.geometry.voxel_size)[0, 0]
+    assert 0 < int(inside.sum()) < inside.numel()
+    rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle"]
+    for row in rows:
+        assert torch.equal(carved[row]["prob"], plain[row]["prob"] * inside), row
+    assert any(float(plain[row]["prob"][~inside].max()) > 0.1 for row in rows)  # something was there to carve
+    assert torch.equal(carved[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
+
+
 def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     _, views, _ = tiny
     meta = json.loads((views / "table" / "view_000.json").read_text())

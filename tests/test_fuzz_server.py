@@ -53,7 +53,7 @@ ERROR_CODES = {"bad_json", "unknown_type", "missing_field", "bad_field", "bad_im
 JOB_CODES = {"bad_image", "bad_mask", "no_object", "output_unwritable"}  # how an accepted job may fail
 DIRECT_CODES = {"bad_json", "unknown_type", "missing_field", "bad_field", "unknown_job", "internal"}  # answers to the line itself
 STAGES = ["load", "preprocess", "depth", "partial_sph", "inpaint", "voxels", "refine", "mesh", "write"]
-OPTION_KEYS = ("threshold", "format", "save_intermediates", "texture", "all_parts")
+OPTION_KEYS = ("threshold", "format", "save_intermediates", "texture", "all_parts", "silhouette_carve")
 MAX_MESSAGE = 2100  # the server's 2,000-character cap plus its "… (N characters)" tail
 
 
@@ -109,7 +109,7 @@ VALID_ID = st.one_of(TEXT, st.integers(), st.floats(allow_nan=False, allow_infin
 INVALID_ID = st.one_of(st.sampled_from([True, False, None, [], {}, Raw("NaN"), Raw("Infinity"), Raw("1e400")]),
                        JSON.filter(lambda v: isinstance(v, (bool, list, dict)) or v is None))
 ANY = st.one_of(JSON, HUGE, TEXT, LONG, st.just(OMIT))
-PARTS = ["id", "image", "output", "mask", "options", "threshold", "format", "save_intermediates", "texture", "all_parts", "unknown_option", "extra"]
+PARTS = ["id", "image", "output", "mask", "options", "threshold", "format", "save_intermediates", "texture", "all_parts", "silhouette_carve", "unknown_option", "extra"]
 
 
 @dataclass(frozen=True)
@@ -173,7 +173,7 @@ def _example_strategy():
             opts["format"] = draw(st.sampled_from(["obj", "ply", "glb", None]))
         if draw(st.integers(0, 3)) == 0:
             opts["save_intermediates"] = draw(folder_field)
-        for flag in ("texture", "all_parts"):
+        for flag in ("texture", "all_parts", "silhouette_carve"):
             if draw(st.integers(0, 2)) == 0:
                 opts[flag] = draw(st.sampled_from([True, False, None]))
         if "id" in broken:
@@ -188,7 +188,7 @@ def _example_strategy():
             opts["format"] = draw(st.one_of(JSON, st.sampled_from(["OBJ", "stl", "", "obj ", "obj\x00"])))
         if "save_intermediates" in broken:
             opts["save_intermediates"] = draw(st.one_of(folder_field, ANY))
-        for flag in ("texture", "all_parts"):
+        for flag in ("texture", "all_parts", "silhouette_carve"):
             if flag in broken:
                 opts[flag] = draw(st.one_of(JSON, st.sampled_from([0, 1, "true", [], {}])))
         if "unknown_option" in broken:
@@ -320,7 +320,7 @@ def refusals(msg: dict) -> set[str]:
     if opts is not None:
         if not isinstance(opts, dict):
             return codes | {"bad_field"}
-        t, f, s, texture, all_parts = (opts.get(k) for k in OPTION_KEYS)
+        t, f, s, texture, all_parts, carve = (opts.get(k) for k in OPTION_KEYS)
         if set(opts) - set(OPTION_KEYS):
             codes.add("bad_field")
         if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < 1):
@@ -329,7 +329,7 @@ def refusals(msg: dict) -> set[str]:
             codes.add("bad_field")
         if s is not None and not usable_path(s):
             codes.add("bad_field")
-        if any(v is not None and not isinstance(v, bool) for v in (texture, all_parts)):
+        if any(v is not None and not isinstance(v, bool) for v in (texture, all_parts, carve)):
             codes.add("bad_field")
     return codes
 

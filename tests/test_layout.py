@@ -165,3 +165,8 @@ def test_addon_threshold_default_is_the_shipped_weights_level():
     defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "hole_closing"
                 for kw in node.annotation.keywords if kw.arg == "default"]
     assert defaults == [sealing]
+    # and its outline-trim field at theirs
+    carve = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("silhouette_carve", False)
+    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "silhouette_carve"
+                for kw in node.annotation.keywords if kw.arg == "default"]
+    assert defaults == [carve]

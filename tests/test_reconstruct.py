@@ -367,3 +367,26 @@ def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys,
     with pytest.raises(SystemExit) as exc:
         _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--hole-closing", 9)
     assert exc.value.code == 2 and "--hole-closing" in capsys.readouterr().err
+
+
+def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_path, capsys, trained):
+    from genre_backend.geometry.mesh_voxels import fill_enclosed
+    from genre_backend.geometry.voxels import silhouette_voxels
+
+    assert rec.config.geometry.silhouette_carve is False  # weights stored without the key: off
+    plain = rec.run(photos["rgba"], threshold=0.3)
+    carved = rec.run(photos["rgba"], threshold=0.3, silhouette_carve=True)
+    assert (plain.silhouette_carve, carved.silhouette_carve) == (False, True)
+    inside = silhouette_voxels(carved.intermediates["mask"][None], rec.config.camera, rec.config.geometry.voxel_size)[0, 0]
+    p0, p1 = plain.intermediates["probability"], carved.intermediates["probability"]
+    assert torch.equal(carved.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
+    expected = torch.sigmoid(carved.intermediates["logits"]) * inside
+    if rec.config.geometry.target == "distance":  # then the enclosed voxels are filled, as without the carve
+        expected = torch.from_numpy(fill_enclosed(expected, 0.3, carved.hole_closing))
+    assert bool((p1[~inside] == 0).all()) and torch.allclose(p1, expected)
+    assert float(p0[~inside].max()) > 0.3  # the tiny refiner spills past the outline, so the carve removes something
+    for bad in (1, "yes", 0.5):
+        with pytest.raises(ValueError, match="silhouette_carve"):
+            rec.run(photos["rgba"], silhouette_carve=bad)
+    code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "c.obj", "--weights", trained[0], "--silhouette-carve")
+    assert code == 0 and (tmp_path / "c.obj").is_file(), err

@@ -1,4 +1,4 @@
-"""Points → voxels with GenRe's "average distance, negate, add 1" rule.
+"""Points → voxels with GenRe's "average distance, negate, add 1" rule, and the silhouette's voxels.
 
 The grid covers the cube ``[-0.5, 0.5]^3`` of the view frame (see
 :mod:`genre_backend.frame`) with ``N`` voxels per side, indexed
@@ -14,11 +14,14 @@ point coordinates (scatter-add of distances and counts).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ..validation import check_mask, check_positive_int, check_tensor
 
-__all__ = ["points_to_voxels", "points_to_voxels_reference", "voxel_centres"]
+__all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_voxels", "silhouette_voxels_reference",
+           "voxel_centres"]
 
 
 def voxel_centres(resolution: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -76,3 +79,48 @@ def points_to_voxels_reference(points: torch.Tensor, resolution: int, mask: torc
         for idx, ds in sums.items():
             out[(b, 0) + idx] = 1.0 - sum(ds) / len(ds)
     return out.to(points.dtype)
+
+
+def silhouette_voxels(mask: torch.Tensor, camera, resolution: int) -> torch.Tensor:
+    """The voxels whose centre the camera sees inside the object's mask (a one-view visual hull).
+
+    mask:   (B, S, S) bool, the object's pixels in the model's square input image.
+    camera: :class:`genre_backend.config.CameraConfig` (the view frame of :mod:`genre_backend.frame`).
+    Returns (B, 1, N, N, N) bool with N = ``resolution``: voxel ``(ix, iy, iz)`` is True when its centre
+    projects (:func:`genre_backend.frame.view_to_pixels`) into a pixel of ``mask`` that is True.  Centres
+    that project outside the image, or lie at or behind the camera, are False.  No object point can lie
+    in a False voxel's centre, so the surface is carved there (``GeometryConfig.silhouette_carve``).
+    """
+    from ..frame import view_to_pixels
+
+    check_tensor("mask", mask, ("B", "S", "S"), floating=False)
+    check_positive_int("resolution", resolution)
+    size = mask.shape[-1]
+    c = voxel_centres(resolution, device=mask.device)
+    centres = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1)  # (N, N, N, 3): view x, y, z
+    uv, depth = view_to_pixels(centres, camera, size)
+    cell = torch.floor(uv).long()
+    seen = ((cell >= 0) & (cell < size)).all(dim=-1) & (depth > 0)
+    cell = cell.clamp(0, size - 1)
+    inside = mask.bool()[:, cell[..., 1], cell[..., 0]]  # rows are v, columns u
+    return (inside & seen)[:, None]
+
+
+def silhouette_voxels_reference(mask: torch.Tensor, camera, resolution: int) -> torch.Tensor:
+    """Plain-loop reference of :func:`silhouette_voxels`: the pinhole projection written out per voxel."""
+    check_tensor("mask", mask, ("B", "S", "S"), floating=False)
+    n, size = resolution, mask.shape[-1]
+    f = camera.lens_mm / camera.sensor_mm * size
+    out = torch.zeros(mask.shape[0], 1, n, n, n, dtype=torch.bool)
+    for ix in range(n):
+        for iy in range(n):
+            for iz in range(n):
+                x, y, z = ((ix + 0.5) / n - 0.5, (iy + 0.5) / n - 0.5, (iz + 0.5) / n - 0.5)
+                d = camera.distance - z  # planar depth: the camera looks down −z from (0, 0, distance)
+                if d <= 0:
+                    continue
+                col, row = math.floor(x * f / d + size / 2.0), math.floor(-y * f / d + size / 2.0)
+                if 0 <= col < size and 0 <= row < size:
+                    for b in range(mask.shape[0]):
+                        out[b, 0, ix, iy, iz] = bool(mask[b, row, col])
+    return out

@@ -36,6 +36,7 @@ from ..io import DEFAULT_WEIGHTS_NAME, named_weights
 from ..validation import check_hole_closing, check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
 from ..geometry.mesh_voxels import fill_enclosed, onto_surface, voxels_to_mesh
+from ..geometry.voxels import silhouette_voxels
 from ..nets.model import GenRe, WeightsError, load_model
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
@@ -128,7 +129,8 @@ class Reconstruction:
     the photo's own size).  ``mask_warning``: one line when that mask is
     doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
     of the photo or touches most of its border), else None.
-    ``threshold`` and ``hole_closing``: the level and the hole sealing (voxels) the mesh was made with.
+    ``threshold``, ``hole_closing`` and ``silhouette_carve``: the level, the hole sealing (voxels) and
+    whether the voxels outside the mask were carved away, as the mesh was made.
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -161,6 +163,7 @@ class Reconstruction:
     photo_mask: np.ndarray | None = field(default=None, repr=False)
     mask_warning: str | None = None
     hole_closing: int = 0
+    silhouette_carve: bool = False
     _texture: PhotoTexture | None = field(default=None, repr=False)
 
     @property
@@ -381,6 +384,7 @@ class Reconstructor:
         refine: bool = True,
         seeding: str = DEFAULT_SEEDING,
         hole_closing: int | None = None,
+        silhouette_carve: bool | None = None,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -397,7 +401,9 @@ class Reconstructor:
         net's silhouette as it is.  ``hole_closing`` (voxels, 0-8): gaps in
         the distance tube up to about twice this across are sealed
         (:func:`..geometry.mesh_voxels.fill_enclosed`; default: the config's
-        ``hole_closing``; ignored by shell weights).  Raises
+        ``hole_closing``; ignored by shell weights).  ``silhouette_carve``: empty
+        every voxel whose centre falls outside the mask before the mesh is made
+        (:func:`..geometry.voxels.silhouette_voxels`; default: the config's).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
@@ -407,6 +413,10 @@ class Reconstructor:
         if hole_closing is None:
             hole_closing = g.hole_closing
         check_hole_closing("hole_closing", hole_closing)
+        if silhouette_carve is None:
+            silhouette_carve = g.silhouette_carve
+        if not isinstance(silhouette_carve, bool):
+            raise ValueError(f"silhouette_carve: expected True or False, got {silhouette_carve!r}")
         if isinstance(keep_fraction, bool) or not isinstance(keep_fraction, (int, float)) or not 0.0 <= keep_fraction <= 1.0:
             raise ValueError(f"keep_fraction: expected a number in [0, 1], got {keep_fraction!r}")
         timings: dict[str, float] = {}
@@ -448,6 +458,8 @@ class Reconstructor:
             logits = model.refine(vox_sph, vox_depth)
             stage("mesh")
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
+            if silhouette_carve:
+                prob = prob * silhouette_voxels(mask.cpu(), model.config.camera, prob.shape[-1])[0, 0]
             if model.config.geometry.target == "distance":
                 prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
             vertices, faces = voxels_to_mesh(prob, threshold)
@@ -494,4 +506,5 @@ class Reconstructor:
             photo_mask=photo_mask,
             mask_warning=warning,
             hole_closing=int(hole_closing),
+            silhouette_carve=silhouette_carve,
         )

@@ -64,6 +64,9 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     parser.add_argument("--hole-closing", type=int, metavar="K",
                         help="seal holes in the mesh up to about 2·K voxels across, 0-8 (default: the weights' config; "
                              "0 seals nothing; more also fills narrow gaps between parts)")
+    parser.add_argument("--silhouette-carve", action=argparse.BooleanOptionalAction, default=None,
+                        help="carve away what falls outside the mask's outline before the mesh is made (default: the "
+                             "weights' config, geometry.silhouette_carve)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
     parser.add_argument("--texture", action="store_true",
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
@@ -165,7 +168,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             for p in mesh_files(out, fmt, args.texture):
                 check_output_path(p, (image, args.mask))
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
-                             refine=not args.no_refine, hole_closing=args.hole_closing)
+                             refine=not args.no_refine, hole_closing=args.hole_closing,
+                             silhouette_carve=args.silhouette_carve)
             path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)

@@ -48,7 +48,8 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
 
 
 def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
-            hole_closing: int | None = None) -> float:
+            hole_closing: int | None = None, sph_hit_probability: float | None = None,
+            silhouette_carve: bool | None = None) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
@@ -56,6 +57,10 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     Returns that threshold.  ``name`` (``protocol`` or ``default``) is stored as ``extra.model``.
     ``hole_closing``: the mesh setting ``geometry.hole_closing`` to store (chosen on seen-test views by
     ``scripts/hole_closing.py``); None keeps the weights' own.
+    ``sph_hit_probability``: the hit-head inpainting net's decision level to store
+    (``geometry.sph_hit_probability``, chosen on seen-test views by ``scripts/stage_errors.py --hit-levels``);
+    None keeps the weights' own.  ``silhouette_carve``: store ``geometry.silhouette_carve`` (carve the
+    refiner's output to the mask's outline; chosen on seen-test views); None keeps the weights' own.
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -74,6 +79,13 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     geometry = dataclasses.replace(config.geometry, default_threshold=t)
     if hole_closing is not None:
         geometry = dataclasses.replace(geometry, hole_closing=int(hole_closing))  # (validated by the config)
+    if silhouette_carve is not None:
+        geometry = dataclasses.replace(geometry, silhouette_carve=bool(silhouette_carve))
+    if sph_hit_probability is not None:
+        if config.network.inpaint_head != "hit":
+            raise ValueError(f"{weights}: --sph-hit-probability needs hit-head weights (network.inpaint_head = 'hit'), "
+                             f"these have {config.network.inpaint_head!r}")
+        geometry = dataclasses.replace(geometry, sph_hit_probability=float(sph_hit_probability))
     model.config = dataclasses.replace(config, geometry=geometry)
     shipped = named_weights(name)
     out = Path(out) if out is not None else shipped
@@ -81,6 +93,10 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     extra = {"source": str(weights), "threshold_from": str(thresholds), "model": name}
     if hole_closing is not None:
         extra["hole_closing_from"] = "scripts/hole_closing.py on seen-test views"
+    if silhouette_carve is not None:
+        extra["silhouette_carve_from"] = "chosen on seen-test views (results/carve/ship_rule.txt)"
+    if sph_hit_probability is not None:
+        extra["sph_hit_probability_from"] = "scripts/stage_errors.py --hit-levels on seen-test views"
     save_model(model, out, extra)
     if name == PROTOCOL_WEIGHTS_NAME and out.resolve() == shipped.resolve():
         interim = named_weights(DEFAULT_WEIGHTS_NAME)
@@ -102,6 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hole-closing", type=int, default=None, metavar="K",
                    help="store geometry.hole_closing = K (voxels; chosen by scripts/hole_closing.py on seen-test views); "
                         "default: the weights' own")
+    p.add_argument("--sph-hit-probability", type=float, default=None, metavar="P",
+                   help="store geometry.sph_hit_probability = P (the hit head's decision level, chosen by "
+                        "scripts/stage_errors.py --hit-levels on seen-test views); default: the weights' own")
+    p.add_argument("--silhouette-carve", action=argparse.BooleanOptionalAction, default=None,
+                   help="store geometry.silhouette_carve (carve the output to the mask's outline; chosen on seen-test "
+                        "views); default: the weights' own")
     args = p.parse_args(argv)
     out = args.out if args.out is not None else named_weights(args.name)
     interim = named_weights(DEFAULT_WEIGHTS_NAME)
@@ -109,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
                and interim.is_file() and _is_interim_copy_of_protocol(interim))
     try:
         t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name,
-                    hole_closing=args.hole_closing)
+                    hole_closing=args.hole_closing, sph_hit_probability=args.sph_hit_probability,
+                    silhouette_carve=args.silhouette_carve)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1

@@ -17,7 +17,9 @@ Noise floor                 the truth against itself resampled (the best any row
 ==========================  =====================================================================
 
 Every network gets the view's true mask (the film alpha), as the paper's
-evaluation did.
+evaluation did.  When GenRe's weights carve to the silhouette
+(``geometry.silhouette_carve``), every voxel row is carved by the same mask
+before its mesh is made, the baselines included; the truth is not.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from dataclasses import dataclass
 import torch
 
 from genre_backend.config import GenreConfig
+from genre_backend.geometry.voxels import silhouette_voxels
 from genre_backend.nets.model import GenRe, WeightsError
 
 from .protocol import REPRESENTATION, ROWS
@@ -91,6 +94,11 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
         sph = models.onestep(rgb).clamp(0.0, 1.0)
         logits = m.refine(m.sph_voxels(sph), m.depth_voxels(pred_depth))
         out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu()}
+    if m.config.geometry.silhouette_carve:  # every learned row alike (the truth is left as it is)
+        inside = silhouette_voxels(mask.cpu(), m.config.camera, m.config.geometry.voxel_size)[0, 0]
+        for row in out.values():
+            if isinstance(row, dict) and "prob" in row:
+                row["prob"] = row["prob"] * inside
     if REPRESENTATION in models.wanted:
         out[REPRESENTATION] = {"prob": sample["voxels"]}
     if models.nearest is not None:
