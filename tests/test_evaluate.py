@@ -129,7 +129,7 @@ def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_on
 def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_not_the_truth(tiny):
     import dataclasses
 
-    from genre_backend.geometry.voxels import silhouette_voxels
+    from genre_backend.geometry.voxels import silhouette_ramp
     from genre_backend.nets.model import load_model
     from training.data.dataset import ViewDataset, ViewRef
     from training.eval.protocol import REPRESENTATION
@@ -143,11 +143,12 @@ def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_no
     plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
     genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(genre.config.geometry, silhouette_carve=True))
     carved = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
-    inside = silhouette_voxels(sample["mask"][None], genre.config.camera, genre.config.geometry.voxel_size)[0, 0]
+    ramp = silhouette_ramp(sample["mask"][None], genre.config.camera, genre.config.geometry.voxel_size)[0, 0]
+    inside = ramp > 0
     assert 0 < int(inside.sum()) < inside.numel()
     rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle"]
     for row in rows:
-        assert torch.equal(carved[row]["prob"], plain[row]["prob"] * inside), row
+        assert torch.equal(carved[row]["prob"], torch.minimum(plain[row]["prob"], ramp)), row
     assert any(float(plain[row]["prob"][~inside].max()) > 0.1 for row in rows)  # something was there to carve
     assert torch.equal(carved[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
 

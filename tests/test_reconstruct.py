@@ -371,16 +371,17 @@ def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys,
 
 def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.mesh_voxels import fill_enclosed
-    from genre_backend.geometry.voxels import silhouette_voxels
+    from genre_backend.geometry.voxels import silhouette_ramp
 
     assert rec.config.geometry.silhouette_carve is False  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)
     carved = rec.run(photos["rgba"], threshold=0.3, silhouette_carve=True)
     assert (plain.silhouette_carve, carved.silhouette_carve) == (False, True)
-    inside = silhouette_voxels(carved.intermediates["mask"][None], rec.config.camera, rec.config.geometry.voxel_size)[0, 0]
+    ramp = silhouette_ramp(carved.intermediates["mask"][None], rec.config.camera, rec.config.geometry.voxel_size)[0, 0]
+    inside = ramp > 0
     p0, p1 = plain.intermediates["probability"], carved.intermediates["probability"]
     assert torch.equal(carved.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
-    expected = torch.sigmoid(carved.intermediates["logits"]) * inside
+    expected = torch.minimum(torch.sigmoid(carved.intermediates["logits"]), ramp)
     if rec.config.geometry.target == "distance":  # then the enclosed voxels are filled, as without the carve
         expected = torch.from_numpy(fill_enclosed(expected, 0.3, carved.hole_closing))
     assert bool((p1[~inside] == 0).all()) and torch.allclose(p1, expected)

@@ -56,54 +56,62 @@ def test_rejects_bad_inputs():
         points_to_voxels(torch.zeros(1, 10, 3), 4, torch.ones(1, 9, dtype=torch.bool))
 
 
-# ---- the silhouette's voxels (the one-view visual hull) ------------------------------------------
+# ---- the silhouette's ramp (the one-view visual hull) -------------------------------------------
 from genre_backend.config import CameraConfig  # noqa: E402
-from genre_backend.geometry.voxels import silhouette_voxels, silhouette_voxels_reference  # noqa: E402
+from genre_backend.geometry.voxels import silhouette_ramp, silhouette_ramp_reference  # noqa: E402
 
 
-def test_silhouette_voxels_match_the_reference_on_random_masks():
+def test_silhouette_ramp_matches_the_reference_on_random_masks():
     g = torch.Generator().manual_seed(3)
-    mask = torch.rand(2, 24, 24, generator=g) > 0.4
-    for camera in (CameraConfig(), CameraConfig(lens_mm=35.0, distance=1.4)):
-        fast = silhouette_voxels(mask, camera, 10)
-        ref = silhouette_voxels_reference(mask, camera, 10)
-        assert fast.shape == (2, 1, 10, 10, 10) and fast.dtype == torch.bool
-        assert torch.equal(fast, ref)
-        assert 0 < int(fast.sum()) < fast.numel()  # neither empty nor full: the test can fail
+    mask = torch.rand(2, 16, 16, generator=g) > 0.4
+    mask[1] = False
+    mask[1, 4:11, 5:9] = True  # a block: distances of several pixels
+    for camera, width in ((CameraConfig(), 1.0), (CameraConfig(lens_mm=35.0, distance=1.4), 2.5)):
+        fast = silhouette_ramp(mask, camera, 9, width)
+        ref = silhouette_ramp_reference(mask, camera, 9, width)
+        assert fast.shape == (2, 1, 9, 9, 9) and fast.dtype == torch.float32
+        assert torch.allclose(fast, ref, atol=1e-5)
+        assert float(fast.min()) == 0.0 and float(fast.max()) == 1.0 and ((fast > 0) & (fast < 1)).any()
 
 
-def test_silhouette_of_a_sphere_keeps_the_sphere_and_carves_outside_its_cone():
-    """A ball of radius R at the origin seen from distance d: its outline is the circle of angular radius asin(R/d)."""
-    camera, size, n, radius = CameraConfig(), 96, 32, 0.3
+def _ball_mask(camera, size, radius):
+    """The pixels whose centre ray passes within ``radius`` of the origin, seen from ``camera``."""
     f = camera.focal_px(size)
     centre = torch.arange(size, dtype=torch.float64) + 0.5 - size / 2
     rays = torch.stack([centre.view(1, -1).expand(size, size) / f, -centre.view(-1, 1).expand(size, size) / f,
                         -torch.ones(size, size, dtype=torch.float64)], dim=-1)
     rays = rays / rays.norm(dim=-1, keepdim=True)
     eye = torch.tensor([0.0, 0.0, camera.distance], dtype=torch.float64)
-    # a pixel is the ball's when its centre ray passes within R of the origin
     along = -(rays @ eye)
-    miss = (eye.square().sum() - along.square()).clamp(min=0).sqrt()
-    mask = (miss <= radius)[None]
-    kept = silhouette_voxels(mask, camera, n)[0, 0]
+    return ((eye.square().sum() - along.square()).clamp(min=0).sqrt() <= radius)[None]
+
+
+def test_silhouette_ramp_of_a_ball_crosses_one_half_on_its_outline_cone():
+    """A ball of radius R at the origin seen from distance d: its outline is the cone of half-angle asin(R/d)."""
+    camera, size, n, radius = CameraConfig(), 128, 32, 0.3
+    ramp = silhouette_ramp(_ball_mask(camera, size, radius), camera, n)[0, 0].double()
     c = voxel_centres(n, dtype=torch.float64)
     p = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1)
-    pitch = 1.0 / n
-    inside_ball = p.norm(dim=-1) < radius - 2 * pitch
-    to_eye = eye - p
-    # the voxel centre's distance from the axis of the cone, as an angle from the camera
+    to_eye = torch.tensor([0.0, 0.0, camera.distance], dtype=torch.float64) - p
     angle = torch.atan2(to_eye[..., :2].norm(dim=-1), to_eye[..., 2])
-    outline = math.asin(radius / camera.distance)
-    assert bool(kept[inside_ball].all())  # nothing of the ball is carved
-    far_out = angle > outline + 2.5 * pitch / camera.distance
-    assert far_out.any() and not bool(kept[far_out].any())  # everything well outside the cone is
-    assert int(kept.sum()) > int(inside_ball.sum())  # the cone is more than the ball (a visual hull)
+    # the signed distance to the cone, in voxels at the centre's depth (the same small-angle measure the ramp uses)
+    depth = to_eye[..., 2]
+    d_vox = (math.asin(radius / camera.distance) - angle) * camera.focal_px(size) * depth / camera.focal_px(size) * n
+    expected = (0.5 + d_vox).clamp(0, 1)
+    near = d_vox.abs() < 3
+    assert near.sum() > 500
+    err = (ramp - expected).abs()
+    assert float(err[near].max()) < 0.2  # the pixel grid's staircase, a fraction of a pixel
+    assert bool((ramp[p.norm(dim=-1) < radius - 2.0 / n] == 1).all())  # nothing of the ball is cut
+    assert bool((ramp[d_vox < -1.5] == 0).all())  # everything well outside the cone is
 
 
-def test_silhouette_voxels_refuse_bad_inputs():
+def test_silhouette_ramp_refuses_bad_inputs():
     with pytest.raises(ValueError):
-        silhouette_voxels(torch.ones(8, 8, dtype=torch.bool), CameraConfig(), 8)  # no batch axis
+        silhouette_ramp(torch.ones(8, 8, dtype=torch.bool), CameraConfig(), 8)  # no batch axis
     with pytest.raises(ValueError):
-        silhouette_voxels(torch.ones(1, 8, 6, dtype=torch.bool), CameraConfig(), 8)  # not square
+        silhouette_ramp(torch.ones(1, 8, 6, dtype=torch.bool), CameraConfig(), 8)  # not square
     with pytest.raises(ValueError):
-        silhouette_voxels(torch.ones(1, 8, 8, dtype=torch.bool), CameraConfig(), 0)
+        silhouette_ramp(torch.ones(1, 8, 8, dtype=torch.bool), CameraConfig(), 0)
+    with pytest.raises(ValueError):
+        silhouette_ramp(torch.ones(1, 8, 8, dtype=torch.bool), CameraConfig(), 8, width=0.0)

@@ -1,4 +1,4 @@
-"""Points → voxels with GenRe's "average distance, negate, add 1" rule, and the silhouette's voxels.
+"""Points → voxels with GenRe's "average distance, negate, add 1" rule, and the silhouette's ramp.
 
 The grid covers the cube ``[-0.5, 0.5]^3`` of the view frame (see
 :mod:`genre_backend.frame`) with ``N`` voxels per side, indexed
@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from ..validation import check_mask, check_positive_int, check_tensor
 
-__all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_voxels", "silhouette_voxels_reference",
+__all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_ramp", "silhouette_ramp_reference",
            "voxel_centres"]
 
 
@@ -81,46 +82,82 @@ def points_to_voxels_reference(points: torch.Tensor, resolution: int, mask: torc
     return out.to(points.dtype)
 
 
-def silhouette_voxels(mask: torch.Tensor, camera, resolution: int) -> torch.Tensor:
-    """The voxels whose centre the camera sees inside the object's mask (a one-view visual hull).
+
+def _signed_pixel_distance(mask: np.ndarray) -> np.ndarray:
+    """(S, S) bool → (S, S) float32: each pixel centre's distance to the mask's outline, in pixels, + inside.
+
+    The outline runs along pixel edges: a pixel next to one of the other side is 0.5 from it.
+    """
+    from scipy import ndimage
+
+    inside = ndimage.distance_transform_edt(mask) if mask.any() else np.zeros(mask.shape)
+    outside = ndimage.distance_transform_edt(~mask) if (~mask).any() else np.zeros(mask.shape)
+    return np.where(mask, inside - 0.5, 0.5 - outside).astype(np.float32)
+
+
+def silhouette_ramp(mask: torch.Tensor, camera, resolution: int, width: float = 1.0) -> torch.Tensor:
+    """How far inside the object's outline the camera sees each voxel centre, as a ramp in [0, 1].
 
     mask:   (B, S, S) bool, the object's pixels in the model's square input image.
     camera: :class:`genre_backend.config.CameraConfig` (the view frame of :mod:`genre_backend.frame`).
-    Returns (B, 1, N, N, N) bool with N = ``resolution``: voxel ``(ix, iy, iz)`` is True when its centre
-    projects (:func:`genre_backend.frame.view_to_pixels`) into a pixel of ``mask`` that is True.  Centres
-    that project outside the image, or lie at or behind the camera, are False.  No object point can lie
-    in a False voxel's centre, so the surface is carved there (``GeometryConfig.silhouette_carve``).
+    width:  voxels over which the ramp rises from 0 to 1, centred on the outline.
+    Returns (B, 1, N, N, N) float32 with N = ``resolution``: ``clip(0.5 + d / width, 0, 1)``, with ``d`` the
+    signed distance (in voxels at the centre's depth, + inside) from the centre's projection
+    (:func:`genre_backend.frame.view_to_pixels`) to the mask's outline: the pixel centres' exact Euclidean
+    distances to the outline (which runs along pixel edges), interpolated bilinearly.  No object point can lie
+    where the ramp is 0 (a one-view visual hull); ``min(probability, ramp)`` carves the refiner's output to
+    the outline with a surface that follows it smoothly instead of in voxel steps
+    (``GeometryConfig.silhouette_carve``).  Centres beyond the image's edge take its border's value;
+    centres at or behind the camera are 0.
     """
     from ..frame import view_to_pixels
 
     check_tensor("mask", mask, ("B", "S", "S"), floating=False)
     check_positive_int("resolution", resolution)
+    if not (math.isfinite(width) and width > 0):
+        raise ValueError(f"width: expected a positive number of voxels, got {width!r}")
     size = mask.shape[-1]
-    c = voxel_centres(resolution, device=mask.device)
+    sd = torch.from_numpy(np.stack([_signed_pixel_distance(m) for m in mask.bool().cpu().numpy()]))[:, None]
+    c = voxel_centres(resolution)
     centres = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1)  # (N, N, N, 3): view x, y, z
     uv, depth = view_to_pixels(centres, camera, size)
-    cell = torch.floor(uv).long()
-    seen = ((cell >= 0) & (cell < size)).all(dim=-1) & (depth > 0)
-    cell = cell.clamp(0, size - 1)
-    inside = mask.bool()[:, cell[..., 1], cell[..., 0]]  # rows are v, columns u
-    return (inside & seen)[:, None]
+    grid = (uv / size * 2.0 - 1.0).reshape(1, -1, 1, 2).expand(mask.shape[0], -1, -1, -1)
+    d_px = torch.nn.functional.grid_sample(sd, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    d_px = d_px.view(mask.shape[0], 1, resolution, resolution, resolution)
+    d_vox = d_px * (depth / camera.focal_px(size) * resolution)  # a pixel spans depth/f world units, a voxel 1/N
+    ramp = (0.5 + d_vox / width).clamp(0.0, 1.0)
+    return torch.where(depth > 0, ramp, torch.zeros_like(ramp)).to(mask.device)
 
 
-def silhouette_voxels_reference(mask: torch.Tensor, camera, resolution: int) -> torch.Tensor:
-    """Plain-loop reference of :func:`silhouette_voxels`: the pinhole projection written out per voxel."""
+def silhouette_ramp_reference(mask: torch.Tensor, camera, resolution: int, width: float = 1.0) -> torch.Tensor:
+    """Plain-loop reference of :func:`silhouette_ramp`: brute-force distances, the pinhole and the bilinear
+    interpolation written out per voxel."""
     check_tensor("mask", mask, ("B", "S", "S"), floating=False)
     n, size = resolution, mask.shape[-1]
     f = camera.lens_mm / camera.sensor_mm * size
-    out = torch.zeros(mask.shape[0], 1, n, n, n, dtype=torch.bool)
-    for ix in range(n):
-        for iy in range(n):
-            for iz in range(n):
-                x, y, z = ((ix + 0.5) / n - 0.5, (iy + 0.5) / n - 0.5, (iz + 0.5) / n - 0.5)
-                d = camera.distance - z  # planar depth: the camera looks down −z from (0, 0, distance)
-                if d <= 0:
-                    continue
-                col, row = math.floor(x * f / d + size / 2.0), math.floor(-y * f / d + size / 2.0)
-                if 0 <= col < size and 0 <= row < size:
-                    for b in range(mask.shape[0]):
-                        out[b, 0, ix, iy, iz] = bool(mask[b, row, col])
-    return out
+    out = torch.zeros(mask.shape[0], 1, n, n, n, dtype=torch.float64)
+    for b in range(mask.shape[0]):
+        m = mask[b].bool().tolist()
+        cells = [(r, c) for r in range(size) for c in range(size)]
+        sd = [[0.0] * size for _ in range(size)]
+        for r, c in cells:  # the nearest pixel centre on the other side, less half a pixel
+            other = [math.hypot(r - r2, c - c2) for r2, c2 in cells if m[r2][c2] != m[r][c]]
+            d = (min(other) - 0.5) if other else 0.0
+            sd[r][c] = d if m[r][c] else -d
+        for ix in range(n):
+            for iy in range(n):
+                for iz in range(n):
+                    x, y, z = ((ix + 0.5) / n - 0.5, (iy + 0.5) / n - 0.5, (iz + 0.5) / n - 0.5)
+                    depth = camera.distance - z  # planar depth: the camera looks down −z from (0, 0, distance)
+                    if depth <= 0:
+                        continue
+                    # pixel-centre coordinates of the projection (centres at integer + 0.5), clamped to the border
+                    u = min(max(x * f / depth + size / 2.0 - 0.5, 0.0), size - 1.0)
+                    v = min(max(-y * f / depth + size / 2.0 - 0.5, 0.0), size - 1.0)
+                    c0, r0 = min(int(u), size - 2), min(int(v), size - 2)
+                    a, bb = u - c0, v - r0
+                    d_px = ((1 - a) * (1 - bb) * sd[r0][c0] + a * (1 - bb) * sd[r0][c0 + 1]
+                            + (1 - a) * bb * sd[r0 + 1][c0] + a * bb * sd[r0 + 1][c0 + 1])
+                    d_vox = d_px * depth / f * n
+                    out[b, 0, ix, iy, iz] = min(max(0.5 + d_vox / width, 0.0), 1.0)
+    return out.float()

@@ -36,7 +36,7 @@ from ..io import DEFAULT_WEIGHTS_NAME, named_weights
 from ..validation import check_hole_closing, check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
 from ..geometry.mesh_voxels import fill_enclosed, onto_surface, voxels_to_mesh
-from ..geometry.voxels import silhouette_voxels
+from ..geometry.voxels import silhouette_ramp
 from ..nets.model import GenRe, WeightsError, load_model
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
@@ -401,9 +401,10 @@ class Reconstructor:
         net's silhouette as it is.  ``hole_closing`` (voxels, 0-8): gaps in
         the distance tube up to about twice this across are sealed
         (:func:`..geometry.mesh_voxels.fill_enclosed`; default: the config's
-        ``hole_closing``; ignored by shell weights).  ``silhouette_carve``: empty
-        every voxel whose centre falls outside the mask before the mesh is made
-        (:func:`..geometry.voxels.silhouette_voxels`; default: the config's).  Raises
+        ``hole_closing``; ignored by shell weights).  ``silhouette_carve``: cap the
+        probability by the mask's outline ramp before the mesh is made, so nothing
+        sticks out past the outline
+        (:func:`..geometry.voxels.silhouette_ramp`; default: the config's).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
@@ -459,7 +460,7 @@ class Reconstructor:
             stage("mesh")
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
             if silhouette_carve:
-                prob = prob * silhouette_voxels(mask.cpu(), model.config.camera, prob.shape[-1])[0, 0]
+                prob = torch.minimum(prob, silhouette_ramp(mask.cpu(), model.config.camera, prob.shape[-1])[0, 0])
             if model.config.geometry.target == "distance":
                 prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
             vertices, faces = voxels_to_mesh(prob, threshold)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import torch
 
 from genre_backend.config import GenreConfig
-from genre_backend.geometry.voxels import silhouette_voxels
+from genre_backend.geometry.voxels import silhouette_ramp
 from genre_backend.nets.model import GenRe, WeightsError
 
 from .protocol import REPRESENTATION, ROWS
@@ -95,10 +95,10 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
         logits = m.refine(m.sph_voxels(sph), m.depth_voxels(pred_depth))
         out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu()}
     if m.config.geometry.silhouette_carve:  # every learned row alike (the truth is left as it is)
-        inside = silhouette_voxels(mask.cpu(), m.config.camera, m.config.geometry.voxel_size)[0, 0]
+        ramp = silhouette_ramp(mask.cpu(), m.config.camera, m.config.geometry.voxel_size)[0, 0]
         for row in out.values():
             if isinstance(row, dict) and "prob" in row:
-                row["prob"] = row["prob"] * inside
+                row["prob"] = torch.minimum(row["prob"], ramp)
     if REPRESENTATION in models.wanted:
         out[REPRESENTATION] = {"prob": sample["voxels"]}
     if models.nearest is not None:
