@@ -101,16 +101,22 @@ def _read(path):
         return list(csv.DictReader(fh))
 
 
-def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_one(tiny):
+def _tiny_genre_completion_and_a_view(tiny):
+    """The tiny run's GenRe and 3D Completion, and one evaluation sample of its table."""
     from genre_backend.nets.model import load_model
     from training.data.dataset import ViewDataset, ViewRef
-    from training.eval.rows import Models, predict
     from training.learn.baselines import load_baseline
 
     _, views, run = tiny
     genre = load_model(run / "refine" / "final.safetensors")
     completion = load_baseline(run / "completion" / "final.safetensors", "completion")
-    sample = ViewDataset([ViewRef(views / "table", 0)], genre.config).sample(0, None)
+    return genre, completion, ViewDataset([ViewRef(views / "table", 0)], genre.config).sample(0, None)
+
+
+def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_one(tiny):
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
     out = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
     rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
     with torch.no_grad():
@@ -130,16 +136,10 @@ def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_no
     import dataclasses
 
     from genre_backend.geometry.voxels import silhouette_ramp
-    from genre_backend.nets.model import load_model
-    from training.data.dataset import ViewDataset, ViewRef
     from training.eval.protocol import REPRESENTATION
     from training.eval.rows import Models, predict
-    from training.learn.baselines import load_baseline
 
-    _, views, run = tiny
-    genre = load_model(run / "refine" / "final.safetensors")
-    completion = load_baseline(run / "completion" / "final.safetensors", "completion")
-    sample = ViewDataset([ViewRef(views / "table", 0)], genre.config).sample(0, None)
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
     plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
     genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(genre.config.geometry, silhouette_carve=True))
     carved = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
