@@ -13,7 +13,7 @@ reported and cancelled:
 ``inpaint``    inpainting net → full spherical map
 ``voxels``     both back-projections → two voxel grids
 ``refine``     refiner → surface-shell logits
-``mesh``       marching cubes on sigmoid(logits) at the threshold
+``mesh``       (outline trim,) marching cubes on sigmoid(logits) at the level
 ``write``      mesh export (done by :meth:`Reconstruction.save_mesh`)
 =============  ==========================================================
 
