@@ -114,7 +114,7 @@ class GeometryConfig:
     # a ramp that falls from 1 to 0 across the object's outline (one voxel wide, 0.5 on the outline)
     # before the mesh is made, in reconstruction and in evaluation (every learned row alike; never
     # in training).  The refiner's blur spills past the outline the photo shows.  On 31 seen-test
-    # views (protocol weights, true masks) GenRe's CD at t = 0.45 / 0.55 went 0.1012 / 0.0986 →
+    # views (the hit-head protocol weights, true masks) GenRe's CD at t = 0.45 / 0.55 went 0.1012 / 0.0986 →
     # 0.0959 / 0.0947; emptying the voxels whose centre falls outside the mask did as well (0.0960
     # / 0.0945) but cut the sides into voxel steps; widening that mask by 1 px kept less (0.0978 at
     # 0.55), narrowing it by 1 px lost thin parts (0.1033).  Weights stored without the key: off.
