@@ -19,7 +19,9 @@ normalised):
   baseline, the predicted depth less its offset from the truth (the view's
   median error): the object's distance against the surface's shape;
 * GenRe with the refiner's spherical channel emptied (zeros): how much the
-  refiner leans on the inpainted map at all;
+  refiner leans on the inpainted map at all; GenRe trimmed to the outline
+  (``geometry.silhouette_carve``; the plain GenRe row is never trimmed,
+  whatever the weights say);
 * the depth net's error inside the true mask, taken apart: its median absolute
   value, what is left after removing the view's median offset (the object's
   distance), and after removing the best-fitting plane (offset and tilt:
@@ -60,6 +62,7 @@ from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, sample_seen_test_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 from genre_backend.geometry.spherical import crop_sph, pad_sph  # noqa: E402
+from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
 
@@ -183,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
             if both.any():  # (a view whose unseen part the map calls empty has none)
                 maps.setdefault("inpainted map: MSE on unseen true hits", []).append(float(((genre["full_sph"] - full) ** 2)[both].mean()))
             add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target, model.config.geometry))
+            ramp = silhouette_ramp(mask, model.config.camera, model.config.geometry.voxel_size)[0, 0]
+            add("GenRe, trimmed to the outline", score_grid(torch.minimum(torch.sigmoid(genre["logits"])[0, 0], ramp),
+                                                            thresholds, target, model.config.geometry))
     print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
           f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")
     for name, per_t in scores.items():

@@ -263,9 +263,9 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
                           "depth |error| less its offset", "depth |error| less its plane",
                           "inpainted map: hit/no-hit as the tru", "inpainted map: MSE on unseen true hi",
                           "true map: share of no-hit pixels", "inpainted map: share of hit pixels",
-                          "GenRe, spherical channel emptied", "GenRe, depth offset removed",
+                          "GenRe, spherical channel emptied", "GenRe, depth offset removed", "GenRe, trimmed to the outline",
                           "3D Completion <- true depth", "3D Completion, depth offset removed", "3D Completion"}
-    for row in ("GenRe, spherical channel emptied", "GenRe, depth offset removed", "3D Completion <- true depth",
+    for row in ("GenRe, spherical channel emptied", "GenRe, depth offset removed", "GenRe, trimmed to the outline", "3D Completion <- true depth",
                 "3D Completion, depth offset removed", "3D Completion"):
         assert 0.0 < float(lines[row].split(": ")[1]) <= EMPTY_CD, row  # scored (an empty grid scores EMPTY_CD)
     # the representation's own error of a box at the tiny preset's voxel size: a fraction of a voxel, finite
