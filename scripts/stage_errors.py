@@ -94,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hit-levels", default="0.1,0.2,0.3,0.5",
                    help="the hit head's decision levels (geometry.sph_hit_probability) to sweep: the inpainted map, from "
                         "the true depth and from GenRe's own, projected at each (hit-head weights only)")
+    p.add_argument("--groups", default="test", choices=("test", "product-test"),
+                   help="which views: 'test' (seen-test, for the protocol weights) or 'product-test' (the product "
+                        "model's held-out split, e.g. $GENRE_HOME/views/primitives_eval)")
     p.add_argument("--completion", default=None,
                    help="a 3D Completion baseline's weights (OUT/completion/best.safetensors): adds its rows")
     args = p.parse_args(argv)
@@ -114,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--hit-levels: every level must be in (0, 1), got {args.hit_levels}")
     try:
         views = sample_seen_test_views(Path(args.views), Path(args.manifest) if args.manifest else None,
-                                       args.views_count, args.seed)
+                                       args.views_count, args.seed, groups=(args.groups,))
     except FileNotFoundError as exc:
         p.error(str(exc))
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)
@@ -189,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             ramp = silhouette_ramp(mask, model.config.camera, model.config.geometry.voxel_size)[0, 0]
             add("GenRe, trimmed to the outline", score_grid(torch.minimum(torch.sigmoid(genre["logits"])[0, 0], ramp),
                                                             thresholds, target, model.config.geometry))
-    print(f"{len(views)} seen-test views; mean CD (1,024 points) per threshold; "
+    print(f"{len(views)} {'seen-test' if args.groups == 'test' else args.groups} views; mean CD (1,024 points) per threshold; "
           f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")
     for name, per_t in scores.items():
         print(f"{name:36s} " + "  ".join(f"t={t:.2f}: {np.mean(v):.4f}" for t, v in per_t.items()))

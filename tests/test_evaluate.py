@@ -287,6 +287,24 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
     assert 0.01 < mod.depth_error_parts(true + bump, true, mask)["depth |error| less its plane"] < 0.1
 
 
+def test_diagnostics_sample_seen_test_or_product_test_views_only(tiny, tmp_path):
+    from training.eval.protocol import sample_seen_test_views
+
+    root, views, _ = tiny
+    manifest = tmp_path / "manifest.json"  # the box held out of the product's training, the table trained on
+    manifest.write_text(json.dumps({"shapes": [
+        {"id": "box", "class": "chair", "split": "test", "groups": ["test", "product-test"]},
+        {"id": "table", "class": "table", "split": "unseen", "groups": ["unseen", "product-train"]}]}))
+    assert [v.shape_dir.name for v in sample_seen_test_views(views, manifest, 5)] == ["box"]
+    assert [v.shape_dir.name for v in sample_seen_test_views(views, manifest, 5, groups=("product-test",))] == ["box"]
+    manifest.write_text(json.dumps({"shapes": [
+        {"id": "box", "class": "chair", "split": "test", "groups": ["test", "product-train"]},
+        {"id": "table", "class": "table", "split": "unseen", "groups": ["unseen", "product-test"]}]}))
+    assert [v.shape_dir.name for v in sample_seen_test_views(views, manifest, 5, groups=("product-test",))] == ["table"]
+    with pytest.raises(ValueError, match="unseen"):  # the unseen classes stay out of every diagnostic
+        sample_seen_test_views(views, manifest, 5, groups=("unseen",))
+
+
 def test_score_grid_sweeps_the_configured_range():
     import trimesh
 

@@ -166,11 +166,19 @@ def test_recipes_validate_their_values():
     assert all(s.depth_weight == 0.0 for r in RECIPES.values() for name, s in r.stages.items() if not (r.name.startswith("product") and name == "joint"))
     with pytest.raises(ValueError, match="unknown recipe"):
         get_recipe("fast")
-    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}, {"lr": 1e-3, "lr_halflife": -1}):
+    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}, {"lr": 1e-3, "lr_halflife": -1}, {"lr": 1e-3, "sph_teacher": 1.1}, {"lr": 1e-3, "depth_dropout": -0.1}, {"lr": 1e-3, "depth_dropout": True}):
         with pytest.raises(ValueError):
             StageRecipe(**bad)
     with pytest.raises(SystemExit):
         main(["refine", "--data", "d", "--out", "o", "--lr", "-1", "--dry-run"])
+    # the refiner's input choices belong to the stages that have those inputs
+    assert TrainConfig(stage="refine", data="d", out="o", sph_teacher=0.5, depth_dropout=0.5).sph_teacher == 0.5
+    assert TrainConfig(stage="joint", data="d", out="o", depth_dropout=0.5).depth_dropout == 0.5
+    with pytest.raises(ValueError, match="sph_teacher"):
+        TrainConfig(stage="joint", data="d", out="o", sph_teacher=0.5)
+    with pytest.raises(ValueError, match="depth_dropout"):
+        TrainConfig(stage="inpaint", data="d", out="o", depth_dropout=0.5)
+    assert all(s.sph_teacher == 0.0 and s.depth_dropout == 0.0 for r in RECIPES.values() for s in r.stages.values())
 
 
 def test_a_recipe_grows_the_refiner_of_its_init_weights(tiny_views, tmp_path):

@@ -81,6 +81,41 @@ def test_joint_depth_weight_adds_exactly_the_depth_loss(tiny_views):
     assert torch.allclose(weighted - plain, 2.5 * own, rtol=1e-5, atol=1e-6)
 
 
+def test_refiner_input_choices_change_exactly_the_chosen_samples_in_training_only(tiny_views):
+    """depth_dropout empties the depth voxels and sph_teacher feeds the true full map, per sample by its coin."""
+    from genre_backend.geometry.spherical import crop_sph, pad_sph
+    from training.data.dataset import ViewDataset, find_views
+    from training.learn.train import StepBatches
+
+    data = ViewDataset(find_views(tiny_views), TINY)
+    batches = StepBatches(data, 2, 0, 1, seed=0)
+    batch = batches[3]
+    assert batch["coin"].shape == (2, 2) and torch.equal(batch["coin"], batches[3]["coin"])  # a function of (seed, step)
+    assert not torch.equal(batch["coin"], batches[4]["coin"])
+    model = GenRe(TINY).eval()
+
+    def refine_loss(module, vox_sph, vox_depth):
+        return module.voxel_loss(model.refine(vox_sph, vox_depth), batch)[0]
+
+    with torch.no_grad():
+        depth = model.masked_depth(model.depth_net(batch["rgb"])["depth"], batch["mask"])
+        pad = TINY.geometry.sph_pad
+        inpainted = crop_sph(model.inpaint_net.forward_parts(pad_sph(model.partial_sph(depth)[:, None], pad))["map"], pad)[:, 0]
+        vox_depth, vox_inpainted, vox_true = model.depth_voxels(depth), model.sph_voxels(inpainted), model.sph_voxels(batch["full_sph"])
+        batch["coin"] = torch.tensor([[0.1, 0.9], [0.9, 0.1]])  # sample 0 takes the true map, sample 1 loses its depth
+        chosen = StageModule(model, "refine", 0.1, sph_teacher=0.5, depth_dropout=0.5)
+        chosen.train()
+        for m in (model.depth_net, model.inpaint_net, model.refiner):
+            m.eval()  # (the refiner's batch norm as in evaluation, so that the two losses compare)
+        got = chosen(batch)[0]
+        keep = torch.tensor([1.0, 0.0]).view(2, 1, 1, 1, 1)
+        want = refine_loss(chosen, torch.cat([vox_true[:1], vox_inpainted[1:]]), vox_depth * keep)
+        assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
+        assert not torch.allclose(got, refine_loss(chosen, vox_inpainted, vox_depth), rtol=1e-4)
+        chosen.eval()  # validation: every input as it is
+        assert torch.allclose(chosen(batch)[0], refine_loss(chosen, vox_inpainted, vox_depth), rtol=1e-5, atol=1e-6)
+
+
 def test_several_views_folders_and_processor_time_that_accumulates(tiny_views, tmp_path):
     run = tmp_path / "run"
     s = train(_cfg("joint", tiny_views, run, data=[str(tiny_views), str(tiny_views)], steps=3, depth_weight=1.0), TINY)

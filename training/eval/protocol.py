@@ -107,12 +107,15 @@ def find_eval_views(roots: list[Path], manifest: dict | None, groups: tuple[str,
     return out
 
 
-def sample_seen_test_views(views_dir: Path, manifest_path: Path | None, count: int, seed: int = 0) -> list[EvalView]:
+def sample_seen_test_views(views_dir: Path, manifest_path: Path | None, count: int, seed: int = 0,
+                           groups: tuple[str, ...] = ("test",)) -> list[EvalView]:
     """A seeded sample of ``count`` seen-test views (one per shape), in their sorted order, for the diagnostics scripts.
 
     Seen-test only: what the diagnostics show is used to change the model, and
-    the unseen classes must stay untouched by such choices.  Raises
-    FileNotFoundError when there is none.
+    the unseen classes must stay untouched by such choices.  ``groups`` may
+    name the product model's own test split instead (``("product-test",)``:
+    the product model trains on every class, and its rule is that split's
+    mean).  Raises FileNotFoundError when there is none.
     """
     import json
 
@@ -122,9 +125,12 @@ def sample_seen_test_views(views_dir: Path, manifest_path: Path | None, count: i
         from training.data.corpus import data_dir
 
         manifest_path = data_dir() / "corpus" / "manifest.json"
-    views = find_eval_views([Path(views_dir)], json.loads(Path(manifest_path).read_text()), ("test",), max_views=1)
+    bad = [g for g in groups if g not in ("test", "product-test")]
+    if bad:
+        raise ValueError(f"groups: the diagnostics look at 'test' (seen-test) or 'product-test' views only, got {bad}")
+    views = find_eval_views([Path(views_dir)], json.loads(Path(manifest_path).read_text()), tuple(groups), max_views=1)
     if not views:
-        raise FileNotFoundError(f"no seen-test views under {views_dir}")
+        raise FileNotFoundError(f"no {'/'.join(groups)} views under {views_dir}")
     pick = np.random.default_rng(seed).choice(len(views), min(count, len(views)), replace=False)
     return [views[i] for i in sorted(pick)]
 

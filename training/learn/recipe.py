@@ -49,6 +49,11 @@ class StageRecipe:
     ``photo_fraction``: the share of samples composited over real photographs,
     with a camera's faults on every sample (the depth stage; 0 = the renders
     as they are; :mod:`training.data.dataset`).
+    ``sph_teacher`` (the refine stage): the share of training samples whose
+    spherical input is the true full map instead of the inpainted one.
+    ``depth_dropout`` (refine, joint): the share of training samples whose
+    depth voxels are emptied, so that the refiner must build them from the
+    spherical channel alone.  Neither touches validation or inference.
     """
 
     lr: float
@@ -61,6 +66,8 @@ class StageRecipe:
     sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
     depth_weight: float = 0.0  # the joint stage: the depth net's own loss (depth + silhouette) added with this weight
     lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
+    sph_teacher: float = 0.0
+    depth_dropout: float = 0.0
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -74,8 +81,10 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1), got {getattr(self, name)!r}")
         if not (math.isfinite(self.surface_weight) and self.surface_weight >= 0):
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
-        if not 0.0 <= self.photo_fraction <= 1.0:
-            raise ValueError(f"photo_fraction: expected a number in [0, 1], got {self.photo_fraction!r}")
+        for name in ("photo_fraction", "sph_teacher", "depth_dropout"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
             raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
         if not (math.isfinite(self.depth_weight) and self.depth_weight >= 0):

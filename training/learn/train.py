@@ -93,6 +93,8 @@ class TrainConfig:
     sph_loss: str | None = None
     depth_weight: float | None = None
     lr_halflife: int | None = None
+    sph_teacher: float | None = None  # refine: the share of samples fed the true full map (teacher forcing)
+    depth_dropout: float | None = None  # refine, joint: the share of samples whose depth voxels are emptied
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     refiner_full_nf: int | None = None  # the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the recipe's, else the model's
     # the inpainting net's head (NetworkConfig.inpaint_head); None: the model's.  Another head than the
@@ -122,6 +124,10 @@ class TrainConfig:
         resolved = dataclasses.replace(recipe.stage(self.stage), **given)  # (validates the values)
         for k in StageRecipe.keys():
             setattr(self, k, getattr(resolved, k))
+        if self.sph_teacher > 0 and self.stage != "refine":
+            raise ValueError(f"sph_teacher: only the refine stage feeds the true map, not {self.stage!r}")
+        if self.depth_dropout > 0 and self.stage not in ("refine", "joint"):
+            raise ValueError(f"depth_dropout: only the refine and joint stages have depth voxels to empty, not {self.stage!r}")
         if isinstance(self.data, (list, tuple)):
             if not self.data:
                 raise ValueError("data: expected at least one views folder")
@@ -150,10 +156,17 @@ class TrainConfig:
 class StageModule(nn.Module):
     """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
 
-    def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0):
+    def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
+                 sph_teacher: float = 0.0, depth_dropout: float = 0.0):
         super().__init__()
         self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
         self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
+        if sph_teacher > 0 and stage != "refine":
+            raise ValueError(f"sph_teacher: only the refine stage feeds the true map (stage {stage!r})")
+        if depth_dropout > 0 and stage not in ("refine", "joint"):
+            raise ValueError(f"depth_dropout: only the refine and joint stages have depth voxels to empty (stage {stage!r})")
+        # training batches only (StepBatches' per-sample "coin"): validation and inference see every input as it is
+        self.sph_teacher, self.depth_dropout = sph_teacher, depth_dropout
         self.baseline = None
         if stage in BASELINE_STAGES:
             from .baselines import CompletionBaseline, OneStepNet
@@ -264,7 +277,12 @@ class StageModule(nn.Module):
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
             sph_parts = m.inpaint_net.forward_parts(pad_sph(partial[:, None], pad))
             full = crop_sph(sph_parts["map"], pad)[:, 0]
+            if self.training and "coin" in batch and self.sph_teacher > 0:
+                full = torch.where((batch["coin"][:, 0] < self.sph_teacher)[:, None, None], batch["full_sph"], full)
             vox_sph, vox_depth = m.sph_voxels(full), m.depth_voxels(depth)
+        if self.training and "coin" in batch and self.depth_dropout > 0:
+            keep = (batch["coin"][:, 1] >= self.depth_dropout).to(vox_depth.dtype)
+            vox_depth = vox_depth * keep.view(-1, *([1] * (vox_depth.dim() - 1)))
         logits = m.refine(vox_sph, vox_depth)
         loss, terms = self.voxel_loss(logits, batch)
         if self.stage == "joint":
@@ -303,7 +321,11 @@ class StepBatches(torch.utils.data.Dataset):
     def __getitem__(self, step: int) -> dict[str, torch.Tensor]:
         first = (step * self.world + self.rank) * self.batch
         samples = [self.data.sample(self._index(g), _mix(self.seed, g, 1)) for g in range(first, first + self.batch)]
-        return {k: torch.stack([s[k] for s in samples]) for k in samples[0]}
+        out = {k: torch.stack([s[k] for s in samples]) for k in samples[0]}
+        # two uniform numbers per sample for the stage's per-sample choices (StageModule: sph_teacher, depth_dropout)
+        out["coin"] = torch.stack([torch.rand(2, generator=torch.Generator().manual_seed(_mix(self.seed, g, 2)))
+                                   for g in range(first, first + self.batch)])
+        return out
 
 
 def _to(batch, device):
@@ -516,7 +538,8 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         # a change of representation: the nets are the same, the refiner learns the new target
         model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, target=tcfg.target))
     config = model.config
-    module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight).to(device)
+    module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight,
+                         tcfg.sph_teacher, tcfg.depth_dropout).to(device)
     params = [p for p in module.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
 
