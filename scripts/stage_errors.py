@@ -35,8 +35,10 @@ normalised):
   in the inpainted one; for the hit head, the true depth's inpainted map
   projected at several hit-probability levels).
 
-Seen-test views only: what it shows is used to change the model, and the
-unseen classes must stay untouched by such choices.
+Seen classes only: what it shows is used to change the model, and the
+unseen classes must stay untouched by such choices.  ``--groups train`` (on
+the training views) scores the same rows on views the nets were fitted on:
+a gap to seen-test says a stage does not generalise, no gap that it cannot fit.
 
     .venv/bin/python scripts/stage_errors.py --weights protocol --views ~/.cache/genre/views/eval --views-count 8
 
@@ -94,9 +96,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hit-levels", default="0.1,0.2,0.3,0.5",
                    help="the hit head's decision levels (geometry.sph_hit_probability) to sweep: the inpainted map, from "
                         "the true depth and from GenRe's own, projected at each (hit-head weights only)")
-    p.add_argument("--groups", default="test", choices=("test", "product-test"),
-                   help="which views: 'test' (seen-test, for the protocol weights) or 'product-test' (the product "
-                        "model's held-out split, e.g. $GENRE_HOME/views/primitives_eval)")
+    p.add_argument("--groups", default="test", choices=("test", "product-test", "train"),
+                   help="which views: 'test' (seen-test, for the protocol weights), 'product-test' (the product "
+                        "model's held-out split, e.g. $GENRE_HOME/views/primitives_eval) or 'train' (the seen "
+                        "classes' training views, $GENRE_HOME/views/default: fitting against generalising)")
     p.add_argument("--completion", default=None,
                    help="a 3D Completion baseline's weights (OUT/completion/best.safetensors): adds its rows")
     args = p.parse_args(argv)

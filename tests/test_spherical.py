@@ -186,3 +186,28 @@ def test_cached_directions_made_during_inference_still_work_with_autograd():
     points, _ = sph_to_points(sph, supersample=1)
     points.sum().backward()
     assert sph.grad is not None and torch.isfinite(sph.grad).all()
+
+
+def test_mirror_sph_and_mirror_voxels_are_the_reflected_scene():
+    """x → −x of the view frame: the map of the reflected mesh is mirror_sph of the mesh's map, and the
+    voxels of the reflected points are mirror_voxels of the points' voxels (both exact)."""
+    import trimesh
+
+    from genre_backend.geometry.spherical import mesh_to_sph, mirror_sph
+    from genre_backend.geometry.voxels import mirror_voxels, points_to_voxels
+
+    mesh = trimesh.creation.box(extents=(0.4, 0.3, 0.2))
+    mesh.apply_translation((0.15, 0.05, -0.07))  # off-centre: not its own mirror image (no face through the origin)
+    flip = torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+    verts = torch.tensor(mesh.vertices)
+    faces = torch.tensor(mesh.faces)
+    plain = mesh_to_sph(verts, faces, 32)
+    reflected = mesh_to_sph(verts * flip, faces.flip(-1), 32)
+    assert (plain - reflected).abs().max() > 0.1  # the two maps differ ...
+    assert torch.allclose(mirror_sph(plain), reflected, atol=1e-9)  # ... by the mirror exactly
+    assert torch.equal(mirror_sph(mirror_sph(plain)), plain)
+    points = torch.rand(2, 500, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5
+    grid = points_to_voxels(points, 16)
+    assert torch.allclose(mirror_voxels(grid), points_to_voxels(points * flip, 16), atol=1e-9)
+    with pytest.raises(ValueError, match="N, N, N"):
+        mirror_voxels(torch.zeros(4, 4, 5))

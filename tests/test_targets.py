@@ -156,3 +156,50 @@ def test_a_real_sweet_home_3d_model(tmp_path):
     build_targets(tmp_path / "views", TINY, progress=False)
     for view in (0, 1):
         check_view(tmp_path / "views" / entry.id, view, TINY)
+
+
+def test_a_mirrored_sample_is_the_view_of_the_mirrored_mesh(tmp_path):
+    """mirror_sample (the training augmentation) against Blender: an asymmetric mesh seen from azimuth a,
+    mirrored, must match its mirror image (object x → −x) rendered from azimuth −a, target for target."""
+    from tiny_data import _normalised
+    from training.data.dataset import mirror_sample
+    from training.data.views import ShapeEntry
+    from training.render.scene import BlenderRenderer, render_shape
+
+    body = trimesh.creation.box(extents=(0.5, 0.3, 0.3))
+    arm = trimesh.creation.box(extents=(0.3, 0.1, 0.1))
+    arm.apply_translation((0.35, -0.05, 0.12))  # on +x only, and not centred: no symmetry left
+    post = trimesh.creation.cylinder(radius=0.05, height=0.4, sections=24)
+    post.apply_translation((-0.15, 0.1, 0.2))
+    mesh = _normalised(trimesh.util.concatenate([body, arm, post]))
+    mirrored = trimesh.Trimesh(mesh.vertices * np.array([-1.0, 1.0, 1.0]), mesh.faces[:, ::-1], process=False)
+    (tmp_path / "meshes").mkdir()
+    renderer = BlenderRenderer(TINY, scratch_dir=tmp_path / "scratch")
+    for name, m, azimuth in (("plain", mesh, 35.0), ("mirrored", mirrored, -35.0)):
+        path = tmp_path / "meshes" / f"{name}.ply"
+        m.export(path)
+        render_shape(renderer, ShapeEntry(name, path), [(azimuth, 20.0)], tmp_path / "views", seed=0)
+    build_targets(tmp_path / "views", TINY, progress=False)
+    refs = {r.shape_id: r for r in find_views(tmp_path / "views")}
+    data = ViewDataset([refs["plain"], refs["mirrored"]], TINY)
+    flipped, seen = mirror_sample(data[0]), data[1]
+    both = flipped["mask"] & seen["mask"]
+    assert (flipped["mask"] != seen["mask"]).float().mean() < 0.01
+    assert both.sum() > 300
+    assert (flipped["depth"][both] - seen["depth"][both]).abs().median() < 1e-4
+    # the spherical maps: the partial one from the mirrored depth, the full one from the mirrored mesh
+    for key in ("partial_sph", "full_sph"):
+        hit_a, hit_b = flipped[key] < 1, seen[key] < 1
+        # (measured: 0.9 % of the partial map's pixels, along the depth's jumps that cut triangles; the full map: none)
+        assert (hit_a != hit_b).float().mean() < (0.02 if key == "partial_sph" else 0.002), key
+        assert (flipped[key] - seen[key])[hit_a & hit_b].abs().median() < 1e-4, key
+    assert (flipped["voxels"] - seen["voxels"]).abs().mean() < 1e-3
+    assert ((flipped["voxels"] - seen["voxels"]).abs() > 0.1).float().mean() < 1e-3
+    # not a tautology: the unmirrored sample differs from the mirrored mesh's view
+    assert (data[0]["full_sph"] - seen["full_sph"]).abs().mean() > 20 * (flipped["full_sph"] - seen["full_sph"]).abs().mean()
+    # and the dataset option: mirror=1 mirrors every seeded sample, never the validation (unseeded) ones
+    always = ViewDataset([refs["plain"]], TINY, mirror=1.0)
+    assert torch.equal(always.sample(0, 123)["full_sph"], flipped["full_sph"])
+    assert torch.equal(always.sample(0, None)["full_sph"], data[0]["full_sph"])
+    with pytest.raises(ValueError, match="mirror"):
+        ViewDataset([refs["plain"]], TINY, mirror=1.5)

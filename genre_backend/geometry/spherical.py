@@ -51,6 +51,7 @@ __all__ = [
     "sph_to_voxels",
     "pad_sph",
     "crop_sph",
+    "mirror_sph",
 ]
 
 NO_HIT = 1.0
@@ -363,3 +364,16 @@ def crop_sph(padded: torch.Tensor, pad: int) -> torch.Tensor:
     if pad == 0:
         return padded
     return padded[..., pad:-pad, pad:-pad]
+
+
+def mirror_sph(sph: torch.Tensor) -> torch.Tensor:
+    """The maps (…, H, W) of the scene reflected in the view frame's x = 0 plane (x → −x).
+
+    The reflection maps the direction of azimuth φ to that of −φ, so column
+    ``j`` takes column ``(W − j) mod W``: the seam (column 0, away from the
+    camera) and column W/2 (towards it) stay, left and right swap.  Its own
+    inverse.
+    """
+    check_tensor("sph", sph, ("...", None, None), finite=False)
+    return torch.roll(torch.flip(sph, dims=(-1,)), 1, dims=-1)
+

@@ -22,13 +22,22 @@ import torch
 from ..validation import check_mask, check_positive_int, check_tensor
 
 __all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_ramp", "silhouette_ramp_reference",
-           "voxel_centres"]
+           "voxel_centres", "mirror_voxels"]
 
 
 def voxel_centres(resolution: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
     """Coordinates (N,) of voxel centres along one axis of an N-voxel grid over [-0.5, 0.5]."""
     check_positive_int("resolution", resolution)
     return (torch.arange(resolution, dtype=dtype, device=device) + 0.5) / resolution - 0.5
+
+
+def mirror_voxels(grid: torch.Tensor) -> torch.Tensor:
+    """Grids (…, N, N, N) indexed (x, y, z), as :func:`points_to_voxels` writes them, of the scene
+    reflected in the view frame's x = 0 plane: voxel ``i`` along x takes voxel ``N − 1 − i``
+    (the grid spans [−0.5, 0.5], so the reflection maps voxel centres onto voxel centres)."""
+    if grid.dim() < 3 or not (grid.shape[-1] == grid.shape[-2] == grid.shape[-3]):
+        raise ValueError(f"grid: expected (..., N, N, N), got {tuple(grid.shape)}")
+    return torch.flip(grid, dims=(-3,))
 
 
 def points_to_voxels(points: torch.Tensor, resolution: int, mask: torch.Tensor | None = None) -> torch.Tensor:

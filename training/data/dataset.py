@@ -21,6 +21,13 @@ alpha over a random crop of a real photograph
 (:class:`training.data.photo_backgrounds.BackgroundBank`), and every sample
 then goes through a camera's faults (:func:`photometric`: exposure, white
 balance, blur, sensor noise, JPEG).
+
+**Mirrored samples** (``mirror`` > 0, training only): that share of the
+samples is the view of the scene reflected in the view frame's x = 0 plane
+(:func:`mirror_sample`): the image, depth and mask flipped left to right, the
+spherical maps and voxels reflected with them.  The reflection is exact (the
+camera's principal point is the image centre), so a mirrored sample is a view
+the renderer could have made of the mirrored object, with every target true.
 """
 
 from __future__ import annotations
@@ -32,11 +39,14 @@ import numpy as np
 import torch
 
 from genre_backend.config import GenreConfig
+from genre_backend.geometry.spherical import mirror_sph
+from genre_backend.geometry.voxels import mirror_voxels
 
 from .targets import load_targets
 from .views import ViewRef, find_views, view_paths
 
-__all__ = ["ViewRef", "ViewDataset", "find_views", "split_views", "augment_rgb", "photometric", "composite_alpha"]
+__all__ = ["ViewRef", "ViewDataset", "find_views", "split_views", "augment_rgb", "photometric", "composite_alpha",
+           "mirror_sample"]
 
 # ImageNet RGB PCA (eigenvalues, eigenvectors as columns): the standard "lighting" noise
 _PCA_EIGVAL = torch.tensor([0.2175, 0.0188, 0.0045])
@@ -58,6 +68,27 @@ def split_views(refs: list[ViewRef], val_fraction: float) -> tuple[list[ViewRef]
     train = [r for r in refs if r.shape_id not in val_ids]
     val = [r for r in refs if r.shape_id in val_ids]
     return train, val
+
+
+def mirror_sample(sample: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The sample of the scene reflected in the view frame's x = 0 plane (see the module docstring).
+
+    Images (``rgb`` (3, S, S), ``depth``, ``mask`` (S, S)) flip their columns;
+    spherical maps (``full_sph``, ``partial_sph``) reverse their azimuth
+    (:func:`~genre_backend.geometry.spherical.mirror_sph`); ``voxels``
+    (N, N, N) flip along x (:func:`~genre_backend.geometry.voxels.mirror_voxels`).
+    Other entries are kept.  Its own inverse.
+    """
+    out = dict(sample)
+    for key in ("rgb", "depth", "mask"):
+        if key in out:
+            out[key] = torch.flip(out[key], dims=(-1,))
+    for key in ("full_sph", "partial_sph"):
+        if key in out:
+            out[key] = mirror_sph(out[key])
+    if "voxels" in out:
+        out["voxels"] = mirror_voxels(out["voxels"])
+    return out
 
 
 def augment_rgb(rgb: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
@@ -127,11 +158,13 @@ class ViewDataset(torch.utils.data.Dataset):
     """Samples of a list of views; ``sample(i, seed)`` applies seeded augmentation when ``augment``."""
 
     def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True,
-                 backgrounds=None, photo_fraction: float = 0.0):
+                 backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
         if not 0.0 <= photo_fraction <= 1.0:
             raise ValueError(f"photo_fraction: expected a value in [0, 1], got {photo_fraction}")
+        if isinstance(mirror, bool) or not 0.0 <= mirror <= 1.0:
+            raise ValueError(f"mirror: expected a share in [0, 1], got {mirror!r}")
         if photo_fraction > 0 and backgrounds is None:
             raise ValueError("photo_fraction > 0 needs backgrounds (a BackgroundBank of 'genre data backgrounds')")
         self.refs = list(refs)
@@ -140,6 +173,7 @@ class ViewDataset(torch.utils.data.Dataset):
         self.targets = targets  # False: only rgb, depth and mask (all the depth stage needs)
         self.backgrounds = backgrounds if photo_fraction > 0 else None
         self.photo_fraction = photo_fraction
+        self.mirror = mirror  # the share of seeded samples mirrored (independent of ``augment``: it is geometric)
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -180,4 +214,9 @@ class ViewDataset(torch.utils.data.Dataset):
             sample["full_sph"] = torch.from_numpy(t["full_sph"])
             sample["partial_sph"] = torch.from_numpy(t["partial_sph"])
             sample["voxels"] = torch.from_numpy(t["voxels"])
+        # the mirror's own seeded draw, so that the colour augmentation's stream is the same with or without it
+        if self.mirror > 0 and seed is not None:
+            coin = torch.rand((), generator=torch.Generator().manual_seed((seed * 2654435761 + 97) % (1 << 63)))
+            if float(coin) < self.mirror:
+                sample = mirror_sample(sample)
         return sample

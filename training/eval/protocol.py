@@ -115,7 +115,10 @@ def sample_seen_test_views(views_dir: Path, manifest_path: Path | None, count: i
     the unseen classes must stay untouched by such choices.  ``groups`` may
     name the product model's own test split instead (``("product-test",)``:
     the product model trains on every class, and its rule is that split's
-    mean).  Raises FileNotFoundError when there is none.
+    mean), or the seen classes' *training* views (``("train",)``: what the
+    nets make of views they were fitted on, against seen-test, tells a net
+    that cannot fit from one that does not generalise).  Raises
+    FileNotFoundError when there is none.
     """
     import json
 
@@ -125,9 +128,9 @@ def sample_seen_test_views(views_dir: Path, manifest_path: Path | None, count: i
         from training.data.corpus import data_dir
 
         manifest_path = data_dir() / "corpus" / "manifest.json"
-    bad = [g for g in groups if g not in ("test", "product-test")]
+    bad = [g for g in groups if g not in ("test", "product-test", "train")]
     if bad:
-        raise ValueError(f"groups: the diagnostics look at 'test' (seen-test) or 'product-test' views only, got {bad}")
+        raise ValueError(f"groups: the diagnostics look at 'test' (seen-test), 'product-test' or 'train' views only, got {bad}")
     views = find_eval_views([Path(views_dir)], json.loads(Path(manifest_path).read_text()), tuple(groups), max_views=1)
     if not views:
         raise FileNotFoundError(f"no {'/'.join(groups)} views under {views_dir}")

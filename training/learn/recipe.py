@@ -53,7 +53,10 @@ class StageRecipe:
     spherical input is the true full map instead of the inpainted one.
     ``depth_dropout`` (refine, joint): the share of training samples whose
     depth voxels are emptied, so that the refiner must build them from the
-    spherical channel alone.  Neither touches validation or inference.
+    spherical channel alone.  ``mirror`` (every stage): the share of training
+    samples reflected left to right, targets with them (an exact augmentation:
+    :func:`training.data.dataset.mirror_sample`).  None of the three touches
+    validation or inference.
     """
 
     lr: float
@@ -68,6 +71,7 @@ class StageRecipe:
     lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
     sph_teacher: float = 0.0
     depth_dropout: float = 0.0
+    mirror: float = 0.0
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -81,7 +85,7 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1), got {getattr(self, name)!r}")
         if not (math.isfinite(self.surface_weight) and self.surface_weight >= 0):
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
-        for name in ("photo_fraction", "sph_teacher", "depth_dropout"):
+        for name in ("photo_fraction", "sph_teacher", "depth_dropout", "mirror"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")

@@ -95,6 +95,7 @@ class TrainConfig:
     lr_halflife: int | None = None
     sph_teacher: float | None = None  # refine: the share of samples fed the true full map (teacher forcing)
     depth_dropout: float | None = None  # refine, joint: the share of samples whose depth voxels are emptied
+    mirror: float | None = None  # every stage: the share of training samples reflected left to right
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     refiner_full_nf: int | None = None  # the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the recipe's, else the model's
     # the inpainting net's head (NetworkConfig.inpaint_head); None: the model's.  Another head than the
@@ -572,7 +573,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
             raise ValueError(f"photo_fraction {photo} needs --backgrounds DIR (a 'genre data backgrounds' folder, e.g. $GENRE_HOME/backgrounds)")
         bank = BackgroundBank(tcfg.backgrounds)
     train_set = ViewDataset(train_refs, config, augment=tcfg.augment and (tcfg.stage == "depth" or photo > 0), targets=need_targets,
-                            backgrounds=bank, photo_fraction=photo)
+                            backgrounds=bank, photo_fraction=photo, mirror=tcfg.mirror if tcfg.augment else 0.0)
     val_set = ViewDataset(val_refs, config, targets=need_targets) if val_refs else None
 
     net = module
