@@ -376,4 +376,3 @@ def mirror_sph(sph: torch.Tensor) -> torch.Tensor:
     """
     check_tensor("sph", sph, ("...", None, None), finite=False)
     return torch.roll(torch.flip(sph, dims=(-1,)), 1, dims=-1)
-
