@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from genre_backend.nets.model import GenRe, load_model
+from genre_backend.nets.model import GenRe, load_model, save_model
 from tiny_data import TINY, tiny_train_config
 from training.learn.train import StageModule, train, weights_digest
 
@@ -384,3 +384,28 @@ def test_the_hit_head_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewher
     assert {"sph_hit_bce", "sph_radius_mse", "voxel_bce"} <= set(terms), terms
     with pytest.raises(ValueError, match="train the inpaint stage first"):
         train(_cfg("refine", tiny_views, tmp_path / "other", steps=2, init=str(init), inpaint_head="hit"))
+
+
+def test_photo_compositing_applies_to_the_stage_that_asks_for_it(tiny_views, tmp_path):
+    """--photo-fraction on the refine stage shows the frozen depth net composited images (it was once ignored there)."""
+    from PIL import Image
+
+    folder = tmp_path / "bg"
+    (folder / "images").mkdir(parents=True)
+    rows = []
+    for i, colour in enumerate([(250, 10, 10), (10, 250, 10)]):
+        Image.new("RGB", (64, 48), colour).save(folder / "images" / f"p{i}.jpg", quality=100)
+        rows.append({"file": f"images/p{i}.jpg", "package": "p", "version": "1", "source": f"s{i}", "licence": "CC0-1.0",
+                     "width": 64, "height": 48})
+    (folder / "index.json").write_text(json.dumps({"format": "genre-backgrounds/1", "images": rows}))
+    init = save_model(GenRe(TINY), tmp_path / "init.safetensors")
+    digests = {}
+    for photo in (0.0, 1.0):
+        run = tmp_path / f"photo_{photo}"
+        s = train(_cfg("refine", tiny_views, run, steps=3, init=str(init), augment=True, photo_fraction=photo,
+                       backgrounds=str(folder)))
+        assert s["photo_fraction"] == photo
+        digests[photo] = weights_digest(load_model(run / "refine" / "final.safetensors").refiner)
+    assert digests[0.0] != digests[1.0]
+    with pytest.raises(ValueError, match="needs --backgrounds"):
+        train(_cfg("refine", tiny_views, tmp_path / "nobg", steps=1, init=str(init), augment=True, photo_fraction=0.5))

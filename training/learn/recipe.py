@@ -47,8 +47,9 @@ class StageRecipe:
     ``surface_weight``: the weight of the BCE averaged over the true shell's
     voxels, added to the BCE over the whole grid (voxel stages only).
     ``photo_fraction``: the share of samples composited over real photographs,
-    with a camera's faults on every sample (the depth stage; 0 = the renders
-    as they are; :mod:`training.data.dataset`).
+    with a camera's faults on every sample (any stage: each feeds the image
+    to a net; the recipes set it for depth and joint; 0 = the renders as they
+    are; :mod:`training.data.dataset`).
     ``sph_teacher`` (the refine stage): the share of training samples whose
     spherical input is the true full map instead of the inpainted one.
     ``depth_dropout`` (refine, joint): the share of training samples whose

@@ -563,8 +563,10 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     folders = tcfg.data if isinstance(tcfg.data, list) else [tcfg.data]
     refs = [r for folder in folders for r in find_views(Path(folder), shape_ids, targets=need_targets)]
     train_refs, val_refs = split_views(refs, tcfg.val_fraction)
-    # photo compositing: the stages that train the depth net on photos (the joint stage only when its recipe asks)
-    photo = tcfg.photo_fraction if tcfg.augment and tcfg.stage in ("depth", "joint") else 0.0
+    # photo compositing: every stage feeds the RGB image to a net (the depth net, or the 1-step baseline), so a stage
+    # whose photo_fraction is set composites that share over photographs (the recipes set it for depth and joint;
+    # --photo-fraction on refine shows the frozen depth net photo-like images, as on a user's photo)
+    photo = tcfg.photo_fraction if tcfg.augment else 0.0
     bank = None
     if photo > 0:
         from ..data.photo_backgrounds import BackgroundBank
@@ -665,7 +667,8 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
                 _plot_losses(stage_dir / "log.csv", stage_dir / "loss.png", tcfg.stage)
                 last_ckpt = time.monotonic()
     bar.close()
-    summary = {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": start, "world_size": world, "cpu_s": round(cpu_total(), 1)}
+    summary = {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": start, "world_size": world, "cpu_s": round(cpu_total(), 1),
+               "photo_fraction": photo}
     if rank == 0:
         module.save_weights(stage_dir / "final.safetensors", {"stage": tcfg.stage, "step": tcfg.steps, "cpu_s": round(cpu_total(), 1)})
         if val_set is None:  # no held-out shapes: the final weights are the best we know
