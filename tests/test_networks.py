@@ -223,14 +223,20 @@ def test_hit_head_composes_its_map_from_the_hit_logits_and_the_seen_radius(tmp_p
         dataclasses.replace(TINY.network, inpaint_head="mask")
 
 
-def test_with_inpaint_head_keeps_the_other_nets():
-    from genre_backend.nets.model import with_inpaint_head
+def test_with_inpaint_net_keeps_the_other_nets():
+    from genre_backend.nets.model import with_inpaint_net
     from tiny_data import TINY
 
     model = GenRe(TINY)
-    assert with_inpaint_head(model, "value") is model
-    new = with_inpaint_head(model, "hit")
+    assert with_inpaint_net(model, head="value") is model
+    assert with_inpaint_net(model, widths=TINY.network.inpaint_widths) is model
+    new = with_inpaint_net(model, head="hit")
     assert new.config.network.inpaint_head == "hit"
-    for part in ("depth_net", "refiner"):
-        for k, v in getattr(model, part).state_dict().items():
-            assert torch.equal(v, getattr(new, part).state_dict()[k]), (part, k)
+    wide = with_inpaint_net(model, widths=(16, 32, 64, 128))
+    assert wide.config.network.inpaint_widths == (16, 32, 64, 128) and wide.config.network.inpaint_head == "value"
+    n_params = lambda m: sum(p.numel() for p in m.inpaint_net.parameters())
+    assert n_params(wide) > 3 * n_params(model)  # (conv weights grow with the square of the width)
+    for other in (new, wide):
+        for part in ("depth_net", "refiner"):
+            for k, v in getattr(model, part).state_dict().items():
+                assert torch.equal(v, getattr(other, part).state_dict()[k]), (part, k)

@@ -386,6 +386,27 @@ def test_the_hit_head_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewher
         train(_cfg("refine", tiny_views, tmp_path / "other", steps=2, init=str(init), inpaint_head="hit"))
 
 
+def test_a_wider_inpainting_net_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewhere(tiny_views, tmp_path):
+    """--inpaint-widths: the inpaint stage starts a fresh inpainting net of those widths (the depth net and the
+    refiner kept) and fits four samples; the next stage keeps it; another stage asked for new widths refuses;
+    a malformed value is refused up front."""
+    init = save_model(GenRe(TINY), tmp_path / "init.safetensors")
+    run = tmp_path / "run"
+    s = train(_cfg("inpaint", tiny_views, run, steps=80, lr=1e-3, init=str(init), inpaint_widths="16,32,64,128"))
+    assert s["first_loss"] / s["last_loss"] >= 5, s
+    trained = load_model(run / "inpaint" / "final.safetensors")
+    assert trained.config.network.inpaint_widths == (16, 32, 64, 128)
+    assert weights_digest(trained.depth_net) == weights_digest(load_model(init).depth_net)
+    assert weights_digest(trained.refiner) == weights_digest(load_model(init).refiner)
+    train(_cfg("refine", tiny_views, run, steps=2, init=str(run / "inpaint" / "final.safetensors")))
+    assert load_model(run / "refine" / "final.safetensors").config.network.inpaint_widths == (16, 32, 64, 128)
+    with pytest.raises(ValueError, match="train the inpaint stage first"):
+        train(_cfg("refine", tiny_views, tmp_path / "other", steps=2, init=str(init), inpaint_widths=(16, 32, 64, 128)))
+    for bad in ("16,32,64", "16,32,x,128", "0,32,64,128"):
+        with pytest.raises(ValueError, match="inpaint_widths"):
+            _cfg("inpaint", tiny_views, tmp_path / "bad", inpaint_widths=bad)
+
+
 def test_photo_compositing_applies_to_the_stage_that_asks_for_it(tiny_views, tmp_path):
     """--photo-fraction on the refine stage shows the frozen depth net composited images (it was once ignored there)."""
     from PIL import Image

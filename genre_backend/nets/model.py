@@ -31,7 +31,7 @@ from ..validation import check_tensor
 from ..geometry.voxels import points_to_voxels
 from ..io import WeightsError, load_state_strict, read_weights, save_weights, stored_config
 
-__all__ = ["GenRe", "grow_refiner", "with_inpaint_head", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
+__all__ = ["GenRe", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
 
 WEIGHTS_FORMAT = "genre-weights/1"
 
@@ -116,15 +116,19 @@ def grow_refiner(model: GenRe, full_nf: int) -> GenRe:
     return grown.train(model.training)
 
 
-def with_inpaint_head(model: GenRe, head: str) -> GenRe:
-    """``model`` with a freshly initialised inpainting net of ``head`` (NetworkConfig.inpaint_head).
+def with_inpaint_net(model: GenRe, *, head: str | None = None, widths: tuple[int, int, int, int] | None = None) -> GenRe:
+    """``model`` with a freshly initialised inpainting net of ``head`` and ``widths`` (NetworkConfig).
 
-    The depth net and the refiner are copied.  A model whose inpainting net
-    already has that head is returned as it is.
+    ``None`` keeps the model's value.  The depth net and the refiner are
+    copied.  A model whose inpainting net already has that head and those
+    widths is returned as it is.
     """
-    if model.config.network.inpaint_head == head:
+    net = model.config.network
+    head = net.inpaint_head if head is None else head
+    widths = tuple(net.inpaint_widths) if widths is None else tuple(int(w) for w in widths)
+    if net.inpaint_head == head and tuple(net.inpaint_widths) == widths:
         return model
-    config = dataclasses.replace(model.config, network=dataclasses.replace(model.config.network, inpaint_head=head))
+    config = dataclasses.replace(model.config, network=dataclasses.replace(net, inpaint_head=head, inpaint_widths=widths))
     new = GenRe(config).to(next(model.parameters()).device)
     new.depth_net.load_state_dict(model.depth_net.state_dict())
     new.refiner.load_state_dict(model.refiner.state_dict())

@@ -60,7 +60,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from genre_backend.config import INPAINT_HEADS, PRESETS, TARGETS, GenreConfig, get_preset
-from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model, with_inpaint_head
+from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model, with_inpaint_net
 from genre_backend.geometry.spherical import crop_sph, pad_sph
 from genre_backend.nets.inpaint_net import RADIUS_SCALE
 from genre_backend.io import atomic_write, atomic_write_bytes
@@ -98,9 +98,11 @@ class TrainConfig:
     mirror: float | None = None  # every stage: the share of training samples reflected left to right
     target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
     refiner_full_nf: int | None = None  # the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the recipe's, else the model's
-    # the inpainting net's head (NetworkConfig.inpaint_head); None: the model's.  Another head than the
-    # model's gives a fresh inpainting net at the inpaint stage (nets.model.with_inpaint_head); other stages refuse it.
+    # the inpainting net's head (NetworkConfig.inpaint_head) and its four widths ("32,64,128,256";
+    # NetworkConfig.inpaint_widths); None: the model's.  Another head or other widths than the model's give a
+    # fresh inpainting net at the inpaint stage (nets.model.with_inpaint_net); other stages refuse them.
     inpaint_head: str | None = None
+    inpaint_widths: str | tuple[int, ...] | None = None
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
     val_every: int = 200
@@ -144,6 +146,15 @@ class TrainConfig:
             raise ValueError(f"refiner_full_nf: expected an int >= 0, got {self.refiner_full_nf!r}")
         if self.inpaint_head is not None and self.inpaint_head not in INPAINT_HEADS:
             raise ValueError(f"inpaint_head: expected one of {INPAINT_HEADS}, got {self.inpaint_head!r}")
+        if self.inpaint_widths is not None:
+            given = self.inpaint_widths
+            try:
+                widths = tuple(int(w) for w in (given.split(",") if isinstance(given, str) else given))
+            except (TypeError, ValueError):
+                widths = ()
+            if len(widths) != 4 or min(widths) < 1:
+                raise ValueError(f"inpaint_widths: expected four positive ints (e.g. 32,64,128,256), got {given!r}")
+            self.inpaint_widths = widths
 
     @property
     def learning_rate(self) -> float:
@@ -525,11 +536,18 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     if tcfg.refiner_full_nf is not None:
         # a recipe with a full-resolution refiner branch grows one on weights without it (same output at step 0)
         model = grow_refiner(model, tcfg.refiner_full_nf)
-    if tcfg.inpaint_head is not None and model.config.network.inpaint_head != tcfg.inpaint_head:
+    net_cfg = model.config.network
+    fresh = {}
+    if tcfg.inpaint_head is not None and net_cfg.inpaint_head != tcfg.inpaint_head:
+        fresh["head"] = tcfg.inpaint_head
+    if tcfg.inpaint_widths is not None and tuple(net_cfg.inpaint_widths) != tcfg.inpaint_widths:
+        fresh["widths"] = tcfg.inpaint_widths
+    if fresh:
         if tcfg.stage != "inpaint":
-            raise ValueError(f"the {tcfg.stage} stage needs an inpainting net with the {tcfg.inpaint_head!r} head; "
-                             f"the model has {model.config.network.inpaint_head!r}: train the inpaint stage first")
-        model = with_inpaint_head(model, tcfg.inpaint_head)  # a fresh inpainting net; the other nets kept
+            raise ValueError(f"the {tcfg.stage} stage needs an inpainting net with head {tcfg.inpaint_head or net_cfg.inpaint_head!r} "
+                             f"and widths {tcfg.inpaint_widths or net_cfg.inpaint_widths}; the model has {net_cfg.inpaint_head!r} "
+                             f"and {net_cfg.inpaint_widths}: train the inpaint stage first")
+        model = with_inpaint_net(model, **fresh)  # a fresh inpainting net; the other nets kept
     resumed = _checkpoint_model_config(Path(tcfg.out) / tcfg.stage)
     if resumed is not None and _same_nets(resumed, model.config):
         # a resumed stage keeps the config it was trained with (threshold, target...), whatever --init says
