@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import numpy as np
 import pytest
@@ -13,7 +12,7 @@ from PIL import Image
 from training.data.dataset import ViewDataset, composite_alpha, find_views, photometric
 from training.data.photo_backgrounds import BackgroundBank, licence_for, prepare_backgrounds, read_index
 from training.data.views import write_view
-from tiny_data import TINY
+from tiny_data import TINY, two_colour_backgrounds
 
 DEP5 = """Format: https://www.debian.org/doc/packaging-manuals/copyright-format/1.0/
 
@@ -72,14 +71,7 @@ def test_prepare_keeps_one_image_per_wallpaper_with_its_licence_and_size(tmp_pat
 
 @pytest.fixture()
 def bank(tmp_path):
-    folder = tmp_path / "bg"
-    (folder / "images").mkdir(parents=True)
-    rows = []
-    for i, colour in enumerate([(250, 10, 10), (10, 250, 10)]):
-        Image.new("RGB", (64, 48), colour).save(folder / "images" / f"p{i}.jpg", quality=100)
-        rows.append({"file": f"images/p{i}.jpg", "package": "p", "version": "1", "source": f"s{i}", "licence": "CC0-1.0", "width": 64, "height": 48})
-    (folder / "index.json").write_text(json.dumps({"format": "genre-backgrounds/1", "images": rows}))
-    return BackgroundBank(folder)
+    return BackgroundBank(two_colour_backgrounds(tmp_path / "bg"))
 
 
 def test_bank_crops_are_seeded_and_in_range(bank):

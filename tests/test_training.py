@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from genre_backend.nets.model import GenRe, load_model, save_model
-from tiny_data import TINY, tiny_train_config
+from tiny_data import TINY, tiny_train_config, two_colour_backgrounds
 from training.learn.train import StageModule, train, weights_digest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -409,16 +409,7 @@ def test_a_wider_inpainting_net_is_trained_fresh_at_the_inpaint_stage_and_refuse
 
 def test_photo_compositing_applies_to_the_stage_that_asks_for_it(tiny_views, tmp_path):
     """--photo-fraction on the refine stage shows the frozen depth net composited images (it was once ignored there)."""
-    from PIL import Image
-
-    folder = tmp_path / "bg"
-    (folder / "images").mkdir(parents=True)
-    rows = []
-    for i, colour in enumerate([(250, 10, 10), (10, 250, 10)]):
-        Image.new("RGB", (64, 48), colour).save(folder / "images" / f"p{i}.jpg", quality=100)
-        rows.append({"file": f"images/p{i}.jpg", "package": "p", "version": "1", "source": f"s{i}", "licence": "CC0-1.0",
-                     "width": 64, "height": 48})
-    (folder / "index.json").write_text(json.dumps({"format": "genre-backgrounds/1", "images": rows}))
+    folder = two_colour_backgrounds(tmp_path / "bg")
     init = save_model(GenRe(TINY), tmp_path / "init.safetensors")
     digests = {}
     for photo in (0.0, 1.0):

@@ -59,3 +59,19 @@ def tiny_train_config(stage: str, views: Path, out: Path, **overrides):
     base = dict(stage=stage, data=str(views), out=str(out), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=5)
     base.update(overrides)
     return TrainConfig(**base)
+
+
+def two_colour_backgrounds(folder: Path) -> Path:
+    """A 'genre data backgrounds' folder of two plain photos (red, green; 64×48 JPEG) at ``folder``; returns it."""
+    import json
+
+    from PIL import Image
+
+    (folder / "images").mkdir(parents=True)
+    rows = []
+    for i, colour in enumerate([(250, 10, 10), (10, 250, 10)]):
+        Image.new("RGB", (64, 48), colour).save(folder / "images" / f"p{i}.jpg", quality=100)
+        rows.append({"file": f"images/p{i}.jpg", "package": "p", "version": "1", "source": f"s{i}", "licence": "CC0-1.0",
+                     "width": 64, "height": 48})
+    (folder / "index.json").write_text(json.dumps({"format": "genre-backgrounds/1", "images": rows}))
+    return folder
