@@ -536,18 +536,14 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     if tcfg.refiner_full_nf is not None:
         # a recipe with a full-resolution refiner branch grows one on weights without it (same output at step 0)
         model = grow_refiner(model, tcfg.refiner_full_nf)
-    net_cfg = model.config.network
-    fresh = {}
-    if tcfg.inpaint_head is not None and net_cfg.inpaint_head != tcfg.inpaint_head:
-        fresh["head"] = tcfg.inpaint_head
-    if tcfg.inpaint_widths is not None and tuple(net_cfg.inpaint_widths) != tcfg.inpaint_widths:
-        fresh["widths"] = tcfg.inpaint_widths
-    if fresh:
+    fresh = with_inpaint_net(model, head=tcfg.inpaint_head, widths=tcfg.inpaint_widths)  # the model itself when they match
+    if fresh is not model:
         if tcfg.stage != "inpaint":
-            raise ValueError(f"the {tcfg.stage} stage needs an inpainting net with head {tcfg.inpaint_head or net_cfg.inpaint_head!r} "
-                             f"and widths {tcfg.inpaint_widths or net_cfg.inpaint_widths}; the model has {net_cfg.inpaint_head!r} "
-                             f"and {net_cfg.inpaint_widths}: train the inpaint stage first")
-        model = with_inpaint_net(model, **fresh)  # a fresh inpainting net; the other nets kept
+            want, have = fresh.config.network, model.config.network
+            raise ValueError(f"the {tcfg.stage} stage needs an inpainting net with head {want.inpaint_head!r} and widths "
+                             f"{want.inpaint_widths}; the model has {have.inpaint_head!r} and {have.inpaint_widths}: "
+                             f"train the inpaint stage first")
+        model = fresh  # a fresh inpainting net; the other nets kept
     resumed = _checkpoint_model_config(Path(tcfg.out) / tcfg.stage)
     if resumed is not None and _same_nets(resumed, model.config):
         # a resumed stage keeps the config it was trained with (threshold, target...), whatever --init says
