@@ -153,6 +153,34 @@ def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_no
     assert torch.equal(carved[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
 
 
+def test_weights_that_fuse_the_visible_surface_fill_every_depth_row_from_its_own_depth(tiny):
+    import dataclasses
+
+    from genre_backend.geometry.mesh_voxels import fuse_visible_surface
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    geometry = dataclasses.replace(genre.config.geometry, target="distance")
+    genre.config = dataclasses.replace(genre.config, geometry=geometry)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(geometry, visible_fusion=True))
+    fused = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    mask, depth = sample["mask"], sample["depth"]
+    true_depth = torch.where(mask, depth, torch.zeros_like(depth))
+    with torch.no_grad():
+        own = {"GenRe": genre(sample["rgb"][None], mask=mask[None])["masked_depth"][0],
+               "3D Completion": completion(sample["rgb"][None], mask=mask[None])["masked_depth"][0]}
+    depths = {**own, "GenRe-Oracle": true_depth, "GenRe-SphOracle": true_depth, "3D Completion-Oracle": true_depth}
+    level = geometry.default_threshold
+    for row, d in depths.items():
+        want = fuse_visible_surface(plain[row]["prob"], d, genre.config.camera, genre.config.geometry, level)
+        assert torch.equal(fused[row]["prob"], want), row
+        assert "depth" not in fused[row]
+    assert any(not torch.equal(fused[r]["prob"], plain[r]["prob"]) for r in depths)  # the tiny nets leave holes to fill
+    assert torch.equal(fused[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
+
+
 def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     _, views, _ = tiny
     meta = json.loads((views / "table" / "view_000.json").read_text())

@@ -261,3 +261,64 @@ def test_hole_closing_seals_small_holes_and_keeps_wide_openings():
         GeometryConfig(hole_closing=-1)
     with pytest.raises(ValueError, match="closing"):
         fill_enclosed(grid, level, closing=-1)
+
+
+def _distance_geometry():
+    from genre_backend.config import get_preset
+
+    cfg = get_preset("default")
+    return cfg.camera, dataclasses.replace(cfg.geometry, target="distance")
+
+
+def test_depth_to_distance_of_a_sphere_is_the_distance_to_its_front_cap():
+    from genre_backend.geometry.analytic import sphere_depth
+    from genre_backend.geometry.mesh_voxels import depth_to_distance
+
+    camera, g = _distance_geometry()
+    radius, n = 0.3, g.voxel_size
+    depth = sphere_depth(camera, g.image_size, radius, dtype=torch.float32)[0]
+    grid = depth_to_distance(depth, camera, g)
+    x, y, z = torch.meshgrid(*(voxel_centres(n, dtype=torch.float64),) * 3, indexing="ij")
+    r = torch.sqrt(x * x + y * y + z * z)
+    # voxels near the cap the camera sees (+z faces the camera): the analytic distance to the sphere
+    near = (grid > 0) & (z > 0.1)
+    want = (1.0 - (r - radius).abs() * n / g.distance_band).clamp(0.0, 1.0)
+    err = (grid.double() - want)[near].abs()
+    assert int(near.sum()) > 500 and float(err.median()) < 0.05 and float(err.max()) < 0.3  # a triangulated cap, 0.67 voxel pixels
+    assert float(grid[z < -0.05].max()) == 0.0  # nothing behind: only the visible side
+    # a mask keeps only its pixels' surface; an empty one gives an empty grid
+    left = (depth > 0) & (torch.arange(g.image_size)[None, :] < g.image_size // 2)
+    half = depth_to_distance(depth, camera, g, left)
+    assert float(half[x > 0.05].max()) == 0.0 and float(half[x < -0.05].max()) > 0.9
+    assert float(depth_to_distance(torch.zeros_like(depth), camera, g).max()) == 0.0
+
+
+def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothing_else():
+    from genre_backend.geometry.analytic import sphere_depth
+    from genre_backend.geometry.mesh_voxels import fuse_visible_surface
+    from genre_backend.geometry.voxels import ray_coverage
+
+    camera, g = _distance_geometry()
+    n, radius, level = g.voxel_size, 0.3, g.default_threshold
+    depth = sphere_depth(camera, g.image_size, radius, dtype=torch.float32)[0]
+    x, y, z = torch.meshgrid(*(voxel_centres(n, dtype=torch.float64),) * 3, indexing="ij")
+    r = torch.sqrt(x * x + y * y + z * z)
+    whole = (1.0 - (r - radius).abs() * n / g.distance_band).clamp(0.0, 1.0).float()
+    # a prediction that covers the whole object: returned as it is
+    assert torch.equal(fuse_visible_surface(whole, depth, camera, g, level), whole)
+    # a hole through the front and the back (a tunnel along the view axis, 0.1 wide): filled in front only
+    holed = torch.where((x.abs() < 0.05) & (y.abs() < 0.05), torch.zeros_like(whole), whole)
+    obj = depth > 0
+    lost = obj & ~ray_coverage(holed, level, camera, g.image_size)
+    assert int(lost.sum()) > 50
+    fused = fuse_visible_surface(holed, depth, camera, g, level)
+    assert not (obj & ~ray_coverage(fused, level, camera, g.image_size)).any()
+    assert torch.equal(torch.maximum(fused, holed), fused)  # only ever adds
+    changed = fused != holed
+    assert bool((z[changed] > 0.2).all())  # the patch lies on the front cap, around the hole
+    assert bool(((x[changed].abs() < 0.1) & (y[changed].abs() < 0.1)).all())
+    # the patch is the sphere's own surface: where it was added, the analytic value within a voxel's error
+    assert float((fused - whole)[changed].abs().max()) < 0.35
+    shell = dataclasses.replace(g, target="shell")
+    with pytest.raises(ValueError, match="distance"):
+        fuse_visible_surface(holed, depth, camera, shell, level)

@@ -369,6 +369,38 @@ def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys,
     assert exc.value.code == 2 and "--hole-closing" in capsys.readouterr().err
 
 
+def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photos, tmp_path, capsys, trained):
+    import dataclasses
+
+    from genre_backend.geometry.mesh_voxels import fill_enclosed, fuse_visible_surface
+    from genre_backend.nets.model import load_model
+
+    model = load_model(trained[0])
+    g = model.config.geometry
+    if g.target != "distance":  # the fusion is defined on the distance target only
+        model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(g, target="distance"))
+    rec = Reconstructor.from_model(model)
+    assert rec.config.geometry.visible_fusion is False  # weights stored without the key: off
+    plain = rec.run(photos["rgba"], threshold=0.3)
+    fused = rec.run(photos["rgba"], threshold=0.3, visible_fusion=True)
+    assert (plain.visible_fusion, fused.visible_fusion) == (False, True)
+    inter = fused.intermediates
+    assert torch.equal(inter["logits"], plain.intermediates["logits"])  # the nets are untouched
+    expected = fuse_visible_surface(torch.sigmoid(inter["logits"]), inter["masked_depth"], rec.config.camera, rec.config.geometry, 0.3)
+    expected = torch.from_numpy(fill_enclosed(expected, 0.3, fused.hole_closing))
+    assert torch.allclose(inter["probability"], expected)
+    for bad in (1, "yes"):
+        with pytest.raises(ValueError, match="visible_fusion"):
+            rec.run(photos["rgba"], visible_fusion=bad)
+    shell = dataclasses.replace(model.config.geometry, target="shell")
+    model.config = dataclasses.replace(model.config, geometry=shell)
+    with pytest.raises(ValueError, match="visible_fusion"):
+        Reconstructor.from_model(model).run(photos["rgba"], visible_fusion=True)
+    if g.target == "distance":
+        code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "f.obj", "--weights", trained[0], "--visible-fusion")
+        assert code == 0 and (tmp_path / "f.obj").is_file(), err
+
+
 def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.mesh_voxels import fill_enclosed
     from genre_backend.geometry.voxels import silhouette_ramp

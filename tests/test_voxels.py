@@ -115,3 +115,40 @@ def test_silhouette_ramp_refuses_bad_inputs():
         silhouette_ramp(torch.ones(1, 8, 8, dtype=torch.bool), CameraConfig(), 0)
     with pytest.raises(ValueError):
         silhouette_ramp(torch.ones(1, 8, 8, dtype=torch.bool), CameraConfig(), 8, width=0.0)
+
+
+def _sphere_distance_grid(n: int, radius: float, band: float = 2.0) -> torch.Tensor:
+    """The distance target of a sphere, exactly: clip(1 − |r − radius|·n/band, 0, 1) at the voxel centres."""
+    c = voxel_centres(n, dtype=torch.float64)
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    r = torch.sqrt(x * x + y * y + z * z)
+    return (1.0 - (r - radius).abs() * n / band).clamp(0.0, 1.0).float()
+
+
+def test_ray_coverage_matches_the_marched_reference_and_the_marching_cubes_surface():
+    import numpy as np
+
+    from genre_backend.config import get_preset
+    from genre_backend.geometry.mesh_voxels import voxels_to_mesh
+    from genre_backend.geometry.voxels import ray_coverage, ray_coverage_reference
+    from genre_backend.inference.colour import zbuffer
+
+    camera = get_preset("default").camera
+    # a lumpy grid: two offset spheres' tubes and noise, on a small grid and image (the reference is slow)
+    g = torch.Generator().manual_seed(3)
+    n, size = 12, 20
+    grid = torch.maximum(_sphere_distance_grid(n, 0.3), _sphere_distance_grid(n, 0.15).roll(3, dims=0))
+    grid = (grid + 0.2 * torch.rand(n, n, n, generator=g)).clamp(0.0, 1.0)
+    fast = ray_coverage(grid, 0.6, camera, size).numpy()
+    ref = ray_coverage_reference(grid, 0.6, camera, size)
+    assert 0 < fast.sum() < size * size
+    assert (fast != ref).sum() <= 2, (fast != ref).sum()  # a ray grazing a corner may differ between step sizes
+    # the pixels a marching-cubes mesh of a sphere's tube covers, at the model's sizes
+    sphere = _sphere_distance_grid(64, 0.3)
+    v, f = voxels_to_mesh(sphere, 0.45)
+    drawn = np.isfinite(zbuffer(v, f, camera, 128))
+    seen = ray_coverage(sphere, 0.45, camera, 128).numpy()
+    assert drawn.sum() > 2000 and (drawn != seen).sum() <= 0.01 * drawn.sum()
+    assert not ray_coverage(torch.zeros(64, 64, 64), 0.45, camera, 128).any()
+    with pytest.raises(ValueError, match="level"):
+        ray_coverage(sphere, 1.5, camera, 128)

@@ -25,6 +25,11 @@ view-frame cube ``[-0.5, 0.5]^3``, voxel centre ``(i + 0.5)/N − 0.5``.
   resampling floor CD 0.030, the shell 0.082): plain marching cubes 0.052 at
   t = 0.5 and 0.037 at t = 0.75; moved all the way 0.031 and 0.029; as
   shipped (filled, margin 0.25 voxel) 0.033 and 0.031.
+* :func:`depth_to_distance` is the distance target of the surface a depth
+  map shows (its pixels triangulated, jumps dropped); :func:`fuse_visible_surface`
+  adds it to a predicted grid where the grid leaves a hole in what the camera
+  sees, so that the mesh covers every pixel of the object
+  (``GeometryConfig.visible_fusion``).
 * :func:`voxels_to_mesh` runs marching cubes (scikit-image) and places every
   vertex exactly in the view frame.
 """
@@ -48,6 +53,8 @@ __all__ = [
     "mesh_to_distance",
     "point_mesh_distance_reference",
     "mesh_to_target",
+    "depth_to_distance",
+    "fuse_visible_surface",
     "voxels_to_mesh",
     "grid_to_surface",
     "fill_enclosed",
@@ -224,6 +231,66 @@ def mesh_to_target(vertices: torch.Tensor, faces: torch.Tensor, geometry) -> tor
     if geometry.target == "shell":
         return dilate(surface, geometry.shell_dilation).float()
     return mesh_to_distance(vertices, faces, n, geometry.distance_band, surface=surface)
+
+
+def depth_to_distance(depth: torch.Tensor, camera, geometry, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The distance target (N, N, N) float32 of the surface one depth map shows, in the view frame.
+
+    depth: (S, S) planar depth (background 0); mask: (S, S) bool, optional
+    (default: depth > 0).  Neighbouring pixels are joined into triangles
+    (:func:`..spherical.depth_to_triangles`: a triangle across a depth jump,
+    longer than ``geometry.depth_edge_max_ratio`` pixel footprints, is
+    dropped) and the grid is :func:`mesh_to_distance` of that open sheet, the
+    same truncated distance the refiner is trained to predict.  All zeros when
+    no triangle is left.
+    """
+    from .spherical import depth_to_triangles
+
+    check_tensor("depth", depth, ("S", "S"))
+    tris, _ = depth_to_triangles(depth[None].float(), camera, geometry.depth_edge_max_ratio,
+                                 None if mask is None else mask[None])
+    n = geometry.voxel_size
+    if len(tris) == 0:
+        return torch.zeros((n, n, n), dtype=torch.float32)
+    vertices = tris.reshape(-1, 3).double()
+    faces = torch.arange(len(vertices), dtype=torch.int64).reshape(-1, 3)
+    return mesh_to_distance(vertices, faces, n, geometry.distance_band)
+
+
+def fuse_visible_surface(prob: torch.Tensor, depth: torch.Tensor, camera, geometry, level: float,
+                         grow_px: int = 2) -> torch.Tensor:
+    """A distance-target grid (N, N, N) with the holes in its visible face filled from the depth map.
+
+    prob: (N, N, N) float in [0, 1] (the refiner's sigmoid, carved if the
+    weights carve); depth: (S, S) the masked depth (background 0); ``level``:
+    the iso-level the mesh is made at.  The object's pixels whose ray meets no
+    value above ``level`` (:func:`..voxels.ray_coverage`: a hole through the
+    front face, a part the photo shows left out) are grown by ``grow_px``
+    pixels, so that the patch overlaps the refiner's surface around the hole,
+    and there the depth map's own surface is added: ``max(prob, visible)``
+    (:func:`depth_to_distance`).  Where the refiner's grid covers a pixel
+    nothing changes.  Returns ``prob`` (as float32, on the CPU) when it covers
+    every object pixel.  Only for ``geometry.target == "distance"``.
+    """
+    from scipy import ndimage
+
+    from .voxels import ray_coverage
+
+    if geometry.target != "distance":
+        raise ValueError("fuse_visible_surface: the visible surface is fused only into distance-target grids")
+    n = geometry.voxel_size
+    check_tensor("prob", prob, (n, n, n))
+    check_tensor("depth", depth, ("S", "S"))
+    prob = prob.detach().cpu().float()
+    depth = depth.detach().cpu().float()
+    obj = (depth > 0).numpy()
+    holes = obj & ~ray_coverage(prob, level, camera, depth.shape[-1]).numpy()
+    if not holes.any():
+        return prob
+    if grow_px > 0:
+        holes = ndimage.binary_dilation(holes, np.ones((3, 3), bool), iterations=int(grow_px)) & obj
+    visible = depth_to_distance(depth, camera, geometry, torch.from_numpy(holes))
+    return torch.maximum(prob, visible)
 
 
 def grid_index_to_view(index, resolution: int):

@@ -22,7 +22,7 @@ import torch
 from ..validation import check_mask, check_positive_int, check_tensor
 
 __all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_ramp", "silhouette_ramp_reference",
-           "voxel_centres", "mirror_voxels"]
+           "voxel_centres", "mirror_voxels", "ray_coverage", "ray_coverage_reference"]
 
 
 def voxel_centres(resolution: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -170,3 +170,69 @@ def silhouette_ramp_reference(mask: torch.Tensor, camera, resolution: int, width
                     d_vox = d_px * depth / f * n
                     out[b, 0, ix, iy, iz] = min(max(0.5 + d_vox / width, 0.0), 1.0)
     return out.float()
+
+
+def ray_coverage(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.5) -> torch.Tensor:
+    """Which pixels see the grid: (S, S) bool, True where the ray through the pixel centre meets a value above ``level``.
+
+    grid: (N, N, N) float, indexed ``[ix, iy, iz]`` over the view-frame cube ``[-0.5, 0.5]^3``
+    (voxel centre ``(i + 0.5)/N − 0.5``), interpolated trilinearly and 0 outside the cube.
+    camera: :class:`genre_backend.config.CameraConfig`; S = ``image_size``.  Each ray is sampled
+    every ``step`` voxels of planar depth across the cube (:func:`genre_backend.frame.depth_to_points`),
+    so a region above ``level`` thicker than ``step`` voxels along the ray is never missed: the
+    pixels the marching-cubes surface of the grid covers, less a rim of under a pixel.
+    """
+    from ..frame import depth_to_points
+    from ..validation import check_threshold
+
+    check_tensor("grid", grid, ("N", "N", "N"))
+    check_threshold("level", level)
+    check_positive_int("image_size", image_size)
+    if not (math.isfinite(step) and step > 0):
+        raise ValueError(f"step: expected a positive number of voxels, got {step!r}")
+    n = grid.shape[0]
+    half = math.sqrt(3.0) / 2.0
+    k = int(math.ceil(2.0 * half * n / step)) + 1
+    depths = torch.linspace(camera.distance - half, camera.distance + half, k)
+    pts = depth_to_points(depths.view(k, 1, 1).expand(k, image_size, image_size).contiguous(), camera)  # (K, S, S, 3)
+    coords = (2.0 * pts)[..., [2, 1, 0]]  # grid_sample's (x, y, z) index (W, H, D) = (iz, iy, ix)
+    vals = torch.nn.functional.grid_sample(grid.detach().float().cpu()[None, None], coords[None].float(), mode="bilinear",
+                                           padding_mode="zeros", align_corners=False)  # (1, 1, K, S, S)
+    return (vals[0, 0] > level).any(dim=0)
+
+
+def ray_coverage_reference(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.125) -> np.ndarray:
+    """Plain-loop reference of :func:`ray_coverage` (slow; tests): each pixel's ray marched in steps of ``step``
+    voxels along the ray itself, the trilinear interpolation written out."""
+    g = grid.detach().double().cpu().numpy()
+    n = g.shape[0]
+    f = camera.lens_mm / camera.sensor_mm * image_size
+    out = np.zeros((image_size, image_size), bool)
+
+    def value(x: float, y: float, z: float) -> float:
+        u = [(c + 0.5) * n - 0.5 for c in (x, y, z)]  # continuous voxel index
+        i0 = [math.floor(c) for c in u]
+        total = 0.0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    i, j, l = i0[0] + dx, i0[1] + dy, i0[2] + dz
+                    if 0 <= i < n and 0 <= j < n and 0 <= l < n:
+                        w = ((u[0] - i0[0]) if dx else (1 - u[0] + i0[0])) * ((u[1] - i0[1]) if dy else (1 - u[1] + i0[1])) \
+                            * ((u[2] - i0[2]) if dz else (1 - u[2] + i0[2]))
+                        total += w * g[i, j, l]
+        return total
+
+    for r in range(image_size):
+        for c in range(image_size):
+            # the ray from the camera at (0, 0, distance) through the pixel centre, unit length
+            dx, dy = (c + 0.5 - image_size / 2.0) / f, -(r + 0.5 - image_size / 2.0) / f
+            norm = math.sqrt(dx * dx + dy * dy + 1.0)
+            d = (dx / norm, dy / norm, -1.0 / norm)
+            t = camera.distance - 1.0
+            while t < camera.distance + 1.0 and not out[r, c]:
+                x, y, z = d[0] * t, d[1] * t, camera.distance + d[2] * t
+                if max(abs(x), abs(y), abs(z)) < 0.5 and value(x, y, z) > level:
+                    out[r, c] = True
+                t += step / n
+    return out

@@ -35,7 +35,7 @@ from ..config import GenreConfig
 from ..io import DEFAULT_WEIGHTS_NAME, named_weights
 from ..validation import check_hole_closing, check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
-from ..geometry.mesh_voxels import fill_enclosed, onto_surface, voxels_to_mesh
+from ..geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_surface, voxels_to_mesh
 from ..geometry.voxels import silhouette_ramp
 from ..nets.model import GenRe, WeightsError, load_model
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
@@ -129,8 +129,9 @@ class Reconstruction:
     the photo's own size).  ``mask_warning``: one line when that mask is
     doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
     of the photo or touches most of its border), else None.
-    ``threshold``, ``hole_closing`` and ``silhouette_carve``: the level, the hole sealing (voxels) and
-    whether the voxels outside the mask were carved away, as the mesh was made.
+    ``threshold``, ``hole_closing``, ``silhouette_carve`` and ``visible_fusion``: the level, the hole
+    sealing (voxels), whether the voxels outside the mask were carved away and whether the holes in the
+    visible face were filled from the depth map, as the mesh was made.
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -164,6 +165,7 @@ class Reconstruction:
     mask_warning: str | None = None
     hole_closing: int = 0
     silhouette_carve: bool = False
+    visible_fusion: bool = False
     _texture: PhotoTexture | None = field(default=None, repr=False)
 
     @property
@@ -385,6 +387,7 @@ class Reconstructor:
         seeding: str = DEFAULT_SEEDING,
         hole_closing: int | None = None,
         silhouette_carve: bool | None = None,
+        visible_fusion: bool | None = None,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -404,7 +407,9 @@ class Reconstructor:
         ``hole_closing``; ignored by shell weights).  ``silhouette_carve``: cap the
         probability by the mask's outline ramp before the mesh is made, so nothing
         sticks out past the outline
-        (:func:`..geometry.voxels.silhouette_ramp`; default: the config's).  Raises
+        (:func:`..geometry.voxels.silhouette_ramp`; default: the config's).  ``visible_fusion``: fill the
+        holes the refiner leaves in the face the camera sees with the depth map's surface
+        (:func:`..geometry.mesh_voxels.fuse_visible_surface`; default: the config's; distance weights only).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
@@ -418,6 +423,12 @@ class Reconstructor:
             silhouette_carve = g.silhouette_carve
         if not isinstance(silhouette_carve, bool):
             raise ValueError(f"silhouette_carve: expected True or False, got {silhouette_carve!r}")
+        if visible_fusion is None:
+            visible_fusion = g.visible_fusion
+        if not isinstance(visible_fusion, bool):
+            raise ValueError(f"visible_fusion: expected True or False, got {visible_fusion!r}")
+        if visible_fusion and g.target != "distance":
+            raise ValueError(f"visible_fusion: these weights predict the {g.target!r} target; only distance grids take the visible surface")
         if isinstance(keep_fraction, bool) or not isinstance(keep_fraction, (int, float)) or not 0.0 <= keep_fraction <= 1.0:
             raise ValueError(f"keep_fraction: expected a number in [0, 1], got {keep_fraction!r}")
         timings: dict[str, float] = {}
@@ -461,6 +472,8 @@ class Reconstructor:
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
             if silhouette_carve:
                 prob = torch.minimum(prob, silhouette_ramp(mask.cpu(), model.config.camera, prob.shape[-1])[0, 0])
+            if visible_fusion:
+                prob = fuse_visible_surface(prob, masked[0], model.config.camera, model.config.geometry, threshold)
             if model.config.geometry.target == "distance":
                 prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
             vertices, faces = voxels_to_mesh(prob, threshold)
@@ -508,4 +521,5 @@ class Reconstructor:
             mask_warning=warning,
             hole_closing=int(hole_closing),
             silhouette_carve=silhouette_carve,
+            visible_fusion=visible_fusion,
         )

@@ -67,6 +67,9 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     parser.add_argument("--silhouette-carve", action=argparse.BooleanOptionalAction, default=None,
                         help="carve away what falls outside the mask's outline before the mesh is made (default: the "
                              "weights' config, geometry.silhouette_carve)")
+    parser.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
+                        help="fill the holes the model leaves in the side the photo shows with the estimated depth's "
+                             "surface (default: the weights' config, geometry.visible_fusion)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
     parser.add_argument("--texture", action="store_true",
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
@@ -169,7 +172,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                 check_output_path(p, (image, args.mask))
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
                              refine=not args.no_refine, hole_closing=args.hole_closing,
-                             silhouette_carve=args.silhouette_carve)
+                             silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion)
             path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)

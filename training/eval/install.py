@@ -49,7 +49,7 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
 
 def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
             hole_closing: int | None = None, sph_hit_probability: float | None = None,
-            silhouette_carve: bool | None = None) -> float:
+            silhouette_carve: bool | None = None, visible_fusion: bool | None = None) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
@@ -61,6 +61,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     (``geometry.sph_hit_probability``, chosen on seen-test views by ``scripts/stage_errors.py --hit-levels``);
     None keeps the weights' own.  ``silhouette_carve``: store ``geometry.silhouette_carve`` (carve the
     refiner's output to the mask's outline; chosen on seen-test views); None keeps the weights' own.
+    ``visible_fusion``: store ``geometry.visible_fusion`` (fill the holes in the visible face from the
+    depth map; chosen on seen-test views by ``scripts/visible_fusion.py``); None keeps the weights' own.
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -81,6 +83,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         geometry = dataclasses.replace(geometry, hole_closing=int(hole_closing))  # (validated by the config)
     if silhouette_carve is not None:
         geometry = dataclasses.replace(geometry, silhouette_carve=bool(silhouette_carve))
+    if visible_fusion is not None:
+        geometry = dataclasses.replace(geometry, visible_fusion=bool(visible_fusion))
     if sph_hit_probability is not None:
         if config.network.inpaint_head != "hit":
             raise ValueError(f"{weights}: --sph-hit-probability needs hit-head weights (network.inpaint_head = 'hit'), "
@@ -95,6 +99,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         extra["hole_closing_from"] = "scripts/hole_closing.py on seen-test views"
     if silhouette_carve is not None:
         extra["silhouette_carve_from"] = "chosen on seen-test views (results/carve/ship_rule.txt)"
+    if visible_fusion is not None:
+        extra["visible_fusion_from"] = "scripts/visible_fusion.py on seen-test views"
     if sph_hit_probability is not None:
         extra["sph_hit_probability_from"] = "scripts/stage_errors.py --hit-levels on seen-test views"
     save_model(model, out, extra)
@@ -124,6 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--silhouette-carve", action=argparse.BooleanOptionalAction, default=None,
                    help="store geometry.silhouette_carve (carve the output to the mask's outline; chosen on seen-test "
                         "views); default: the weights' own")
+    p.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
+                   help="store geometry.visible_fusion (fill the holes in the visible face from the depth map; chosen by "
+                        "scripts/visible_fusion.py on seen-test views); default: the weights' own")
     args = p.parse_args(argv)
     out = args.out if args.out is not None else named_weights(args.name)
     interim = named_weights(DEFAULT_WEIGHTS_NAME)
@@ -132,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name,
                     hole_closing=args.hole_closing, sph_hit_probability=args.sph_hit_probability,
-                    silhouette_carve=args.silhouette_carve)
+                    silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1

@@ -19,7 +19,11 @@ Noise floor                 the truth against itself resampled (the best any row
 Every network gets the view's true mask (the film alpha), as the paper's
 evaluation did.  When GenRe's weights carve to the silhouette
 (``geometry.silhouette_carve``), every voxel row is carved by the same mask
-before its mesh is made, the baselines included; the truth is not.
+before its mesh is made, the baselines included; the truth is not.  When they
+fill the holes in the visible face from the depth map
+(``geometry.visible_fusion``), every voxel row with a depth map does so with
+its own (GenRe and GenRe-1step GenRe's depth net's, 3D Completion its own, the
+oracles the true depth), after the carving.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from dataclasses import dataclass
 import torch
 
 from genre_backend.config import GenreConfig
+from genre_backend.geometry.mesh_voxels import fuse_visible_surface
 from genre_backend.geometry.voxels import silhouette_ramp
 from genre_backend.nets.model import GenRe, WeightsError
 
@@ -76,29 +81,39 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     depth = sample["depth"][None].to(device)
     full = sample["full_sph"][None].to(device)
     out: dict[str, dict] = {}
+    true_depth = torch.where(mask, depth, torch.zeros_like(depth))[0].cpu()
     g = m(rgb, mask=mask)
-    out["GenRe"] = {"prob": torch.sigmoid(g["logits"])[0, 0].cpu()}
+    out["GenRe"] = {"prob": torch.sigmoid(g["logits"])[0, 0].cpu(), "depth": g["masked_depth"][0].cpu()}
     pred_depth = g["masked_depth"]
     valid = mask & (depth > 0)
     err = float(((g["depth"] - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
     out["depth_abs_err"] = err
     if "GenRe-Oracle" in models.wanted:
-        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu()}
+        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu(), "depth": true_depth}
     if "GenRe-SphOracle" in models.wanted:
-        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full)["logits"])[0, 0].cpu()}
+        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full)["logits"])[0, 0].cpu(),
+                                  "depth": true_depth}
     if models.completion is not None:
-        out["3D Completion"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask)["logits"])[0, 0].cpu()}
+        c = models.completion(rgb, mask=mask)
+        out["3D Completion"] = {"prob": torch.sigmoid(c["logits"])[0, 0].cpu(), "depth": c["masked_depth"][0].cpu()}
         if "3D Completion-Oracle" in models.wanted:  # the baseline from the true depth: GenRe-Oracle's counterpart
-            out["3D Completion-Oracle"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu()}
+            out["3D Completion-Oracle"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu(),
+                                           "depth": true_depth}
     if models.onestep is not None:
         sph = models.onestep(rgb).clamp(0.0, 1.0)
         logits = m.refine(m.sph_voxels(sph), m.depth_voxels(pred_depth))
-        out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu()}
+        out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu()}
     if m.config.geometry.silhouette_carve:  # every learned row alike (the truth is left as it is)
         ramp = silhouette_ramp(mask.cpu(), m.config.camera, m.config.geometry.voxel_size)[0, 0]
         for row in out.values():
             if isinstance(row, dict) and "prob" in row:
                 row["prob"] = torch.minimum(row["prob"], ramp)
+    geometry = m.config.geometry
+    for row in out.values():  # the depth maps go either way: no row after this point carries one
+        if isinstance(row, dict) and "depth" in row:
+            d = row.pop("depth")
+            if geometry.visible_fusion:  # at the weights' level: the one the mesh is made at by genre reconstruct
+                row["prob"] = fuse_visible_surface(row["prob"], d, m.config.camera, geometry, geometry.default_threshold)
     if REPRESENTATION in models.wanted:
         out[REPRESENTATION] = {"prob": sample["voxels"]}
     if models.nearest is not None:
