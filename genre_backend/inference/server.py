@@ -33,7 +33,7 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "format", "save_intermediates", "texture", "all_parts")
+_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "format", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
 
 
@@ -58,6 +58,7 @@ class Job:
     all_parts: bool = False
     hole_closing: int | None = None
     silhouette_carve: bool | None = None
+    visible_fusion: bool | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -203,6 +204,9 @@ class Server:
         carve = options.get("silhouette_carve")
         if carve is not None and not isinstance(carve, bool):
             raise RequestError("bad_field", f"option 'silhouette_carve' must be true or false, got {_show(carve)}", rid)
+        fusion = options.get("visible_fusion")
+        if fusion is not None and not isinstance(fusion, bool):
+            raise RequestError("bad_field", f"option 'visible_fusion' must be true or false, got {_show(fusion)}", rid)
         fmt = options.get("format")
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
             raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {_show(fmt)}", rid)
@@ -215,7 +219,8 @@ class Server:
                 raise RequestError("bad_field", f"option '{name}' must be true or false, got {_show(value)}", rid)
             flags[name] = value
         return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
-                   hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve)
+                   hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve,
+                   visible_fusion=fusion)
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -347,6 +352,7 @@ class Server:
                 threshold=job.threshold,
                 hole_closing=job.hole_closing,
                 silhouette_carve=job.silhouette_carve,
+                visible_fusion=job.visible_fusion,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
                 keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
@@ -391,6 +397,7 @@ class Server:
                 "threshold": result.threshold,
                 "hole_closing": result.hole_closing,
                 "silhouette_carve": result.silhouette_carve,
+                "visible_fusion": result.visible_fusion,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},
                 "camera": result.camera(),
             }
