@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Print how well colour from the photo reproduces each photo (issue 17's check).
 
-    .venv/bin/python scripts/colour_check.py [--weights W]
+    .venv/bin/python scripts/colour_check.py [--weights W] [--[no-]visible-fusion]
 
 For ``examples/sofa.png`` (automatic mask) and the real photos
 ``examples/photos/apple.jpg`` and ``orange.jpg`` (hand masks): the
@@ -29,10 +29,12 @@ def main() -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")
+    p.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
+                   help="fill the holes in the visible side from the depth (default: the weights' config)")
     args = p.parse_args()
     rec = Reconstructor(args.weights)
     for photo, mask in CASES:
-        result = rec.run(REPO / photo, mask_path=None if mask is None else REPO / mask)
+        result = rec.run(REPO / photo, mask_path=None if mask is None else REPO / mask, visible_fusion=args.visible_fusion)
         mae, coverage = photo_colour_error(result)
         print(f"{photo:<28} mask {result.mask_source:<8} MAE {mae:4.2f}/255  mask covered {coverage:.0%}  "
               f"parts {result.clean.parts} (before clean-up {result.clean.parts_before})", flush=True)

@@ -201,9 +201,11 @@ def ray_coverage(grid: torch.Tensor, level: float, camera, image_size: int, step
     return (vals[0, 0] > level).any(dim=0)
 
 
-def ray_coverage_reference(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.125) -> np.ndarray:
+def ray_coverage_reference(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.125,
+                           rows: int | None = None) -> np.ndarray:
     """Plain-loop reference of :func:`ray_coverage` (slow; tests): each pixel's ray marched in steps of ``step``
-    voxels along the ray itself, the trilinear interpolation written out."""
+    voxels along the ray itself, the trilinear interpolation written out.  ``rows``: only the first this many
+    pixel rows are marched (the others stay False; for timing)."""
     g = grid.detach().double().cpu().numpy()
     n = g.shape[0]
     f = camera.lens_mm / camera.sensor_mm * image_size
@@ -223,7 +225,7 @@ def ray_coverage_reference(grid: torch.Tensor, level: float, camera, image_size:
                         total += w * g[i, j, l]
         return total
 
-    for r in range(image_size):
+    for r in range(image_size if rows is None else min(rows, image_size)):
         for c in range(image_size):
             # the ray from the camera at (0, 0, distance) through the pixel centre, unit length
             dx, dy = (c + 0.5 - image_size / 2.0) / f, -(r + 0.5 - image_size / 2.0) / f

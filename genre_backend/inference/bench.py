@@ -47,12 +47,15 @@ def _median_time(fn: Callable[[], object], repeats: int) -> float:
 
 def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
     """Time the geometry ops of one preset; returns one row per op."""
+    import dataclasses
+
     import trimesh
 
-    from ..geometry.mesh_voxels import mesh_to_distance, mesh_to_shell, point_mesh_distance_reference, voxels_to_mesh
+    from ..geometry.mesh_voxels import (depth_to_distance, fuse_visible_surface, mesh_to_distance, mesh_to_shell,
+                                        point_mesh_distance_reference, voxels_to_mesh)
     from ..geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
     from ..geometry.spherical import depth_to_sph, depth_to_triangles, mesh_to_sph, raycast_triangles_reference, sph_to_points, sph_to_voxels
-    from ..geometry.voxels import points_to_voxels_reference
+    from ..geometry.voxels import points_to_voxels_reference, ray_coverage, ray_coverage_reference
 
     cfg = get_preset(preset)
     g, cam = cfg.geometry, cfg.camera
@@ -92,6 +95,24 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
     # marching cubes of a voxelised sphere
     vox = sph_to_voxels(full, g.voxel_size, g.sph_nohit_min, g.sph_supersample)[0, 0]
     add(f"marching cubes {g.voxel_size}³ → mesh", lambda: voxels_to_mesh(vox, g.default_threshold), note="scikit-image (no reference)")
+    # the holes in the visible face (geometry.visible_fusion): which pixels see the grid; the depth map's own
+    # distance grid; the whole fusion into a grid with a tunnel through the sphere's front
+    rows_ref = 2
+    add(f"ray coverage {g.voxel_size}³ → {g.image_size}²", lambda: ray_coverage(vox, g.default_threshold, cam, g.image_size),
+        lambda: ray_coverage_reference(vox, g.default_threshold, cam, g.image_size, rows=rows_ref),
+        g.image_size / rows_ref, f"reference timed on {rows_ref} of {g.image_size} rows, scaled")
+    dg = dataclasses.replace(g, target="distance")
+    add(f"depth {g.image_size}² → distance {g.voxel_size}³", lambda: depth_to_distance(depth[0], cam, dg),
+        note="visible_fusion: libigl's AABB tree (its distances: mesh → distance's reference)")
+    c = (torch.arange(g.voxel_size) + 0.5) / g.voxel_size - 0.5
+    radius = torch.sqrt(c[:, None, None] ** 2 + c[None, :, None] ** 2 + c[None, None, :] ** 2)
+    tube = (1.0 - (radius - r).abs() * g.voxel_size / dg.distance_band).clamp(0.0, 1.0)  # the sphere's distance target
+    tunnel = (c.abs() < 0.05)[:, None, None] & (c.abs() < 0.05)[None, :, None]
+    holed = torch.where(tunnel, torch.zeros_like(tube), tube)
+    add(f"fuse the visible surface {g.voxel_size}³ (a hole)", lambda: fuse_visible_surface(holed, depth[0], cam, dg, g.default_threshold),
+        note="ray coverage + the depth's distance grid of the hole's pixels")
+    add(f"fuse the visible surface {g.voxel_size}³ (no hole)", lambda: fuse_visible_surface(tube, depth[0], cam, dg, g.default_threshold),
+        note="ray coverage only")
     # ground truth from a mesh (offline data preparation)
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=r)
     v, f = torch.tensor(sphere.vertices, dtype=torch.float32), torch.tensor(sphere.faces)
