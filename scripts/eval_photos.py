@@ -185,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", nargs="+", metavar="NAME", help="only these photos")
     parser.add_argument("--seedings", action="store_true", help="also the mask IoU of each GrabCut seeding (border, network, auto)")
     parser.add_argument("--no-gallery", action="store_true", help="skip the Blender renders")
+    parser.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
+                        help="fill the holes in the visible side from the depth (default: the weights' config)")
     parser.add_argument("--size", type=int, default=200, help="gallery render size in pixels")
     parser.add_argument("--samples", type=int, default=16, help="Cycles samples of the gallery renders")
     args = parser.parse_args(argv)
@@ -202,9 +204,9 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         image = load_image(photo)
         hand_mask = load_mask(hand_path, image)
-        before = rec.run(photo, refine=False)
-        auto = rec.run(photo)
-        hand = rec.run(photo, mask_path=hand_path)
+        before = rec.run(photo, refine=False, visible_fusion=args.visible_fusion)
+        auto = rec.run(photo, visible_fusion=args.visible_fusion)
+        hand = rec.run(photo, mask_path=hand_path, visible_fusion=args.visible_fusion)
         tilt_deg, roll_deg, defined = tilt(hand.vertices, hand.faces)
         row = {
             "name": name,
