@@ -322,3 +322,31 @@ def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothin
     shell = dataclasses.replace(g, target="shell")
     with pytest.raises(ValueError, match="distance"):
         fuse_visible_surface(holed, depth, camera, shell, level)
+
+
+def test_a_pit_in_the_front_is_filled_where_the_depth_map_says_and_an_offset_depth_map_changes_nothing():
+    from genre_backend.geometry.analytic import sphere_depth
+    from genre_backend.geometry.mesh_voxels import fuse_visible_surface
+    from genre_backend.geometry.voxels import ray_first_hit
+
+    camera, g = _distance_geometry()
+    n, radius, level = g.voxel_size, 0.3, g.default_threshold
+    depth = sphere_depth(camera, g.image_size, radius, dtype=torch.float32)[0]
+    x, y, z = torch.meshgrid(*(voxel_centres(n, dtype=torch.float64),) * 3, indexing="ij")
+    r = torch.sqrt(x * x + y * y + z * z)
+    whole = (1.0 - (r - radius).abs() * n / g.distance_band).clamp(0.0, 1.0).float()
+    # the depth net's constant offset (3 voxels nearer than the truth) is not a pit: nothing is added
+    nearer = torch.where(depth > 0, depth - 3.0 / n, depth)
+    assert torch.equal(fuse_visible_surface(whole, nearer, camera, g, level), whole)
+    # the front cap missing over a disc: the rays there meet the inside of the back, a pit 0.5 deep
+    pit = torch.where((z > 0) & (x * x + y * y < 0.1 ** 2), torch.zeros_like(whole), whole)
+    hit = ray_first_hit(pit, level, camera, g.image_size)
+    assert torch.isfinite(hit[depth > 0]).all()  # no ray goes through: a pit, not a hole
+    for d in (depth, nearer):  # filled on the sphere's front, the offset depth map moved onto the grid's surface
+        fused = fuse_visible_surface(pit, d, camera, g, level)
+        changed = fused != pit
+        assert int(changed.sum()) > 100 and bool((z[changed] > 0.15).all())
+        assert float((fused - whole)[changed].abs().max()) < 0.35  # the sphere's own distance, within a voxel's error
+        refilled = ray_first_hit(fused, level, camera, g.image_size)
+        inner = (depth > 0) & ((refilled - ray_first_hit(whole, level, camera, g.image_size)).abs() < 1.5 / n)
+        assert float(inner.float().sum() / (depth > 0).sum()) > 0.97  # the front is where the whole sphere's is

@@ -27,8 +27,8 @@ view-frame cube ``[-0.5, 0.5]^3``, voxel centre ``(i + 0.5)/N − 0.5``.
   shipped (filled, margin 0.25 voxel) 0.033 and 0.031.
 * :func:`depth_to_distance` is the distance target of the surface a depth
   map shows (its pixels triangulated, jumps dropped); :func:`fuse_visible_surface`
-  adds it to a predicted grid where the grid leaves a hole in what the camera
-  sees, so that the mesh covers every pixel of the object
+  adds it to a predicted grid where the grid leaves a hole or a deep pit in
+  what the camera sees, so that the mesh's front is whole
   (``GeometryConfig.visible_fusion``).
 * :func:`voxels_to_mesh` runs marching cubes (scikit-image) and places every
   vertex exactly in the view frame.
@@ -257,39 +257,58 @@ def depth_to_distance(depth: torch.Tensor, camera, geometry, mask: torch.Tensor 
     return mesh_to_distance(vertices, faces, n, geometry.distance_band)
 
 
+PIT_VOXELS = 3.0  # a front deeper than this many voxels behind the (aligned) depth map is a pit, filled like a hole
+
+
 def fuse_visible_surface(prob: torch.Tensor, depth: torch.Tensor, camera, geometry, level: float,
-                         grow_px: int = 2) -> torch.Tensor:
-    """A distance-target grid (N, N, N) with the holes in its visible face filled from the depth map.
+                         grow_px: int = 2, pit_voxels: float = PIT_VOXELS) -> torch.Tensor:
+    """A distance-target grid (N, N, N) with the holes and pits in its visible face filled from the depth map.
 
     prob: (N, N, N) float in [0, 1] (the refiner's sigmoid, carved if the
     weights carve); depth: (S, S) the masked depth (background 0); ``level``:
-    the iso-level the mesh is made at.  The object's pixels whose ray meets no
-    value above ``level`` (:func:`..voxels.ray_coverage`: a hole through the
-    front face, a part the photo shows left out) are grown by ``grow_px``
-    pixels, so that the patch overlaps the refiner's surface around the hole,
-    and there the depth map's own surface is added: ``max(prob, visible)``
-    (:func:`depth_to_distance`).  Where the refiner's grid covers a pixel
-    nothing changes.  Returns ``prob`` (as float32, on the CPU) when it covers
-    every object pixel.  Only for ``geometry.target == "distance"``.
+    the iso-level the mesh is made at.  For each object pixel the ray's first
+    meeting with the grid above ``level`` (:func:`..voxels.ray_first_hit`) is
+    compared with the depth map.  The depth map is first moved along the view
+    axis by the median difference over the pixels that meet something (a
+    depth net's constant offset is common; the grid's own front stays where it
+    is), less the ``(1 − level)·band`` voxels by which the tube's crossing
+    lies in front of its surface.  A pixel whose ray meets nothing (a hole
+    through the front) or meets the grid more than ``pit_voxels`` behind that
+    surface (a pit: the front face missing, the inside of the back seen) is
+    filled: those pixels are grown by ``grow_px`` so that the patch overlaps
+    the grid's surface around them, and there the moved depth map's own
+    surface is added, ``max(prob, visible)`` (:func:`depth_to_distance`).
+    Where the grid's front lies near the depth map nothing changes.  Returns
+    ``prob`` (as float32, on the CPU) when nothing needs filling.  Only for
+    ``geometry.target == "distance"``.
     """
     from scipy import ndimage
 
-    from .voxels import ray_coverage
+    from .voxels import ray_first_hit
 
     if geometry.target != "distance":
         raise ValueError("fuse_visible_surface: the visible surface is fused only into distance-target grids")
     n = geometry.voxel_size
     check_tensor("prob", prob, (n, n, n))
     check_tensor("depth", depth, ("S", "S"))
+    if not (np.isfinite(pit_voxels) and pit_voxels > 0):
+        raise ValueError(f"pit_voxels: expected a positive number of voxels, got {pit_voxels!r}")
     prob = prob.detach().cpu().float()
     depth = depth.detach().cpu().float()
-    obj = (depth > 0).numpy()
-    holes = obj & ~ray_coverage(prob, level, camera, depth.shape[-1]).numpy()
+    obj = depth > 0
+    hit = ray_first_hit(prob, level, camera, depth.shape[-1])
+    met = obj & torch.isfinite(hit)
+    h = 1.0 / n
+    shift = (float((hit - depth)[met].median()) + (1.0 - level) * geometry.distance_band * h) if met.any() else 0.0
+    moved = torch.where(obj, depth + shift, depth)
+    behind = torch.where(met, hit + (1.0 - level) * geometry.distance_band * h - moved, torch.zeros_like(hit))
+    holes = (obj & ~met) | (met & (behind > pit_voxels * h))
     if not holes.any():
         return prob
+    holes = holes.numpy()
     if grow_px > 0:
-        holes = ndimage.binary_dilation(holes, np.ones((3, 3), bool), iterations=int(grow_px)) & obj
-    visible = depth_to_distance(depth, camera, geometry, torch.from_numpy(holes))
+        holes = ndimage.binary_dilation(holes, np.ones((3, 3), bool), iterations=int(grow_px)) & obj.numpy()
+    visible = depth_to_distance(moved.clamp(min=0.0) * obj, camera, geometry, torch.from_numpy(holes))
     return torch.maximum(prob, visible)
 
 

@@ -22,7 +22,8 @@ import torch
 from ..validation import check_mask, check_positive_int, check_tensor
 
 __all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_ramp", "silhouette_ramp_reference",
-           "voxel_centres", "mirror_voxels", "ray_coverage", "ray_coverage_reference"]
+           "voxel_centres", "mirror_voxels", "ray_first_hit", "ray_coverage",
+           "ray_first_hit_reference"]
 
 
 def voxel_centres(resolution: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -172,15 +173,15 @@ def silhouette_ramp_reference(mask: torch.Tensor, camera, resolution: int, width
     return out.float()
 
 
-def ray_coverage(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.5) -> torch.Tensor:
-    """Which pixels see the grid: (S, S) bool, True where the ray through the pixel centre meets a value above ``level``.
+def ray_first_hit(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.5) -> torch.Tensor:
+    """Where each pixel's ray first meets the grid: (S, S) float32 planar depth, ``inf`` where it meets nothing.
 
     grid: (N, N, N) float, indexed ``[ix, iy, iz]`` over the view-frame cube ``[-0.5, 0.5]^3``
     (voxel centre ``(i + 0.5)/N − 0.5``), interpolated trilinearly and 0 outside the cube.
     camera: :class:`genre_backend.config.CameraConfig`; S = ``image_size``.  Each ray is sampled
-    every ``step`` voxels of planar depth across the cube (:func:`genre_backend.frame.depth_to_points`),
-    so a region above ``level`` thicker than ``step`` voxels along the ray is never missed: the
-    pixels the marching-cubes surface of the grid covers, less a rim of under a pixel.
+    every ``step`` voxels of planar depth across the cube (:func:`genre_backend.frame.depth_to_points`);
+    the result is the first sample above ``level`` (so within ``step`` voxels behind the crossing),
+    and a region above ``level`` thicker than ``step`` voxels along the ray is never missed.
     """
     from ..frame import depth_to_points
     from ..validation import check_threshold
@@ -197,19 +198,29 @@ def ray_coverage(grid: torch.Tensor, level: float, camera, image_size: int, step
     pts = depth_to_points(depths.view(k, 1, 1).expand(k, image_size, image_size).contiguous(), camera)  # (K, S, S, 3)
     coords = (2.0 * pts)[..., [2, 1, 0]]  # grid_sample's (x, y, z) index (W, H, D) = (iz, iy, ix)
     vals = torch.nn.functional.grid_sample(grid.detach().float().cpu()[None, None], coords[None].float(), mode="bilinear",
-                                           padding_mode="zeros", align_corners=False)  # (1, 1, K, S, S)
-    return (vals[0, 0] > level).any(dim=0)
+                                           padding_mode="zeros", align_corners=False)[0, 0]  # (K, S, S)
+    above = vals > level
+    first = above.float().argmax(dim=0)  # the first sample above the level (0 where none: masked below)
+    return torch.where(above.any(dim=0), depths[first], torch.tensor(float("inf")))
 
 
-def ray_coverage_reference(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.125,
-                           rows: int | None = None) -> np.ndarray:
-    """Plain-loop reference of :func:`ray_coverage` (slow; tests): each pixel's ray marched in steps of ``step``
-    voxels along the ray itself, the trilinear interpolation written out.  ``rows``: only the first this many
-    pixel rows are marched (the others stay False; for timing)."""
+def ray_coverage(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.5) -> torch.Tensor:
+    """Which pixels see the grid: (S, S) bool, True where the ray through the pixel centre meets a value above
+    ``level`` (:func:`ray_first_hit` is finite): the pixels the marching-cubes surface of the grid covers, less
+    a rim of under a pixel."""
+    return torch.isfinite(ray_first_hit(grid, level, camera, image_size, step))
+
+
+def ray_first_hit_reference(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.125,
+                            rows: int | None = None) -> np.ndarray:
+    """Plain-loop reference of :func:`ray_first_hit` (slow; tests): (S, S) float64 planar depth, ``inf`` where
+    nothing is met; each pixel's ray marched in steps of ``step`` voxels along the ray itself, the trilinear
+    interpolation written out.  ``rows``: only the first this many pixel rows are marched (the others stay
+    ``inf``; for timing)."""
     g = grid.detach().double().cpu().numpy()
     n = g.shape[0]
     f = camera.lens_mm / camera.sensor_mm * image_size
-    out = np.zeros((image_size, image_size), bool)
+    out = np.full((image_size, image_size), np.inf)
 
     def value(x: float, y: float, z: float) -> float:
         u = [(c + 0.5) * n - 0.5 for c in (x, y, z)]  # continuous voxel index
@@ -232,9 +243,10 @@ def ray_coverage_reference(grid: torch.Tensor, level: float, camera, image_size:
             norm = math.sqrt(dx * dx + dy * dy + 1.0)
             d = (dx / norm, dy / norm, -1.0 / norm)
             t = camera.distance - 1.0
-            while t < camera.distance + 1.0 and not out[r, c]:
+            while t < camera.distance + 1.0:
                 x, y, z = d[0] * t, d[1] * t, camera.distance + d[2] * t
                 if max(abs(x), abs(y), abs(z)) < 0.5 and value(x, y, z) > level:
-                    out[r, c] = True
+                    out[r, c] = camera.distance - z  # planar depth
+                    break
                 t += step / n
     return out

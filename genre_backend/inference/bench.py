@@ -55,7 +55,7 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
                                         point_mesh_distance_reference, voxels_to_mesh)
     from ..geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
     from ..geometry.spherical import depth_to_sph, depth_to_triangles, mesh_to_sph, raycast_triangles_reference, sph_to_points, sph_to_voxels
-    from ..geometry.voxels import points_to_voxels_reference, ray_coverage, ray_coverage_reference
+    from ..geometry.voxels import points_to_voxels_reference, ray_first_hit, ray_first_hit_reference
 
     cfg = get_preset(preset)
     g, cam = cfg.geometry, cfg.camera
@@ -98,8 +98,8 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
     # the holes in the visible face (geometry.visible_fusion): which pixels see the grid; the depth map's own
     # distance grid; the whole fusion into a grid with a tunnel through the sphere's front
     rows_ref = 2
-    add(f"ray coverage {g.voxel_size}³ → {g.image_size}²", lambda: ray_coverage(vox, g.default_threshold, cam, g.image_size),
-        lambda: ray_coverage_reference(vox, g.default_threshold, cam, g.image_size, rows=rows_ref),
+    add(f"first hits {g.voxel_size}³ → {g.image_size}²", lambda: ray_first_hit(vox, g.default_threshold, cam, g.image_size),
+        lambda: ray_first_hit_reference(vox, g.default_threshold, cam, g.image_size, rows=rows_ref),
         g.image_size / rows_ref, f"reference timed on {rows_ref} of {g.image_size} rows, scaled")
     dg = dataclasses.replace(g, target="distance")
     add(f"depth {g.image_size}² → distance {g.voxel_size}³", lambda: depth_to_distance(depth[0], cam, dg),
