@@ -5,9 +5,10 @@ A refiner's grid can have a gap in the face the camera sees: the artist gets a
 mesh with a hole through its front, or a part the photo plainly shows left
 out, and the textured mesh no longer covers the object's mask (the real-photo
 check in ``tests/test_colour.py`` asks for 90 %).  The depth map sees that
-face.  ``visible_fusion`` finds the object's pixels whose ray meets nothing,
-or meets the grid far behind the depth map (a pit: the front missing), and
-adds the masked depth map's own surface there, moved onto the grid's front,
+face.  ``visible_fusion`` finds the object's pixels whose ray meets nothing
+(with ``--pit-voxels P`` also those that meet the grid more than P voxels
+behind the depth map: a pit, the front missing) and adds the masked depth
+map's own surface there, moved onto the grid's front,
 ``max(grid, its distance target)``, before the mesh is made
 (:func:`genre_backend.geometry.mesh_voxels.fuse_visible_surface`).  (Fusing the
 depth map's surface over the whole object instead cost CD on the seen-test
@@ -90,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--groups", default="test", help="manifest groups of the views to score (comma-separated)")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views (default: all)")
     p.add_argument("--level", type=float, default=None, help="isosurface level (default: the weights')")
+    p.add_argument("--pit-voxels", type=float, default=None, metavar="P",
+                   help="also fill pits deeper than P voxels behind the depth map (default: holes only, as the setting does)")
     p.add_argument("--json", default=None, help="also write the figures here")
     args = p.parse_args(argv)
     try:
@@ -129,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
             if SEEN_TEST in view.groups:
                 groups.append("seen-test (chooses)")
             for fused in (False, True):
-                grid = fuse_visible_surface(prob, out["masked_depth"][0], camera, geometry, level) if fused else prob
+                grid = fuse_visible_surface(prob, out["masked_depth"][0], camera, geometry, level, pit_voxels=args.pit_voxels) if fused else prob
                 m = score_grid(grid, [level], target, geometry)[level]
                 c = coverage(grid, mask, level, geometry, camera)
                 for g in groups:
@@ -138,9 +141,10 @@ def main(argv: list[str] | None = None) -> int:
                     figures[g][fused]["under"].append(float(c < COVERED))
             if (i + 1) % 25 == 0:
                 print(f"  {i + 1}/{len(views)} views", file=sys.stderr)
-    result = {"weights": str(weights), "level": level, "views": len(views), "groups": {}}
+    result = {"weights": str(weights), "level": level, "views": len(views), "pit_voxels": args.pit_voxels, "groups": {}}
     print(f"{len(views)} views of {args.views} ({args.groups}); weights {weights}; level {level:.2f}; "
-          f"hole_closing {geometry.hole_closing}; carve {geometry.silhouette_carve}")
+          f"hole_closing {geometry.hole_closing}; carve {geometry.silhouette_carve}; filled: holes"
+          + (f" and pits deeper than {args.pit_voxels:g} voxels" if args.pit_voxels is not None else " only"))
     print("| group | views | CD off | CD fused | coverage off | coverage fused | views < 90 % off | fused |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for g in sorted(figures, key=lambda g: (g != "all", g)):

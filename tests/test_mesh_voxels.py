@@ -337,13 +337,14 @@ def test_a_pit_in_the_front_is_filled_where_the_depth_map_says_and_an_offset_dep
     whole = (1.0 - (r - radius).abs() * n / g.distance_band).clamp(0.0, 1.0).float()
     # the depth net's constant offset (3 voxels nearer than the truth) is not a pit: nothing is added
     nearer = torch.where(depth > 0, depth - 3.0 / n, depth)
-    assert torch.equal(fuse_visible_surface(whole, nearer, camera, g, level), whole)
+    assert torch.equal(fuse_visible_surface(whole, nearer, camera, g, level, pit_voxels=3.0), whole)
     # the front cap missing over a disc: the rays there meet the inside of the back, a pit 0.5 deep
     pit = torch.where((z > 0) & (x * x + y * y < 0.1 ** 2), torch.zeros_like(whole), whole)
     hit = ray_first_hit(pit, level, camera, g.image_size)
     assert torch.isfinite(hit[depth > 0]).all()  # no ray goes through: a pit, not a hole
+    assert torch.equal(fuse_visible_surface(pit, depth, camera, g, level), pit)  # holes only: left alone
     for d in (depth, nearer):  # filled on the sphere's front, the offset depth map moved onto the grid's surface
-        fused = fuse_visible_surface(pit, d, camera, g, level)
+        fused = fuse_visible_surface(pit, d, camera, g, level, pit_voxels=3.0)
         changed = fused != pit
         assert int(changed.sum()) > 100 and bool((z[changed] > 0.15).all())
         assert float((fused - whole)[changed].abs().max()) < 0.35  # the sphere's own distance, within a voxel's error
