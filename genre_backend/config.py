@@ -124,8 +124,9 @@ class GeometryConfig:
     # target, max with the refiner's) before the mesh is made, in reconstruction and in evaluation
     # (every row with a depth map alike). Chosen per weights on seen-test views by
     # scripts/visible_fusion.py (on when it raises their mean CD by at most 1 %): the protocol weights
-    # 0.1020 -> 0.1021 (on); the default weights 0.1065 -> 0.1084 (off). Fusing the depth map's surface
-    # everywhere, not only into the holes, cost 2.5 % and 4.4 %. Weights stored without the key: off.
+    # 0.1020 -> 0.1021 (on, but not yet stored: Table 1 must be re-run with it); the default weights
+    # 0.1065 -> 0.1085 (off). The depth map's surface everywhere cost 2.5 % / 4.4 %, pits filled too
+    # 4.4 % / 4.6 % (results/visible_fusion/). Weights stored without the key: off.
     visible_fusion: bool = False
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at

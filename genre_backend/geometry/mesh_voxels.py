@@ -259,28 +259,28 @@ def depth_to_distance(depth: torch.Tensor, camera, geometry, mask: torch.Tensor 
 
 def fuse_visible_surface(prob: torch.Tensor, depth: torch.Tensor, camera, geometry, level: float,
                          grow_px: int = 2, pit_voxels: float | None = None) -> torch.Tensor:
-    """A distance-target grid (N, N, N) with the holes and pits in its visible face filled from the depth map.
+    """A distance-target grid (N, N, N) with the holes in its visible face filled from the depth map.
 
     prob: (N, N, N) float in [0, 1] (the refiner's sigmoid, carved if the
     weights carve); depth: (S, S) the masked depth (background 0); ``level``:
-    the iso-level the mesh is made at.  For each object pixel the ray's first
-    meeting with the grid above ``level`` (:func:`..voxels.ray_first_hit`) is
-    compared with the depth map.  The depth map is first moved along the view
-    axis by the median difference over the pixels that meet something (a
-    depth net's constant offset is common; the grid's own front stays where it
-    is), less the ``(1 − level)·band`` voxels by which the tube's crossing
-    lies in front of its surface.  A pixel whose ray meets nothing (a hole
-    through the front) is filled, and with ``pit_voxels`` also one whose ray
-    meets the grid more than that many voxels behind that surface (a pit: the
-    front face missing, the inside of the back seen; on the seen-test views
-    ``pit_voxels = 3`` cost 4.4–4.6 % CD against 0.1–1.9 % for the holes
-    alone, ``scripts/visible_fusion.py --pit-voxels``, so the setting fills
-    holes only).  Those pixels are grown by ``grow_px`` so that the patch overlaps
-    the grid's surface around them, and there the moved depth map's own
-    surface is added, ``max(prob, visible)`` (:func:`depth_to_distance`).
-    Where the grid's front lies near the depth map nothing changes.  Returns
-    ``prob`` (as float32, on the CPU) when nothing needs filling.  Only for
-    ``geometry.target == "distance"``.
+    the iso-level the mesh is made at.  An object pixel whose ray meets no
+    value above ``level`` (:func:`..voxels.ray_first_hit`: a hole through the
+    front, a part the photo shows left out) is filled: those pixels are grown
+    by ``grow_px`` so that the patch overlaps the grid's surface around them,
+    and there the depth map's own surface is added, ``max(prob, visible)``
+    (:func:`depth_to_distance`).  Where the grid covers a pixel nothing
+    changes.  Returns ``prob`` (as float32, on the CPU) when nothing needs
+    filling.  Only for ``geometry.target == "distance"``.
+
+    ``pit_voxels``: also fill the pixels whose ray meets the grid more than
+    this many voxels behind the depth map (a pit: the front face missing, the
+    inside of the back seen).  The depth map is then first moved along the
+    view axis onto the grid's front (by the median difference over the pixels
+    that meet something, the tube's crossing lying ``(1 − level)·band`` voxels
+    in front of its surface), and the moved map is what fills.  Measured on
+    the seen-test views (``scripts/visible_fusion.py --pit-voxels 3``) it cost
+    4.4–4.6 % CD against 0.1–1.9 % for the holes alone, so the setting
+    (``GeometryConfig.visible_fusion``) fills holes only.
     """
     from scipy import ndimage
 
@@ -298,13 +298,13 @@ def fuse_visible_surface(prob: torch.Tensor, depth: torch.Tensor, camera, geomet
     obj = depth > 0
     hit = ray_first_hit(prob, level, camera, depth.shape[-1])
     met = obj & torch.isfinite(hit)
-    h = 1.0 / n
-    shift = (float((hit - depth)[met].median()) + (1.0 - level) * geometry.distance_band * h) if met.any() else 0.0
-    moved = torch.where(obj, depth + shift, depth)
-    behind = torch.where(met, hit + (1.0 - level) * geometry.distance_band * h - moved, torch.zeros_like(hit))
     holes = obj & ~met
-    if pit_voxels is not None:
-        holes = holes | (met & (behind > pit_voxels * h))
+    moved = depth
+    if pit_voxels is not None and met.any():
+        h = 1.0 / n
+        front = hit + (1.0 - level) * geometry.distance_band * h  # the surface behind the tube's crossing
+        moved = torch.where(obj, depth + float((front - depth)[met].median()), depth)
+        holes = holes | (met & (front - moved > pit_voxels * h))
     if not holes.any():
         return prob
     holes = holes.numpy()
