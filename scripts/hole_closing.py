@@ -36,9 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.io import resolve_weights  # noqa: E402
-from genre_backend.nets.model import load_model  # noqa: E402
-from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
-from training.eval.protocol import POINTS_SMALL, find_eval_views  # noqa: E402
+from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 from training.eval.statistics import CLOSED_SHARE, choose_hole_closing  # noqa: E402
 
@@ -60,21 +58,14 @@ def main(argv: list[str] | None = None) -> int:
         closings = [int(k) for k in args.closings.split(",")]
     except ValueError as exc:
         p.error(str(exc))
-    if args.manifest is None:
-        from training.data.corpus import data_dir
-
-        args.manifest = data_dir() / "corpus" / "manifest.json"
-    manifest = json.loads(Path(args.manifest).read_text())
     from training.eval.product import group_of_shape
 
-    entries = {e["id"]: e for e in manifest["shapes"]}
-    model = load_model(weights).eval()
+    try:
+        model, views, data, entries = load_setting_views(weights, args.views, args.manifest, tuple(args.groups.split(",")), None)
+    except ValueError as exc:
+        p.error(str(exc))
     geometry = model.config.geometry
     level = geometry.default_threshold if args.level is None else args.level
-    views = find_eval_views([Path(args.views)], manifest, tuple(args.groups.split(",")), max_views=None)
-    if not views:
-        p.error(f"no views of the groups {args.groups} under {args.views}")
-    data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)
     truth = Truth()
     # per group, per k: lists of cd, closed
     figures: dict[str, dict[int, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))

@@ -55,9 +55,7 @@ from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 from genre_backend.inference.colour import zbuffer  # noqa: E402
 from genre_backend.io import resolve_weights  # noqa: E402
-from genre_backend.nets.model import load_model  # noqa: E402
-from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
-from training.eval.protocol import POINTS_SMALL, find_eval_views  # noqa: E402
+from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 
 SEEN_TEST = "test"  # the manifest group of the seen classes' test shapes
@@ -99,23 +97,16 @@ def main(argv: list[str] | None = None) -> int:
         weights = resolve_weights(args.weights)
     except ValueError as exc:
         p.error(str(exc))
-    if args.manifest is None:
-        from training.data.corpus import data_dir
-
-        args.manifest = data_dir() / "corpus" / "manifest.json"
-    manifest = json.loads(Path(args.manifest).read_text())
     from training.eval.product import group_of_shape
 
-    entries = {e["id"]: e for e in manifest["shapes"]}
-    model = load_model(weights).eval()
+    try:
+        model, views, data, entries = load_setting_views(weights, args.views, args.manifest, tuple(args.groups.split(",")), args.max_views)
+    except ValueError as exc:
+        p.error(str(exc))
     geometry, camera = model.config.geometry, model.config.camera
     if geometry.target != "distance":
         p.error(f"{weights}: the visible surface is fused only into distance-target grids (these weights: {geometry.target})")
     level = geometry.default_threshold if args.level is None else args.level
-    views = find_eval_views([Path(args.views)], manifest, tuple(args.groups.split(",")), max_views=args.max_views)
-    if not views:
-        p.error(f"no views of the groups {args.groups} under {args.views}")
-    data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config)
     truth = Truth()
     figures: dict[str, dict[bool, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     with torch.no_grad():

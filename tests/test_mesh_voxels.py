@@ -270,6 +270,18 @@ def _distance_geometry():
     return cfg.camera, dataclasses.replace(cfg.geometry, target="distance")
 
 
+def _sphere_seen_and_its_tube(radius: float = 0.3):
+    """(camera, distance geometry, the sphere's depth map (S, S), voxel centres' (x, y, z), its exact distance target)."""
+    from genre_backend.geometry.analytic import sphere_depth
+
+    camera, g = _distance_geometry()
+    n = g.voxel_size
+    depth = sphere_depth(camera, g.image_size, radius, dtype=torch.float32)[0]
+    x, y, z = torch.meshgrid(*(voxel_centres(n, dtype=torch.float64),) * 3, indexing="ij")
+    r = torch.sqrt(x * x + y * y + z * z)
+    return camera, g, depth, (x, y, z), (1.0 - (r - radius).abs() * n / g.distance_band).clamp(0.0, 1.0).float()
+
+
 def test_depth_to_distance_of_a_sphere_is_the_distance_to_its_front_cap():
     from genre_backend.geometry.analytic import sphere_depth
     from genre_backend.geometry.mesh_voxels import depth_to_distance
@@ -294,16 +306,11 @@ def test_depth_to_distance_of_a_sphere_is_the_distance_to_its_front_cap():
 
 
 def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothing_else():
-    from genre_backend.geometry.analytic import sphere_depth
     from genre_backend.geometry.mesh_voxels import fuse_visible_surface
     from genre_backend.geometry.voxels import ray_coverage
 
-    camera, g = _distance_geometry()
-    n, radius, level = g.voxel_size, 0.3, g.default_threshold
-    depth = sphere_depth(camera, g.image_size, radius, dtype=torch.float32)[0]
-    x, y, z = torch.meshgrid(*(voxel_centres(n, dtype=torch.float64),) * 3, indexing="ij")
-    r = torch.sqrt(x * x + y * y + z * z)
-    whole = (1.0 - (r - radius).abs() * n / g.distance_band).clamp(0.0, 1.0).float()
+    camera, g, depth, (x, y, z), whole = _sphere_seen_and_its_tube()
+    n, level = g.voxel_size, g.default_threshold
     # a prediction that covers the whole object: returned as it is
     assert torch.equal(fuse_visible_surface(whole, depth, camera, g, level), whole)
     # a hole through the front and the back (a tunnel along the view axis, 0.1 wide): filled in front only
@@ -325,16 +332,11 @@ def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothin
 
 
 def test_a_pit_in_the_front_is_filled_where_the_depth_map_says_and_an_offset_depth_map_changes_nothing():
-    from genre_backend.geometry.analytic import sphere_depth
     from genre_backend.geometry.mesh_voxels import fuse_visible_surface
     from genre_backend.geometry.voxels import ray_first_hit
 
-    camera, g = _distance_geometry()
-    n, radius, level = g.voxel_size, 0.3, g.default_threshold
-    depth = sphere_depth(camera, g.image_size, radius, dtype=torch.float32)[0]
-    x, y, z = torch.meshgrid(*(voxel_centres(n, dtype=torch.float64),) * 3, indexing="ij")
-    r = torch.sqrt(x * x + y * y + z * z)
-    whole = (1.0 - (r - radius).abs() * n / g.distance_band).clamp(0.0, 1.0).float()
+    camera, g, depth, (x, y, z), whole = _sphere_seen_and_its_tube()
+    n, level = g.voxel_size, g.default_threshold
     # the depth net's constant offset (3 voxels nearer than the truth) is not a pit: nothing is added
     nearer = torch.where(depth > 0, depth - 3.0 / n, depth)
     assert torch.equal(fuse_visible_surface(whole, nearer, camera, g, level, pit_voxels=3.0), whole)

@@ -145,3 +145,29 @@ def resolve_mesh(path: str) -> Path:
     if not p.is_absolute() and (REPO_ROOT / p).is_file():
         return REPO_ROOT / p
     raise FileNotFoundError(f"mesh {path} (from a view's JSON) not found")
+
+
+def load_setting_views(weights, views_dir, manifest_path, groups: tuple[str, ...], max_views: int | None = None):
+    """What a script that chooses a mesh setting on views needs: ``(model, views, dataset, manifest entries)``.
+
+    ``weights``: a weights file (eval mode model); ``views_dir``: evaluation views; ``manifest_path``: the
+    corpus manifest (None: ``$GENRE_HOME/corpus/manifest.json``); ``groups``: manifest groups to keep.
+    Raises ``ValueError`` when no view of those groups is there.
+    """
+    import json
+
+    from genre_backend.nets.model import load_model
+
+    from ..data.dataset import ViewDataset, ViewRef
+
+    if manifest_path is None:
+        from ..data.corpus import data_dir
+
+        manifest_path = data_dir() / "corpus" / "manifest.json"
+    manifest = json.loads(Path(manifest_path).read_text())
+    entries = {e["id"]: e for e in manifest["shapes"]}
+    model = load_model(weights).eval()
+    views = find_eval_views([Path(views_dir)], manifest, tuple(groups), max_views=max_views)
+    if not views:
+        raise ValueError(f"no views of the groups {','.join(groups)} under {views_dir}")
+    return model, views, ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], model.config), entries
