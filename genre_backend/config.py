@@ -126,7 +126,8 @@ class GeometryConfig:
     # scripts/visible_fusion.py (on when it raises their mean CD by at most 1 %): the protocol weights
     # 0.1020 -> 0.1021 (on, but not yet stored: Table 1 must be re-run with it); the default weights
     # 0.1065 -> 0.1085 (off). The depth map's surface everywhere cost 2.5 % / 4.4 %, pits filled too
-    # 4.4 % / 4.6 % (results/visible_fusion/). Weights stored without the key: off.
+    # 4.4 % / 4.6 % (default, pits deeper than 10 voxels only: 2.9 %; results/visible_fusion/).
+    # Weights stored without the key: off.
     visible_fusion: bool = False
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at
