@@ -49,11 +49,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.geometry.cleanup import clean_mesh  # noqa: E402
-from genre_backend.geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_surface, voxels_to_mesh  # noqa: E402
+from genre_backend.geometry.mesh_voxels import fuse_visible_surface  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 from genre_backend.inference.colour import zbuffer  # noqa: E402
+from genre_backend.inference.reconstruct import mesh_of_probability  # noqa: E402
 from genre_backend.io import resolve_weights  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
@@ -65,12 +65,9 @@ COVERED = 0.9  # the real-photo check's bar
 
 def coverage(prob: torch.Tensor, mask: torch.Tensor, level: float, geometry, camera) -> float:
     """The share of ``mask`` (S, S) the mesh ``genre reconstruct`` would make of ``prob`` covers."""
-    grid = fill_enclosed(prob, level, geometry.hole_closing)
-    v, f = voxels_to_mesh(grid, level)
-    if len(f) == 0:
+    _, v, f, clean = mesh_of_probability(prob, level, geometry, geometry.hole_closing)
+    if clean is None:
         return 0.0
-    v, f, _ = clean_mesh(v, f)
-    v = onto_surface(v, f, level, geometry)
     hit = np.isfinite(zbuffer(v, f, camera, mask.shape[-1]))
     m = mask.numpy()
     return float((hit & m).sum() / max(m.sum(), 1))

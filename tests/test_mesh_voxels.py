@@ -307,7 +307,7 @@ def test_depth_to_distance_of_a_sphere_is_the_distance_to_its_front_cap():
 
 def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothing_else():
     from genre_backend.geometry.mesh_voxels import fuse_visible_surface
-    from genre_backend.geometry.voxels import ray_coverage
+    from genre_backend.geometry.voxels import ray_first_hit
 
     camera, g, depth, (x, y, z), whole = _sphere_seen_and_its_tube()
     n, level = g.voxel_size, g.default_threshold
@@ -316,10 +316,10 @@ def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothin
     # a hole through the front and the back (a tunnel along the view axis, 0.1 wide): filled in front only
     holed = torch.where((x.abs() < 0.05) & (y.abs() < 0.05), torch.zeros_like(whole), whole)
     obj = depth > 0
-    lost = obj & ~ray_coverage(holed, level, camera, g.image_size)
+    lost = obj & ~torch.isfinite(ray_first_hit(holed, level, camera, g.image_size))
     assert int(lost.sum()) > 50
     fused = fuse_visible_surface(holed, depth, camera, g, level)
-    assert not (obj & ~ray_coverage(fused, level, camera, g.image_size)).any()
+    assert not (obj & ~torch.isfinite(ray_first_hit(fused, level, camera, g.image_size))).any()
     assert torch.equal(torch.maximum(fused, holed), fused)  # only ever adds
     changed = fused != holed
     assert bool((z[changed] > 0.2).all())  # the patch lies on the front cap, around the hole

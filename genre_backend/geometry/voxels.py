@@ -22,7 +22,7 @@ import torch
 from ..validation import check_mask, check_positive_int, check_tensor
 
 __all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_ramp", "silhouette_ramp_reference",
-           "voxel_centres", "mirror_voxels", "ray_first_hit", "ray_coverage",
+           "voxel_centres", "mirror_voxels", "ray_first_hit",
            "ray_first_hit_reference"]
 
 
@@ -202,13 +202,6 @@ def ray_first_hit(grid: torch.Tensor, level: float, camera, image_size: int, ste
     above = vals > level
     first = above.float().argmax(dim=0)  # the first sample above the level (0 where none: masked below)
     return torch.where(above.any(dim=0), depths[first], torch.tensor(float("inf")))
-
-
-def ray_coverage(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.5) -> torch.Tensor:
-    """Which pixels see the grid: (S, S) bool, True where the ray through the pixel centre meets a value above
-    ``level`` (:func:`ray_first_hit` is finite): the pixels the marching-cubes surface of the grid covers, less
-    a rim of under a pixel."""
-    return torch.isfinite(ray_first_hit(grid, level, camera, image_size, step))
 
 
 def ray_first_hit_reference(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.125,

@@ -46,6 +46,7 @@ from .segment import DEFAULT_SEEDING, doubt
 __all__ = [
     "STAGES",
     "MESH_FORMATS",
+    "mesh_of_probability",
     "DEFAULT_WEIGHTS",
     "Cancelled",
     "OutputError",
@@ -74,6 +75,25 @@ ProgressFn = Callable[[str, float], None]
 
 class Cancelled(Exception):
     """The job was cancelled; raised at the next stage boundary."""
+
+
+def mesh_of_probability(prob: torch.Tensor, threshold: float, geometry, hole_closing: int,
+                        keep_fraction: float = DEFAULT_KEEP_FRACTION):
+    """The mesh ``genre reconstruct`` makes of a probability grid (N, N, N), after any carving or fusion.
+
+    For the distance target the enclosed voxels are filled first (:func:`fill_enclosed`, holes up to about
+    ``2·hole_closing`` voxels sealed); marching cubes at ``threshold``; cavity walls and parts smaller than
+    ``keep_fraction`` of the largest dropped (:func:`clean_mesh`); the sheets moved onto the surface
+    (:func:`onto_surface`).  Returns ``(grid as meshed (N, N, N) float32, vertices (V, 3) float32, faces
+    (F, 3) int64, CleanReport)``; the report is None, and the mesh empty, when no voxel reaches ``threshold``.
+    """
+    if geometry.target == "distance":
+        prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
+    vertices, faces = voxels_to_mesh(prob, threshold)
+    if len(faces) == 0:
+        return prob, vertices, faces, None
+    vertices, faces, clean = clean_mesh(vertices, faces, keep_fraction)
+    return prob, onto_surface(vertices, faces, threshold, geometry), faces, clean
 
 
 def error_code(exc: BaseException) -> str:
@@ -474,13 +494,9 @@ class Reconstructor:
                 prob = torch.minimum(prob, silhouette_ramp(mask.cpu(), model.config.camera, prob.shape[-1])[0, 0])
             if visible_fusion:
                 prob = fuse_visible_surface(prob, masked[0], model.config.camera, model.config.geometry, threshold)
-            if model.config.geometry.target == "distance":
-                prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
-            vertices, faces = voxels_to_mesh(prob, threshold)
-            if len(faces) == 0:
+            prob, vertices, faces, clean = mesh_of_probability(prob, threshold, model.config.geometry, hole_closing, keep_fraction)
+            if clean is None:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
-            vertices, faces, clean = clean_mesh(vertices, faces, keep_fraction)
-            vertices = onto_surface(vertices, faces, threshold, model.config.geometry)
             stage("done")
         photo_mask = pre.photo_mask
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
