@@ -421,3 +421,30 @@ def test_photo_compositing_applies_to_the_stage_that_asks_for_it(tiny_views, tmp
     assert digests[0.0] != digests[1.0]
     with pytest.raises(ValueError, match="needs --backgrounds"):
         train(_cfg("refine", tiny_views, tmp_path / "nobg", steps=1, init=str(init), augment=True, photo_fraction=0.5))
+
+
+def test_a_folder_named_twice_is_drawn_twice_and_a_shape_stays_on_one_side_of_the_split(tiny_views, tmp_path):
+    import shutil
+
+    from training.data.dataset import _unit_hash, find_views, split_views
+    from training.data.views import gather_views
+
+    one = find_views(tiny_views)
+    shapes = sorted({r.shape_id for r in one})
+    assert len(shapes) == 2
+    # a second folder with the first shape's renders again (as views/default repeats views/product's seen shapes)
+    other = tmp_path / "other"
+    shutil.copytree(tiny_views / shapes[0], other / shapes[0])
+    extra = find_views(other)
+    assert len(extra) == sum(r.shape_id == shapes[0] for r in one) > 0
+    refs = gather_views([tiny_views, other, other])
+    assert len(refs) == len(one) + 2 * len(extra)
+    assert sum(r.shape_dir.parent == other for r in refs) == 2 * len(extra)
+    # a validation share that takes exactly one of the two shapes, whichever hashes lower
+    hashes = {s: _unit_hash("validation:" + s) for s in shapes}
+    low = min(hashes, key=hashes.get)
+    train_refs, val_refs = split_views(refs, (hashes[low] + max(hashes.values())) / 2)
+    assert {r.shape_id for r in val_refs} == {low} and low not in {r.shape_id for r in train_refs}
+    assert len(train_refs) + len(val_refs) == len(refs)
+    with pytest.raises(ValueError, match="no view folders"):
+        gather_views([])

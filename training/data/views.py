@@ -191,6 +191,21 @@ def find_views(root: str | os.PathLike, shape_ids: set[str] | None = None, targe
     return refs
 
 
+
+def gather_views(folders: list[str | os.PathLike], shape_ids: set[str] | None = None, targets: bool = True) -> list[ViewRef]:
+    """The views of several folders (:func:`find_views` of each), in the order given.
+
+    A folder named *k* times contributes its views *k* times, so a uniform draw
+    over the result takes them *k* times as often: the training mix of a run
+    (``genre train --data A B B``).  The same shape may be in several folders
+    (renders of it with other settings); :func:`training.data.dataset.split_views`
+    splits by shape id, so all of its views, from every folder, land on the same
+    side of the train/validation split.
+    """
+    if not folders:
+        raise ValueError("no view folders given")
+    return [r for folder in folders for r in find_views(Path(folder), shape_ids, targets=targets)]
+
 # --------------------------------------------------------------------------- the folder's settings
 
 

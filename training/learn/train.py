@@ -65,7 +65,8 @@ from genre_backend.geometry.spherical import crop_sph, pad_sph
 from genre_backend.nets.inpaint_net import RADIUS_SCALE
 from genre_backend.io import atomic_write, atomic_write_bytes
 
-from ..data.dataset import ViewDataset, find_views, split_views
+from ..data.dataset import ViewDataset, split_views
+from ..data.views import gather_views
 from .recipe import RECIPES, STAGES, StageRecipe, get_recipe
 
 __all__ = ["STAGES", "TrainConfig", "StageModule", "train", "weights_digest", "main"]
@@ -575,7 +576,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         shape_ids = {line.strip() for line in Path(tcfg.shapes).read_text().splitlines() if line.strip()}
     need_targets = tcfg.stage != "depth"  # the depth stage needs only the renders
     folders = tcfg.data if isinstance(tcfg.data, list) else [tcfg.data]
-    refs = [r for folder in folders for r in find_views(Path(folder), shape_ids, targets=need_targets)]
+    refs = gather_views(folders, shape_ids, targets=need_targets)
     train_refs, val_refs = split_views(refs, tcfg.val_fraction)
     # photo compositing: every stage feeds the RGB image to a net (the depth net, or the 1-step baseline), so a stage
     # whose photo_fraction is set composites that share over photographs (the recipes set it for depth and joint;
@@ -737,7 +738,8 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
     parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically).")
     parser.add_argument("stage", choices=STAGES)
     parser.add_argument("--data", required=True, nargs="+",
-                        help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets')")
+                        help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets'); a folder "
+                             "named twice is drawn twice as often (the mix of a run)")
     parser.add_argument("--out", required=True, help="run folder; this stage writes OUT/STAGE/")
     parser.add_argument("--init", help="weights to start from (e.g. OUT/depth/best.safetensors); default: fresh weights of --preset")
     parser.add_argument("--recipe", choices=sorted(RECIPES), default="paper",
