@@ -104,9 +104,10 @@ evaluate() {  # score weights on the product test split (and 8 views of its prim
   [ -f "$SCORES/primitives/$1/per_view.csv" ] || step "eval_primitives_$1" $G eval --data "$PRIM_EVAL_VIEWS" --weights "$2" --groups product-test \
     --rows "GenRe,Truth through the representation" --out "$SCORES/primitives/$1" --jobs "$EVAL_JOBS" --no-figures --no-progress
 }
-curve() {  # add the point LABEL to the learning curve (the hours of RUN; none: the starting point, 0 h)
+curve() {  # add the point LABEL to the learning curve (the hours of RUN; none: the starting point, 0 h); a third
+  # argument marks it installed (the shipped default weights the run starts from; a round is marked by hand once installed)
   step "curve_$1" $PY -m training.eval.product curve ${2:+--run "$2"} --eval "$SCORES/$1" --label "$CURVE_PREFIX$1" --csv "$RESULTS/learning_curve.csv" \
-    --threshold "$LEVEL" --base-hours "$BASE_HOURS"
+    --threshold "$LEVEL" --base-hours "$BASE_HOURS" ${3:+--installed}
 }
 # Once: the protocol model (the side-by-side table) and the weights the run started from (the curve's first point;
 # while the shipped default weights are a copy of the protocol's, the same scores).
@@ -119,7 +120,8 @@ else
   evaluate start "$INIT"  # (each part once: see evaluate)
 fi
 # the curve's first point, once per prefix
-grep -q "^${CURVE_PREFIX}start," "$RESULTS/learning_curve.csv" 2>/dev/null || curve start
+if [ "$INIT" -ef genre_backend/weights/default.safetensors ]; then START_INSTALLED=yes; else START_INSTALLED=; fi
+grep -q "^${CURVE_PREFIX}start," "$RESULTS/learning_curve.csv" 2>/dev/null || curve start "" $START_INSTALLED
 LAST=start  # the label of the last weights scored (the tables below are theirs)
 if [ "$FIRST_CHAIN" = refine ]; then  # the refine stage's weights are a point of the curve of their own
   evaluate refine "$JOINT_INIT"

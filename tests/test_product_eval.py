@@ -80,6 +80,11 @@ def test_curve_point_sums_the_stages_processor_time(tmp_path):
     rows = product.append_curve(tmp_path / "curve.csv", dict(point, cpu_h=0.0, mean_cd=0.2), "warm start")
     rows = product.append_curve(tmp_path / "curve.csv", point, "round 1")  # replaced, not duplicated
     assert [r["label"] for r in rows] == ["warm start", "round 1"]
+    assert [r["installed"] for r in rows] == ["", ""]
+    rows = product.append_curve(tmp_path / "curve.csv", dict(point, cpu_h=2.0, mean_cd=0.1), "round 2", installed=True)
+    assert [(r["label"], r["installed"]) for r in rows] == [("warm start", ""), ("round 1", ""), ("round 2", "yes")]
+    product.plot_curve(rows, tmp_path / "curve.png")
+    assert (tmp_path / "curve.png").stat().st_size > 1000
     # a run that started from weights trained before: their hours come first
     assert product.curve_point(run, ev, base_hours=2.25)["cpu_h"] == 3.75
     assert product.curve_point(None, ev, base_hours=2.25)["cpu_h"] == 2.25

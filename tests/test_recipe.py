@@ -104,6 +104,15 @@ def test_product_script_starts_from_the_shipped_default_weights_under_the_home(t
     assert "joint --init genre_backend/weights/default.safetensors" in steps["joint_600"]
     assert "--label s2_joint_600" in steps["curve_joint_600"] and "--base-hours 2.44" in steps["curve_joint_600"]
     assert not home.exists()
+    # a curve without its first point: the shipped default weights the run starts from are marked installed,
+    # the rounds are not (they are installed by hand, under the ship rule)
+    env["RESULTS"] = str(tmp_path / "results")
+    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
+    assert "--label s2_start" in steps["curve_start"] and steps["curve_start"].rstrip().endswith("--installed")
+    assert "--run" not in steps["curve_start"] and "--installed" not in steps["curve_joint_600"]
+    del env["RESULTS"]
     # the refiner grown: the refine stage of product_full from the shipped weights, scored, then no joint round
     env.update(FIRST_CHAIN="refine", RECIPE="product_full", ROUNDS="0", RUN=str(home / "runs" / "product_full"))
     proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)

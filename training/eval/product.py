@@ -197,16 +197,21 @@ def curve_point(run_dir: Path | None, eval_dir: Path, stages=CURVE_STAGES,
 
 
 CURVE_FIELDS = ["label", "cpu_h", "mean_cd", "views", *(f"{s}_{k}" for s in CURVE_STAGES for k in ("steps", "cpu_h")),
-                "run", "eval"]
+                "run", "eval", "installed"]
 
 
-def append_curve(csv_path: Path, point: dict, label: str) -> list[dict]:
-    """Add (or replace, by label) one point of the learning curve; returns every point, by processor hours."""
+def append_curve(csv_path: Path, point: dict, label: str, installed: bool = False) -> list[dict]:
+    """Add (or replace, by label) one point of the learning curve; returns every point, by processor hours.
+
+    ``installed``: the point's weights were installed as ``default`` (the line the curve follows; the
+    other points are branches scored and not installed).  A CSV written before the column existed
+    reads as no point installed.
+    """
     rows = []
     if csv_path.is_file():
         with csv_path.open(newline="") as fh:
             rows = [r for r in csv.DictReader(fh) if r["label"] != label]
-    rows.append({k: point.get(k, "") for k in CURVE_FIELDS} | {"label": label})
+    rows.append({k: point.get(k, "") for k in CURVE_FIELDS} | {"label": label, "installed": "yes" if installed else ""})
     rows.sort(key=lambda r: float(r["cpu_h"]))
     lines = [",".join(CURVE_FIELDS)] + [",".join(str(r.get(k, "")) for k in CURVE_FIELDS) for r in rows]
     atomic_write_text(csv_path, "\n".join(lines) + "\n")
@@ -219,15 +224,22 @@ def plot_curve(rows: list[dict], png: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    x = [float(r["cpu_h"]) for r in rows]
-    y = [float(r["mean_cd"]) for r in rows]
-    fig, ax = plt.subplots(figsize=(5, 3.2))
-    ax.plot(x, y, "o-")
-    for r, xi, yi in zip(rows, x, y):
-        ax.annotate(r["label"], (xi, yi), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    line = [r for r in rows if r.get("installed") == "yes"]
+    branches = [r for r in rows if r.get("installed") != "yes"]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    if branches:
+        ax.plot([float(r["cpu_h"]) for r in branches], [float(r["mean_cd"]) for r in branches], "o", mfc="none",
+                color="0.55", label="other points: branches not installed, re-scores")
+    if line:
+        x = [float(r["cpu_h"]) for r in line]
+        y = [float(r["mean_cd"]) for r in line]
+        ax.plot(x, y, "o-", color="C0", label="installed as default")
+        for r, xi, yi in zip(line, x, y):
+            ax.annotate(r["label"], (xi, yi), fontsize=7, xytext=(3, 4), textcoords="offset points")
     ax.set_xlabel("product training, processor hours (cumulative)")
     ax.set_ylabel("mean CD, product test split")
     ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(png, dpi=120)
     plt.close(fig)
@@ -253,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--stages", default=",".join(CURVE_STAGES),
                    help="the run's stages behind the scored weights, comma-separated (default: all; e.g. 'depth' for "
                         "a depth stage's output scored before the later stages ran)")
+    k.add_argument("--installed", action="store_true",
+                   help="the scored weights were installed as 'default' (drawn on the curve's line; others are branches)")
     k.add_argument("--base-hours", type=float, default=0.0,
                    help="processor hours behind the weights the run started from (earlier runs), added to the point's hours")
     args = p.parse_args(argv)
@@ -266,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             point = curve_point(Path(args.run) if args.run else None, Path(args.eval), threshold=args.threshold,
                                 base_hours=args.base_hours, stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()))
-            rows = append_curve(Path(args.csv), point, args.label)
+            rows = append_curve(Path(args.csv), point, args.label, installed=args.installed)
             plot_curve(rows, Path(args.csv).with_suffix(".png"))
             print(json.dumps(point))
     except (OSError, ValueError, KeyError) as exc:
