@@ -25,7 +25,9 @@ normalised):
 * the depth net's error inside the true mask, taken apart: its median absolute
   value, what is left after removing the view's median offset (the object's
   distance), and after removing the best-fitting plane (offset and tilt:
-  the surface turned as a whole), all in world units (a voxel is 1/N);
+  the surface turned as a whole), all in world units (a voxel is 1/N); and
+  the correlation of that error (less its offset) with the image's
+  brightness, per view: whether the net reads shading as depth;
 * the inpainting alone: the partial maps of GenRe's and of the true depth
   projected, the inpainted map of the true depth's partial map projected,
   and the maps' own errors (MSE against the true full map on the partial
@@ -69,19 +71,31 @@ from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 HIT = 0.05  # a projected-map voxel counts as surface above this (hit voxels hold 0.13–1)
 
 
-def depth_error_parts(pred: torch.Tensor, true: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
-    """Median |pred − true| over the mask (S, S) pixels with a true depth: as it is, less its median, less its least-squares plane."""
+def depth_error_parts(pred: torch.Tensor, true: torch.Tensor, mask: torch.Tensor,
+                      brightness: torch.Tensor | None = None) -> dict[str, float]:
+    """Median |pred − true| over the mask (S, S) pixels with a true depth: as it is, less its median, less its least-squares plane.
+
+    ``brightness`` (S, S): the image's brightness; adds the correlation (Pearson, over the same pixels) of the
+    error less its median with it: positive when the net puts bright pixels too far and dark ones too near,
+    negative the other way (shading read as depth).
+    """
     m = mask & (true > 0)
     err = (pred - true)[m].double()
     yy, xx = torch.nonzero(m, as_tuple=True)
     n = m.shape[0]
     a = torch.stack([torch.ones_like(err), xx.double() / n, yy.double() / n], 1)
     plane = torch.linalg.lstsq(a, err[:, None]).solution[:, 0]
-    return {
+    parts = {
         "depth |error| (median)": float(err.abs().median()),
         "depth |error| less its offset": float((err - err.median()).abs().median()),
         "depth |error| less its plane": float((err - a @ plane).abs().median()),
     }
+    if brightness is not None:
+        b = brightness[m].double()
+        e = err - err.median()
+        parts["depth error vs brightness (corr.)"] = float(torch.corrcoef(torch.stack([e, b]))[0, 1]) \
+            if e.std() > 0 and b.std() > 0 else 0.0
+    return parts
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -161,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                                 ("3D Completion", own)):
                     logits = completion(rgb, mask=mask, depth=d)["logits"]
                     add(name, score_grid(torch.sigmoid(logits)[0, 0], thresholds, target, model.config.geometry))
-            for name, value in depth_error_parts(genre["depth"][0], depth[0], mask[0]).items():
+            for name, value in depth_error_parts(genre["depth"][0], depth[0], mask[0], brightness=rgb[0].mean(0)).items():
                 maps.setdefault(name, []).append(value)
             add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))
             # the inpainting alone: the partial maps it starts from, and what it makes of the true depth's

@@ -289,7 +289,7 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
                           "inpainted map: MSE on those pixels", "inpainted map: MSE elsewhere",
                           "inpainted map: std of its hits", "true map: std of its hits", "depth |error| (median)",
                           "depth |error| less its offset", "depth |error| less its plane",
-                          "inpainted map: hit/no-hit as the tru", "inpainted map: MSE on unseen true hi",
+                          "depth error vs brightness (corr.)", "inpainted map: hit/no-hit as the tru", "inpainted map: MSE on unseen true hi",
                           "true map: share of no-hit pixels", "inpainted map: share of hit pixels",
                           "GenRe, spherical channel emptied", "GenRe, depth offset removed", "GenRe, trimmed to the outline",
                           "3D Completion <- true depth", "3D Completion, depth offset removed", "3D Completion"}
@@ -302,6 +302,7 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
     assert 0.0 < shell_cd < 0.25 and 0.0 < sph_cd < 0.25
     parts = [float(lines[k].split()[-1]) for k in ("depth |error| (median)", "depth |error| less its offset", "depth |error| less its plane")]
     assert parts[0] >= 0 and parts[2] <= parts[1] + 1e-9  # a plane fits at least as well as an offset
+    assert -1.0 <= float(lines["depth error vs brightness (corr.)"].split()[-1]) <= 1.0
     # the parts of an analytic error: an offset and a tilt are taken out exactly, a bump is not
     n = 32
     yy, xx = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
@@ -313,6 +314,12 @@ def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
     assert tilted["depth |error| less its plane"] < 1e-6
     bump = (mask & ((xx - 16) ** 2 + (yy - 16) ** 2 < 30)).double() * 0.1
     assert 0.01 < mod.depth_error_parts(true + bump, true, mask)["depth |error| less its plane"] < 0.1
+    # an error that follows the brightness (dark pixels put too far) correlates with it negatively, exactly
+    light = 0.2 + 0.6 * xx / n
+    shaded = mod.depth_error_parts(true + 0.3 - 0.1 * light, true, mask, brightness=light)
+    assert shaded["depth error vs brightness (corr.)"] == pytest.approx(-1.0, abs=1e-9)
+    assert abs(mod.depth_error_parts(true + bump, true, mask, brightness=light)["depth error vs brightness (corr.)"]) < 0.1
+    assert "depth error vs brightness (corr.)" not in tilted
 
 
 def test_diagnostics_sample_seen_test_or_product_test_views_only(tiny, tmp_path):
