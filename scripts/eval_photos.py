@@ -249,6 +249,11 @@ def main(argv: list[str] | None = None) -> int:
 
     mean = {k: float(np.mean([r[k] for r in rows])) for k in ("iou_before", "iou_after", *(f"iou_{s}" for s in (*SEEDINGS, "auto*"))) if k in rows[0]}
     print("mean IoU " + ", ".join(f"{k.removeprefix('iou_')} {v:.3f}" for k, v in mean.items()))
+    defined_tilts = [abs(r["tilt"]) for r in rows if r["tilt_defined"]]
+    tilt_line = (f"mean |tilt| {np.mean([abs(r['tilt']) for r in rows]):.1f}° over all {len(rows)} photos, "
+                 + (f"{np.mean(defined_tilts):.1f}° over the {len(defined_tilts)} whose upright axis is well-defined"
+                    if defined_tilts else "no photo with a well-defined upright axis"))
+    print(tilt_line)
     print(f"doubtful automatic masks: before {sum(bool(r['warning_before']) for r in rows)}, after {sum(bool(r['warning']) for r in rows)} of {len(rows)}; "
           f"masks covering > 85 % without a warning: {sum(r['cover_after'] > 0.85 and not r['warning'] for r in rows)}")
 
@@ -276,6 +281,8 @@ def main(argv: list[str] | None = None) -> int:
         "seen from the side (+ = top toward the camera) / from the camera (+ = top to the right), ~ = ill-defined (round object); parts after clean-up (before it).",
         "",
         *lines,
+        "",
+        tilt_line[0].upper() + tilt_line[1:] + ".",
         "",
     ])
     write_bytes_atomic(args.out / "table.md", text.encode())
