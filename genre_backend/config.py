@@ -129,6 +129,13 @@ class GeometryConfig:
     # 4.4 % / 4.6 % (default, pits deeper than 10 voxels only: 2.9 %; results/visible_fusion/).
     # Weights stored without the key: off.
     visible_fusion: bool = False
+    # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
+    # ellipsoid that best fits the visible surface (the masked depth map) and the mesh, when the visible
+    # points' mean distance to it is at most this share of its bounding-box diagonal; in reconstruction
+    # and in evaluation (every row with a depth map alike).  0: off.  Chosen for the product weights on
+    # training-split views by scripts/primitive_snap.py (the rule in results/product/ship_rule.txt).
+    # Weights stored without the key: 0 (off).
+    primitive_snap: float = 0.0
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at
     # the top of that range for every learned row (first weights: 0.70; the shipped ones: 0.75),
@@ -161,6 +168,9 @@ class GeometryConfig:
             raise ValueError(f"geometry.visible_fusion: expected true or false, got {self.visible_fusion!r}")
         if self.visible_fusion and self.target != "distance":
             raise ValueError("geometry.visible_fusion: the visible surface is fused only into the distance target")
+        if isinstance(self.primitive_snap, bool) or not isinstance(self.primitive_snap, (int, float)) \
+                or not (math.isfinite(self.primitive_snap) and 0.0 <= self.primitive_snap < 1.0):
+            raise ValueError(f"geometry.primitive_snap: expected a share in [0, 1), got {self.primitive_snap!r}")
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")
         for name in ("default_threshold", "threshold_min", "threshold_max"):

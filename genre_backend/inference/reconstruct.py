@@ -22,6 +22,7 @@ The mesh lives in the view frame of :mod:`genre_backend.frame`.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -36,6 +37,7 @@ from ..io import DEFAULT_WEIGHTS_NAME, named_weights
 from ..validation import check_hole_closing, check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
 from ..geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_surface, voxels_to_mesh
+from ..geometry.primitives import snap
 from ..geometry.voxels import silhouette_ramp
 from ..nets.model import GenRe, WeightsError, load_model
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
@@ -151,7 +153,9 @@ class Reconstruction:
     of the photo or touches most of its border), else None.
     ``threshold``, ``hole_closing``, ``silhouette_carve`` and ``visible_fusion``: the level, the hole
     sealing (voxels), whether the voxels outside the mask were carved away and whether the holes in the
-    visible face were filled from the depth map, as the mesh was made.
+    visible face were filled from the depth map, as the mesh was made.  ``primitive_snap``: the tolerance
+    of the regular-shape stage (0: off); ``primitive``: the family of the fitted shape that replaced the
+    mesh (``"box"``, ``"cylinder"``, ``"cone"``, ``"torus"``, ``"ellipsoid"``), else None.
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -186,6 +190,8 @@ class Reconstruction:
     hole_closing: int = 0
     silhouette_carve: bool = False
     visible_fusion: bool = False
+    primitive_snap: float = 0.0
+    primitive: str | None = None
     _texture: PhotoTexture | None = field(default=None, repr=False)
 
     @property
@@ -408,6 +414,7 @@ class Reconstructor:
         hole_closing: int | None = None,
         silhouette_carve: bool | None = None,
         visible_fusion: bool | None = None,
+        primitive_snap: float | None = None,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -429,7 +436,10 @@ class Reconstructor:
         sticks out past the outline
         (:func:`..geometry.voxels.silhouette_ramp`; default: the config's).  ``visible_fusion``: fill the
         holes the refiner leaves in the face the camera sees with the depth map's surface
-        (:func:`..geometry.mesh_voxels.fuse_visible_surface`; default: the config's; distance weights only).  Raises
+        (:func:`..geometry.mesh_voxels.fuse_visible_surface`; default: the config's; distance weights only).
+        ``primitive_snap`` (a share in [0, 1); 0: off): replace the mesh by the box, cylinder, cone, torus or
+        ellipsoid that fits the visible surface within this share of its size
+        (:func:`..geometry.primitives.snap`; default: the config's).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
@@ -449,6 +459,10 @@ class Reconstructor:
             raise ValueError(f"visible_fusion: expected True or False, got {visible_fusion!r}")
         if visible_fusion and g.target != "distance":
             raise ValueError(f"visible_fusion: these weights predict the {g.target!r} target; only distance grids take the visible surface")
+        if primitive_snap is None:
+            primitive_snap = g.primitive_snap
+        if isinstance(primitive_snap, bool) or not isinstance(primitive_snap, (int, float)) or not (math.isfinite(primitive_snap) and 0.0 <= primitive_snap < 1.0):
+            raise ValueError(f"primitive_snap: expected a share in [0, 1) (0: off), got {primitive_snap!r}")
         if isinstance(keep_fraction, bool) or not isinstance(keep_fraction, (int, float)) or not 0.0 <= keep_fraction <= 1.0:
             raise ValueError(f"keep_fraction: expected a number in [0, 1], got {keep_fraction!r}")
         timings: dict[str, float] = {}
@@ -497,6 +511,13 @@ class Reconstructor:
             prob, vertices, faces, clean = mesh_of_probability(prob, threshold, model.config.geometry, hole_closing, keep_fraction)
             if clean is None:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
+            primitive = None
+            if primitive_snap > 0:
+                vertices, faces, fit = snap(vertices, faces, masked[0], model.config.camera, primitive_snap)
+                if fit is not None and fit.residual <= primitive_snap:
+                    primitive = fit.family
+                    vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
+                    notes = [*pre.notes, f"the mesh is a fitted {fit.describe()}"]
             stage("done")
         photo_mask = pre.photo_mask
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
@@ -528,7 +549,7 @@ class Reconstructor:
             image_size=pre.image_size,
             config=self.config,
             intermediates=inter,
-            notes=pre.notes,
+            notes=pre.notes if primitive is None else notes,
             mask_path=None if mask_path is None else Path(mask_path),
             photo=image,
             fill=pre.fill,
@@ -538,4 +559,6 @@ class Reconstructor:
             hole_closing=int(hole_closing),
             silhouette_carve=silhouette_carve,
             visible_fusion=visible_fusion,
+            primitive_snap=float(primitive_snap),
+            primitive=primitive,
         )

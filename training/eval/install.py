@@ -49,7 +49,8 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
 
 def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
             hole_closing: int | None = None, sph_hit_probability: float | None = None,
-            silhouette_carve: bool | None = None, visible_fusion: bool | None = None) -> float:
+            silhouette_carve: bool | None = None, visible_fusion: bool | None = None,
+            primitive_snap: float | None = None) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
@@ -63,6 +64,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     refiner's output to the mask's outline; chosen on seen-test views); None keeps the weights' own.
     ``visible_fusion``: store ``geometry.visible_fusion`` (fill the holes in the visible face from the
     depth map; chosen on seen-test views by ``scripts/visible_fusion.py``); None keeps the weights' own.
+    ``primitive_snap``: store ``geometry.primitive_snap`` (the regular-shape stage's tolerance, 0: off; chosen
+    on training-split views by ``scripts/primitive_snap.py``); None keeps the weights' own.
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -85,6 +88,10 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         geometry = dataclasses.replace(geometry, silhouette_carve=bool(silhouette_carve))
     if visible_fusion is not None:
         geometry = dataclasses.replace(geometry, visible_fusion=bool(visible_fusion))
+    if primitive_snap is not None:
+        if name == PROTOCOL_WEIGHTS_NAME and primitive_snap > 0:
+            raise ValueError("the protocol weights never snap to regular shapes: Table 1 is GenRe alone")
+        geometry = dataclasses.replace(geometry, primitive_snap=float(primitive_snap))
     if sph_hit_probability is not None:
         if config.network.inpaint_head != "hit":
             raise ValueError(f"{weights}: --sph-hit-probability needs hit-head weights (network.inpaint_head = 'hit'), "
@@ -101,6 +108,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         extra["silhouette_carve_from"] = "chosen on seen-test views (results/carve/ship_rule.txt)"
     if visible_fusion is not None:
         extra["visible_fusion_from"] = "scripts/visible_fusion.py on seen-test views"
+    if primitive_snap is not None:
+        extra["primitive_snap_from"] = "scripts/primitive_snap.py on training-split views (results/product/ship_rule.txt)"
     if sph_hit_probability is not None:
         extra["sph_hit_probability_from"] = "scripts/stage_errors.py --hit-levels on seen-test views"
     save_model(model, out, extra)
@@ -133,6 +142,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
                    help="store geometry.visible_fusion (fill the holes in the visible face from the depth map; chosen by "
                         "scripts/visible_fusion.py on seen-test views); default: the weights' own")
+    p.add_argument("--primitive-snap", type=float, default=None, metavar="TOL",
+                   help="store geometry.primitive_snap = TOL (replace the mesh by a fitted box, cylinder, cone, torus or "
+                        "ellipsoid within TOL of its size; 0: off; chosen by scripts/primitive_snap.py on training-split "
+                        "views; default weights only); default: the weights' own")
     args = p.parse_args(argv)
     out = args.out if args.out is not None else named_weights(args.name)
     interim = named_weights(DEFAULT_WEIGHTS_NAME)
@@ -141,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name,
                     hole_closing=args.hole_closing, sph_hit_probability=args.sph_hit_probability,
-                    silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion)
+                    silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
+                    primitive_snap=args.primitive_snap)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1

@@ -23,7 +23,9 @@ before its mesh is made, the baselines included; the truth is not.  When they
 fill the holes in the visible face from the depth map
 (``geometry.visible_fusion``), every voxel row with a depth map does so with
 its own (GenRe and GenRe-1step GenRe's depth net's, 3D Completion its own, the
-oracles the true depth), after the carving.
+oracles the true depth), after the carving.  When they replace a mesh by a fitted
+regular shape (``geometry.primitive_snap``), every row with a depth map is fitted
+likewise, to its own depth map and its mesh at the weights' level.
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ from dataclasses import dataclass
 import torch
 
 from genre_backend.config import GenreConfig
-from genre_backend.geometry.mesh_voxels import fuse_visible_surface
+from genre_backend.geometry.mesh_voxels import fuse_visible_surface, grid_to_surface
+from genre_backend.geometry.primitives import snap
 from genre_backend.geometry.voxels import silhouette_ramp
 from genre_backend.nets.model import GenRe, WeightsError
 
@@ -74,7 +77,11 @@ class Models:
 
 @torch.no_grad()
 def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str, dict]:
-    """Every row's prediction for one view: {row: {"prob": (N³) or "points": (P, 3)}, plus "depth"}."""
+    """Every row's prediction for one view: {row: {"prob": (N³) or "points": (P, 3)}}, plus "depth_abs_err".
+
+    A row whose mesh the weights' regular-shape stage replaced (``geometry.primitive_snap``) also has
+    ``"mesh"``: (vertices (V, 3), faces (F, 3)), which is scored at every level in place of ``prob``.
+    """
     m = models.genre
     rgb = sample["rgb"][None].to(device)
     mask = sample["mask"][None].to(device)
@@ -114,6 +121,11 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
             d = row.pop("depth")
             if geometry.visible_fusion:  # at the weights' level: the one the mesh is made at by genre reconstruct
                 row["prob"] = fuse_visible_surface(row["prob"], d, m.config.camera, geometry, geometry.default_threshold)
+            if geometry.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
+                v, f = grid_to_surface(row["prob"], geometry.default_threshold, geometry)
+                v, f, fit = snap(v, f, d, m.config.camera, geometry.primitive_snap)
+                if fit is not None and fit.residual <= geometry.primitive_snap:
+                    row["mesh"] = (v, f)
     if REPRESENTATION in models.wanted:
         out[REPRESENTATION] = {"prob": sample["voxels"]}
     if models.nearest is not None:
