@@ -46,6 +46,7 @@ class JobSpec:
     add_camera: bool = True
     colour_from_photo: bool = True
     keep_all_parts: bool = False
+    primitive_snap: float | None = None  # None: the weights' own regular-shape snapping
     photo_image: str = ""  # name of an image datablock showing the photo (when chosen in Blender)
     photo_file: str = ""  # else: the photo's file, loaded as the camera's background when needed
 
@@ -67,6 +68,8 @@ class JobSpec:
             payload["options"]["texture"] = True
         if self.keep_all_parts:
             payload["options"]["all_parts"] = True
+        if self.primitive_snap is not None:
+            payload["options"]["primitive_snap"] = float(self.primitive_snap)
         return payload
 
 
@@ -166,6 +169,7 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     spec.add_camera = bool(settings.add_camera)
     spec.colour_from_photo = bool(getattr(settings, "colour_from_photo", False))
     spec.keep_all_parts = bool(getattr(settings, "keep_all_parts", False))
+    spec.primitive_snap = float(settings.primitive_snap) if getattr(settings, "use_primitive_snap", False) else None
     return spec
 
 
@@ -252,6 +256,8 @@ class Job:
         obj = self.objects[0] if self.objects else None
         faces = res.get("faces", 0)
         line = f"{self.spec.name}: {res.get('vertices', 0):,} vertices, {faces:,} faces"
+        if isinstance(res.get("primitive"), str):
+            line += f", a fitted {res['primitive']}"
         if obj is not None and self.spec.target_faces and faces > self.spec.target_faces:
             line += f" (decimated to ~{self.spec.target_faces:,})"
         return f"{line} in {self.request.elapsed:.1f} s"

@@ -64,6 +64,14 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
                     "(sides the photo does not show take the colour of the nearest surface it shows)",
         default=True,
     )
+    use_primitive_snap: BoolProperty(name="Custom Shape Snapping", description="Override the weights' regular-shape snapping", default=False)
+    primitive_snap: FloatProperty(
+        name="Snap Shapes", description="When the photo shows a plain box, cylinder, cone, torus or ellipsoid, give that "
+                                        "exact shape instead of the network's rounded mesh if its outline matches the "
+                                        "object's within this share (1 - IoU; 0: never)",
+        # The shipped 'default' weights' setting; the field follows what the backend reports.
+        default=0.0, min=0.0, max=0.5, step=1, precision=2,
+    )
     keep_all_parts: BoolProperty(
         name="Keep All Parts",
         description="Keep every separate piece of the mesh (off: pieces smaller than 5% of the largest are dropped)",

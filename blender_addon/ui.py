@@ -51,6 +51,11 @@ class GENRE_PT_panel(bpy.types.Panel):
         box.prop(settings, "smoothing")
         box.prop(settings, "target_faces")
         box.prop(settings, "colour_from_photo")
+        row = box.row(align=True)
+        row.prop(settings, "use_primitive_snap", text="")
+        sub = row.row()
+        sub.enabled = settings.use_primitive_snap
+        sub.prop(settings, "primitive_snap")
         box.prop(settings, "keep_all_parts")
         box.prop(settings, "add_camera")
 

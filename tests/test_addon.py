@@ -210,6 +210,7 @@ def scenario_reconstruct(args: dict) -> dict:
         settings.threshold = 0.2  # not the weights' level: a plain run should bring the field to it
     settings.hole_closing = 7  # likewise the hole sealing
     settings.silhouette_carve = True  # and the outline trim (the test weights do not carve)
+    settings.primitive_snap = 0.3  # and the regular-shape snapping (the test weights do not snap)
     status = bpy.context.window_manager.genre_status
     out = {}
     snap = _Snapshot(bpy)
@@ -219,6 +220,7 @@ def scenario_reconstruct(args: dict) -> dict:
     out["threshold_field_after"] = settings.threshold
     out["hole_closing_field_after"] = settings.hole_closing
     out["silhouette_carve_field_after"] = settings.silhouette_carve
+    out["primitive_snap_field_after"] = settings.primitive_snap
     out["outcome"] = list(outcome)
     out["result_event"] = job.request.result
     out["stages"] = sorted({s[1] for s in states})
@@ -645,6 +647,8 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert ev["threshold"] == level and r["threshold_field_after"] == pytest.approx(level)
     assert ev["hole_closing"] == load_model(weights).config.geometry.hole_closing == r["hole_closing_field_after"]
     assert ev["silhouette_carve"] is load_model(weights).config.geometry.silhouette_carve is r["silhouette_carve_field_after"] is False
+    assert ev["primitive_snap"] == load_model(weights).config.geometry.primitive_snap == r["primitive_snap_field_after"] == 0.0
+    assert ev["primitive"] is None
     mesh = r["mesh"]
     assert mesh["name"] == "box"
     assert mesh["collections"] == ["GenRe"]

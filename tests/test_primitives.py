@@ -125,3 +125,22 @@ def test_bad_input_is_refused():
         P.snap(pts, np.zeros((1, 3), dtype=np.int64), torch.zeros(8, 8), CAMERA, 1.5)
     with pytest.raises(ValueError, match="primitive_snap"):
         GenreConfig().geometry.__class__(primitive_snap=-0.1)
+
+
+def test_the_tolerance_is_the_grid_value_with_the_lowest_mean_cd():
+    """scripts/primitive_snap.py's rule: a view is snapped when its fit's 1 − IoU is at most tau; ties go to the smaller tau."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "primitive_snap.py"
+    spec = importlib.util.spec_from_file_location("primitive_snap_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    rec = lambda mesh, fit, res: {"cd_mesh": mesh, "cd_fit": fit, "residual": res}  # noqa: E731
+    views = [rec(0.10, 0.05, 0.015), rec(0.12, 0.06, 0.025), rec(0.08, 0.20, 0.045), rec(0.09, 0.30, 0.2)]
+    best, means = script.choose(views, [0.0, 0.01, 0.02, 0.03, 0.05])
+    assert means[0.0] == pytest.approx(np.mean([0.10, 0.12, 0.08, 0.09]))
+    assert means[0.02] == pytest.approx(np.mean([0.05, 0.12, 0.08, 0.09]))
+    assert means[0.05] == pytest.approx(np.mean([0.05, 0.06, 0.20, 0.09]))
+    assert best == 0.03 and means[0.03] == pytest.approx(np.mean([0.05, 0.06, 0.08, 0.09]))
+    assert script.choose([rec(0.1, 0.2, 0.001)], [0.0, 0.01])[0] == 0.0  # snapping that only hurts stays off

@@ -401,6 +401,32 @@ def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photo
         assert code == 0 and (tmp_path / "f.obj").is_file(), err
 
 
+def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_path, capsys, trained):
+    from genre_backend.geometry.cleanup import is_watertight
+    from genre_backend.geometry.primitives import FAMILIES, snap
+
+    assert rec.config.geometry.primitive_snap == 0.0  # weights stored without the key: off
+    plain = rec.run(photos["rgba"], threshold=0.3)
+    assert plain.primitive is None and plain.primitive_snap == 0.0
+    snapped = rec.run(photos["rgba"], threshold=0.3, primitive_snap=0.99)  # so loose that the best fit is always taken
+    assert snapped.primitive in FAMILIES and snapped.primitive_snap == 0.99
+    assert torch.equal(snapped.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
+    v, f, fit = snap(plain.vertices, plain.faces, plain.intermediates["masked_depth"], rec.config.camera, 0.99)
+    assert fit.family == snapped.primitive and np.allclose(v, snapped.vertices) and np.array_equal(f, snapped.faces)
+    assert is_watertight(snapped.faces) and snapped.clean.parts == 1
+    assert any(snapped.primitive in note for note in snapped.notes)
+    strict = rec.run(photos["rgba"], threshold=0.3, primitive_snap=1e-6)  # nothing fits that well: the mesh stays
+    assert strict.primitive is None and np.array_equal(strict.faces, plain.faces)
+    for bad in (1.0, -0.1, True, "0.1", float("nan")):
+        with pytest.raises(ValueError, match="primitive_snap"):
+            rec.run(photos["rgba"], primitive_snap=bad)
+    code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "p.obj", "--weights", trained[0], "--primitive-snap", 0.99)
+    assert code == 0 and "a fitted" in out, err
+    with pytest.raises(SystemExit) as exc:
+        _cli(capsys, photos["rgba"], "-o", tmp_path / "p.obj", "--weights", trained[0], "--primitive-snap", 1.5)
+    assert exc.value.code == 2 and "--primitive-snap" in capsys.readouterr().err
+
+
 def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.mesh_voxels import fill_enclosed
     from genre_backend.geometry.voxels import silhouette_ramp

@@ -51,7 +51,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["FAMILIES", "PrimitiveFit", "fit_primitive", "family_mesh", "signed_distance", "signed_distance_reference", "snap"]
+__all__ = ["FAMILIES", "PrimitiveFit", "family_mesh", "fit_primitive", "outline_disagreement", "signed_distance",
+           "signed_distance_reference", "snap", "trace_depth", "visible_points"]
 
 FAMILIES = ("box", "cylinder", "cone", "torus", "ellipsoid")
 _N_PARAMS = {"box": 3, "cylinder": 2, "cone": 2, "torus": 2, "ellipsoid": 3}
@@ -76,7 +77,7 @@ OUTLINE_WEIGHT = 10.0
 VISIBLE_WEIGHT = 0.1
 LEARNING_RATE = 0.03
 POINTS = 512
-# The mesh points' weight in the fit (the visible points have weight 1): the hidden side is the refiner's guess.
+# The mesh points' weight in the fit: the refiner's mesh carries the hidden side, blurred.
 MESH_WEIGHT = 0.3
 # The snapped mesh's longest edge, as a share of its bounding-box diagonal (so the photo's colour maps onto it
 # like onto the voxel mesh, whose edges are about a voxel).

@@ -70,6 +70,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     parser.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
                         help="fill the holes the model leaves in the side the photo shows with the estimated depth's "
                              "surface (default: the weights' config, geometry.visible_fusion)")
+    parser.add_argument("--primitive-snap", type=float, metavar="TOL",
+                        help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette "
+                             "matches the mask within TOL (1 - IoU, in [0, 1); 0 turns it off; default: the weights' "
+                             "config, geometry.primitive_snap)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
     parser.add_argument("--texture", action="store_true",
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
@@ -104,6 +108,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             check_hole_closing("--hole-closing", args.hole_closing)
         except ValueError as exc:
             parser.error(str(exc))
+    if args.primitive_snap is not None and not (0.0 <= args.primitive_snap < 1.0):
+        parser.error(f"--primitive-snap: expected a number in [0, 1) (0: off), got {args.primitive_snap:g}")
     fmt = args.format
     single_file = len(images) == 1 and args.output and not _is_dir(args.output) and not args.output.endswith(os.sep)
     if single_file:
@@ -172,7 +178,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                 check_output_path(p, (image, args.mask))
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
                              refine=not args.no_refine, hole_closing=args.hole_closing,
-                             silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion)
+                             silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
+                             primitive_snap=args.primitive_snap)
             path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
@@ -185,6 +192,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             if clean.parts_before != clean.parts:
                 shape += f"; {clean.parts_before - clean.parts} small or inner parts dropped"
             colour = ", coloured from the photo" if args.texture else ""
+            if result.primitive is not None:
+                shape += f"; a fitted {result.primitive}"
             say(f"{image} -> {path} ({used}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
             if result.mask_warning:
                 fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \

@@ -33,7 +33,7 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "format", "save_intermediates", "texture", "all_parts")
+_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "primitive_snap", "format", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
 
 
@@ -59,6 +59,7 @@ class Job:
     hole_closing: int | None = None
     silhouette_carve: bool | None = None
     visible_fusion: bool | None = None
+    primitive_snap: float | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -207,6 +208,9 @@ class Server:
         fusion = options.get("visible_fusion")
         if fusion is not None and not isinstance(fusion, bool):
             raise RequestError("bad_field", f"option 'visible_fusion' must be true or false, got {_show(fusion)}", rid)
+        snap = options.get("primitive_snap")
+        if snap is not None and (isinstance(snap, bool) or not isinstance(snap, (int, float)) or not 0.0 <= snap < 1.0):
+            raise RequestError("bad_field", f"option 'primitive_snap' must be a number in [0, 1) (0: off), got {_show(snap)}", rid)
         fmt = options.get("format")
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
             raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {_show(fmt)}", rid)
@@ -220,7 +224,7 @@ class Server:
             flags[name] = value
         return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
                    hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve,
-                   visible_fusion=fusion)
+                   visible_fusion=fusion, primitive_snap=None if snap is None else float(snap))
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -353,6 +357,7 @@ class Server:
                 hole_closing=job.hole_closing,
                 silhouette_carve=job.silhouette_carve,
                 visible_fusion=job.visible_fusion,
+                primitive_snap=job.primitive_snap,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
                 keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
@@ -398,6 +403,8 @@ class Server:
                 "hole_closing": result.hole_closing,
                 "silhouette_carve": result.silhouette_carve,
                 "visible_fusion": result.visible_fusion,
+                "primitive_snap": result.primitive_snap,
+                "primitive": result.primitive,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},
                 "camera": result.camera(),
             }
