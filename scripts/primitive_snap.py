@@ -7,7 +7,9 @@ made at the weights' level (with the weights' other mesh settings) and scored
 :mod:`genre_backend.geometry.primitives` is fitted to the visible surface (the
 masked predicted depth), the mask's outline and the mesh, and the best fit
 (the highest silhouette IoU with the mask) is scored too.  A tolerance
-``tau`` snaps the views whose fit has 1 − IoU at most ``tau``, so
+``tau`` snaps the views whose fit's disagreement (1 − IoU, or twice the
+mesh's mean distance to it over its diagonal, whichever is larger:
+``PrimitiveFit.disagreement``) is at most ``tau``, so
 one pass gives the mean CD at every ``tau`` of the grid.
 
 The rule (``results/product/ship_rule.txt``, fixed before any fit ran): the
@@ -35,7 +37,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-GRID = [0.0] + [round(0.01 * k, 2) for k in range(1, 11)]  # off, then 0.01 … 0.10 (1 − silhouette IoU)
+from genre_backend.geometry.primitives import MESH_FACTOR  # noqa: E402
+
+GRID = [0.0] + [round(0.01 * k, 2) for k in range(1, 21)]  # off, then 0.01 … 0.20 (PrimitiveFit.disagreement)
 COLUMNS = ["key", "folder", "shape", "view", "cd_mesh", "cd_fit", "family", "residual", "mesh_residual", "seconds"]
 
 
@@ -111,7 +115,7 @@ def choose(records: list[dict], grid=GRID) -> tuple[float, dict[float, float]]:
     """(the tolerance with the lowest mean CD, {tolerance: mean CD}); ties go to the smaller tolerance."""
     cd_mesh = np.array([float(r["cd_mesh"]) for r in records])
     cd_fit = np.array([float(r["cd_fit"]) for r in records])
-    res = np.array([float(r["residual"]) for r in records])
+    res = np.array([max(float(r["residual"]), MESH_FACTOR * float(r["mesh_residual"])) for r in records])
     means = {tau: float(np.where(res <= tau, cd_fit, cd_mesh).mean()) if tau > 0 else float(cd_mesh.mean()) for tau in grid}
     best = min(grid, key=lambda tau: (round(means[tau], 6), tau))
     return best, means
@@ -169,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     print("| tolerance | snapped | mean CD | " + " | ".join(f"{f} CD" for f in folders) + " |")
     print("| ---: | ---: | ---: | " + " | ".join("---:" for _ in folders) + " |")
     for tau in GRID:
-        row = [f"{tau:.3f}" if tau else "off", f"{sum(float(r['residual']) <= tau for r in records) if tau else 0}", f"{means[tau]:.4f}"]
+        snapped = sum(max(float(r["residual"]), MESH_FACTOR * float(r["mesh_residual"])) <= tau for r in records) if tau else 0
+        row = [f"{tau:.2f}" if tau else "off", str(snapped), f"{means[tau]:.4f}"]
         for f in folders:
             sub = [r for r in records if r["folder"] == f]
             row.append(f"{choose(sub, [tau])[1][tau]:.4f}")

@@ -128,7 +128,8 @@ def test_bad_input_is_refused():
 
 
 def test_the_tolerance_is_the_grid_value_with_the_lowest_mean_cd():
-    """scripts/primitive_snap.py's rule: a view is snapped when its fit's 1 − IoU is at most tau; ties go to the smaller tau."""
+    """scripts/primitive_snap.py's rule: a view is snapped when its fit's disagreement (1 − IoU, or twice the mesh's
+    distance to it) is at most tau; the lowest mean CD wins, ties go to the smaller tau."""
     import importlib.util
     from pathlib import Path
 
@@ -136,11 +137,13 @@ def test_the_tolerance_is_the_grid_value_with_the_lowest_mean_cd():
     spec = importlib.util.spec_from_file_location("primitive_snap_script", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
-    rec = lambda mesh, fit, res: {"cd_mesh": mesh, "cd_fit": fit, "residual": res}  # noqa: E731
-    views = [rec(0.10, 0.05, 0.015), rec(0.12, 0.06, 0.025), rec(0.08, 0.20, 0.045), rec(0.09, 0.30, 0.2)]
-    best, means = script.choose(views, [0.0, 0.01, 0.02, 0.03, 0.05])
-    assert means[0.0] == pytest.approx(np.mean([0.10, 0.12, 0.08, 0.09]))
-    assert means[0.02] == pytest.approx(np.mean([0.05, 0.12, 0.08, 0.09]))
-    assert means[0.05] == pytest.approx(np.mean([0.05, 0.06, 0.20, 0.09]))
-    assert best == 0.03 and means[0.03] == pytest.approx(np.mean([0.05, 0.06, 0.08, 0.09]))
+    rec = lambda mesh, fit, res, mres=0.0: {"cd_mesh": mesh, "cd_fit": fit, "residual": res, "mesh_residual": mres}  # noqa: E731
+    # the last view fits the outline (1 − IoU 0.01) but leaves the mesh (0.03, doubled: 0.06)
+    views = [rec(0.10, 0.05, 0.015), rec(0.12, 0.06, 0.025), rec(0.08, 0.20, 0.045), rec(0.09, 0.30, 0.2), rec(0.10, 0.04, 0.01, 0.03)]
+    best, means = script.choose(views, [0.0, 0.01, 0.02, 0.03, 0.05, 0.06])
+    assert means[0.0] == pytest.approx(np.mean([0.10, 0.12, 0.08, 0.09, 0.10]))
+    assert means[0.02] == pytest.approx(np.mean([0.05, 0.12, 0.08, 0.09, 0.10]))
+    assert means[0.05] == pytest.approx(np.mean([0.05, 0.06, 0.20, 0.09, 0.10]))
+    assert means[0.06] == pytest.approx(np.mean([0.05, 0.06, 0.20, 0.09, 0.04]))
+    assert best == 0.03 and means[0.03] == pytest.approx(np.mean([0.05, 0.06, 0.08, 0.09, 0.10]))
     assert script.choose([rec(0.1, 0.2, 0.001)], [0.0, 0.01])[0] == 0.0  # snapping that only hurts stays off

@@ -15,10 +15,11 @@ family of :data:`FAMILIES` in any pose to
   (:func:`genre_backend.frame.depth_to_points`), weighted least: on
   primitives the depth net is off by 3-13 % of the object's size;
 
-judges each family's fit by the IoU of its silhouette with the mask
-(:func:`outline_disagreement` = 1 − IoU), and keeps the best one when that
-is at most ``tolerance`` (``GeometryConfig.primitive_snap``; 0 turns the
-stage off).
+takes the family whose silhouette has the highest IoU with the mask
+(:func:`outline_disagreement` = 1 − IoU), and replaces the mesh by it when
+both that and twice the mesh points' mean distance to it (over its
+bounding-box diagonal) are at most ``tolerance``
+(``GeometryConfig.primitive_snap``; 0 turns the stage off).
 
 Families and their parameters (the shape's own frame; its pose is a rotation
 (3, 3) taking own coordinates to the view frame, and a centre (3,)):
@@ -83,6 +84,9 @@ MESH_WEIGHT = 0.3
 # like onto the voxel mesh, whose edges are about a voxel).
 EDGE_SHARE = 1.0 / 48.0
 _SECTIONS = 96
+# The snap decision's weight on the mesh points' mean distance to the fit (chosen on the calibration views among 1,
+# 2 and 4: results/product/ship_rule.txt).
+MESH_FACTOR = 2.0
 _EPS2 = 1e-14  # added under square roots: distances exact to 1e-7, gradients finite everywhere
 
 
@@ -101,6 +105,17 @@ class PrimitiveFit:
     residual: float
     mesh_residual: float
     loss: float
+
+    @property
+    def disagreement(self) -> float:
+        """What the tolerance is compared with: ``max(residual, MESH_FACTOR · mesh_residual)``: the fit must match
+        the mask's outline and stay on the refiner's mesh (a shape that fits the outline but not the mesh has
+        guessed the depth the outline cannot tell)."""
+        return max(self.residual, MESH_FACTOR * self.mesh_residual)
+
+    def accepted(self, tolerance: float) -> bool:
+        """Whether :func:`snap` with this ``tolerance`` replaces the mesh by this fit (0: never)."""
+        return tolerance > 0 and self.disagreement <= tolerance
 
     def sdf(self, points: torch.Tensor) -> torch.Tensor:
         """Signed distance of view-frame points (N, 3) to the fitted shape (N,)."""
@@ -482,7 +497,9 @@ def snap(vertices: np.ndarray, faces: np.ndarray, depth: torch.Tensor, camera, t
     ``vertices`` (V, 3) / ``faces`` (F, 3): the reconstruction's mesh (view frame); ``depth`` (S, S): the masked
     depth map it was made from (background 0) and ``camera`` its camera.  ``fit`` is the best
     :class:`PrimitiveFit` (None when the stage is off or there are too few points); the mesh is replaced by it
-    only when ``fit.residual <= tolerance``.  ``tolerance`` 0 turns the stage off.
+    only when ``fit.accepted(tolerance)``: its :attr:`~PrimitiveFit.disagreement` (1 − silhouette IoU, or twice
+    the mesh's mean distance to it over its diagonal, whichever is larger) is at most ``tolerance``.
+    ``tolerance`` 0 turns the stage off.
     """
     from .metrics import sample_surface
 
@@ -493,7 +510,7 @@ def snap(vertices: np.ndarray, faces: np.ndarray, depth: torch.Tensor, camera, t
         return vertices, faces, None
     surface = sample_surface(vertices, faces, POINTS, seed=seed).numpy()
     fit = fit_primitive(visible, surface, depth=depth, camera=camera, seed=seed)
-    if fit.residual <= tolerance:
+    if fit.accepted(tolerance):
         v, f = fit.mesh()
         return v, f, fit
     return vertices, faces, fit

@@ -514,7 +514,7 @@ class Reconstructor:
             primitive = None
             if primitive_snap > 0:
                 vertices, faces, fit = snap(vertices, faces, masked[0], model.config.camera, primitive_snap)
-                if fit is not None and fit.residual <= primitive_snap:
+                if fit is not None and fit.accepted(primitive_snap):
                     primitive = fit.family
                     vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
                     notes = [*pre.notes, f"the mesh is a fitted {fit.describe()}"]

@@ -124,7 +124,7 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
             if geometry.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
                 v, f = grid_to_surface(row["prob"], geometry.default_threshold, geometry)
                 v, f, fit = snap(v, f, d, m.config.camera, geometry.primitive_snap)
-                if fit is not None and fit.residual <= geometry.primitive_snap:
+                if fit is not None and fit.accepted(geometry.primitive_snap):
                     row["mesh"] = (v, f)
     if REPRESENTATION in models.wanted:
         out[REPRESENTATION] = {"prob": sample["voxels"]}
