@@ -68,7 +68,7 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
     primitive_snap: FloatProperty(
         name="Snap Shapes", description="When the photo shows a plain box, cylinder, cone, torus or ellipsoid, give that "
                                         "exact shape instead of the network's rounded mesh if its outline matches the "
-                                        "object's within this share (1 - IoU; 0: never)",
+                                        "object's and it stays on the mesh within this tolerance (0: never)",
         # The shipped 'default' weights' setting; the field follows what the backend reports.
         default=0.0, min=0.0, max=0.5, step=1, precision=2,
     )

@@ -130,11 +130,11 @@ class GeometryConfig:
     # Weights stored without the key: off.
     visible_fusion: bool = False
     # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
-    # ellipsoid that best fits the visible surface (the masked depth map) and the mesh, when the visible
-    # points' mean distance to it is at most this share of its bounding-box diagonal; in reconstruction
-    # and in evaluation (every row with a depth map alike).  0: off.  Chosen for the product weights on
-    # training-split views by scripts/primitive_snap.py (the rule in results/product/ship_rule.txt).
-    # Weights stored without the key: 0 (off).
+    # ellipsoid fitted to the mask's outline, the mesh and the depth when its disagreement (1 - the IoU of
+    # its silhouette with the mask, or twice the mesh's mean distance to it over its diagonal, whichever
+    # is larger) is at most this; in reconstruction and in evaluation (every row with a depth map alike).
+    # 0: off.  Chosen on training-split views by scripts/primitive_snap.py; stored only by the rule in
+    # results/product/ship_rule.txt.  Weights stored without the key: 0 (off).
     primitive_snap: float = 0.0
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at

@@ -437,8 +437,8 @@ class Reconstructor:
         (:func:`..geometry.voxels.silhouette_ramp`; default: the config's).  ``visible_fusion``: fill the
         holes the refiner leaves in the face the camera sees with the depth map's surface
         (:func:`..geometry.mesh_voxels.fuse_visible_surface`; default: the config's; distance weights only).
-        ``primitive_snap`` (a share in [0, 1); 0: off): replace the mesh by the box, cylinder, cone, torus or
-        ellipsoid that fits the visible surface within this share of its size
+        ``primitive_snap`` (a tolerance in [0, 1); 0: off): replace the mesh by the box, cylinder, cone, torus or
+        ellipsoid whose silhouette matches the mask and which stays on the mesh within this tolerance
         (:func:`..geometry.primitives.snap`; default: the config's).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """

@@ -72,8 +72,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                              "surface (default: the weights' config, geometry.visible_fusion)")
     parser.add_argument("--primitive-snap", type=float, metavar="TOL",
                         help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette "
-                             "matches the mask within TOL (1 - IoU, in [0, 1); 0 turns it off; default: the weights' "
-                             "config, geometry.primitive_snap)")
+                             "matches the mask (1 - IoU) and it stays on the mesh (twice the mean distance over its size) "
+                             "within TOL, in [0, 1); 0 turns it off; default: the weights' config, geometry.primitive_snap)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
     parser.add_argument("--texture", action="store_true",
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
