@@ -147,3 +147,16 @@ def test_the_tolerance_is_the_grid_value_with_the_lowest_mean_cd():
     assert means[0.06] == pytest.approx(np.mean([0.05, 0.06, 0.20, 0.09, 0.04]))
     assert best == 0.03 and means[0.03] == pytest.approx(np.mean([0.05, 0.06, 0.08, 0.09, 0.10]))
     assert script.choose([rec(0.1, 0.2, 0.001)], [0.0, 0.01])[0] == 0.0  # snapping that only hurts stays off
+
+
+def test_the_fit_is_the_same_inside_inference_mode():
+    """genre reconstruct runs its stages under torch.inference_mode, where autograd is off and tensors made there
+    cannot take part in it: the fit must still run, and give the same shape."""
+    rot = _rotation(np.random.default_rng(5))
+    depth = _traced("torus", SHAPES["torus"], rot, np.zeros(3))
+    v, f = P.family_mesh("torus", SHAPES["torus"])
+    v = v @ rot.T
+    plain = P.snap(v, f, depth, CAMERA, 0.05)[2]
+    with torch.inference_mode():
+        inside = P.snap(v, f, depth.clone(), CAMERA, 0.05)[2]
+    assert plain.family == inside.family == "torus" and plain.params == inside.params and plain.residual == inside.residual

@@ -470,13 +470,16 @@ def fit_primitive(visible: np.ndarray, surface: np.ndarray, families=FAMILIES, *
     if unknown or not families:
         raise ValueError(f"fit_primitive: families must be among {FAMILIES}, got {families}")
     rng = np.random.default_rng(seed)
-    ev = _Evidence(torch.from_numpy(_subsample(visible, POINTS, rng)).float(), torch.from_numpy(_subsample(surface, POINTS, rng)).float())
-    if depth is not None:
-        ev.rays, ev.inside = _outline_rays(depth.detach().float().cpu(), camera, OUTLINE_RAYS, rng)
-    coarse = ev.half()
-    starts = _start_rotations(torch.cat([ev.visible, ev.surface]).double().numpy(), STARTS, rng)
     fits = []
-    with torch.enable_grad():
+    # (fitting needs autograd, also when called from reconstruction, which runs in inference mode)
+    with torch.inference_mode(False), torch.enable_grad():
+        if depth is not None:
+            depth = depth.detach().float().cpu().clone()  # (a normal tensor, not an inference one)
+        ev = _Evidence(torch.from_numpy(_subsample(visible, POINTS, rng)).float(), torch.from_numpy(_subsample(surface, POINTS, rng)).float())
+        if depth is not None:
+            ev.rays, ev.inside = _outline_rays(depth, camera, OUTLINE_RAYS, rng)
+        coarse = ev.half()
+        starts = _start_rotations(torch.cat([ev.visible, ev.surface]).double().numpy(), STARTS, rng)
         for family in families:  # every start a few steps on half the evidence; the best few on to the end
             poses = _Poses.start(family, torch.cat([ev.visible, ev.surface]), starts)
             poses.descend(coarse, COARSE_STEPS)
