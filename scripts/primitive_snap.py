@@ -121,6 +121,19 @@ def choose(records: list[dict], grid=GRID) -> tuple[float, dict[float, float]]:
     return best, means
 
 
+def family_table(records: list[dict], manifest_path) -> dict:
+    """{primitive kind (the manifest's ``extra.subkind``): Counter of fitted families} over the views of procedural primitives."""
+    from collections import Counter
+
+    entries = {e["id"]: e for e in json.loads(Path(manifest_path).read_text())["shapes"]}
+    out: dict[str, Counter] = {}
+    for r in records:
+        entry = entries.get(r["shape"], {})
+        if entry.get("class") == "primitive" and r["family"]:
+            out.setdefault(entry["extra"]["subkind"], Counter())[r["family"]] += 1
+    return dict(sorted(out.items()))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", default="default", help="'default', 'protocol' or a weights file (its mesh settings are used)")
@@ -180,6 +193,11 @@ def main(argv: list[str] | None = None) -> int:
             row.append(f"{choose(sub, [tau])[1][tau]:.4f}")
         print("| " + " | ".join(row) + " |")
     print(f"chosen (lowest mean CD): primitive_snap = {best}")
+    kinds = family_table(records, manifest)
+    if kinds:
+        print("\nThe family fitted (the highest silhouette IoU) to the views of each kind of procedural primitive:")
+        for kind, counts in kinds.items():
+            print(f"  {kind} ({sum(counts.values())} views): " + ", ".join(f"{f} {n}" for f, n in counts.most_common()))
     if args.json:
         Path(args.json).write_text(json.dumps({"weights": weights, "views": len(records), "chosen": best,
                                                "means": {str(k): v for k, v in means.items()}}, indent=1))

@@ -511,13 +511,13 @@ class Reconstructor:
             prob, vertices, faces, clean = mesh_of_probability(prob, threshold, model.config.geometry, hole_closing, keep_fraction)
             if clean is None:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
-            primitive = None
+            primitive, notes = None, list(pre.notes)
             if primitive_snap > 0:
                 vertices, faces, fit = snap(vertices, faces, masked[0], model.config.camera, primitive_snap)
                 if fit is not None and fit.accepted(primitive_snap):
                     primitive = fit.family
                     vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
-                    notes = [*pre.notes, f"the mesh is a fitted {fit.describe()}"]
+                    notes.append(f"the mesh is a fitted {fit.describe()}")
             stage("done")
         photo_mask = pre.photo_mask
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
@@ -549,7 +549,7 @@ class Reconstructor:
             image_size=pre.image_size,
             config=self.config,
             intermediates=inter,
-            notes=pre.notes if primitive is None else notes,
+            notes=notes,
             mask_path=None if mask_path is None else Path(mask_path),
             photo=image,
             fill=pre.fill,

@@ -191,15 +191,13 @@ def score_view(models: Models, view: EvalView, sample: dict, truth: Truth, devic
     results = {FLOOR: {t: floor for t in thresholds}}
     for row in models.rows():
         p = pred[row]
+        if grids_dir is not None and row == "GenRe":
+            _write_grid(grids_dir, view.key, p["prob"])
         if "mesh" in p:  # a fitted regular shape: the same mesh at every level
             m = mesh_metrics(*p["mesh"], target)
             results[row] = {t: m for t in thresholds}
-            if grids_dir is not None and row == "GenRe":
-                _write_grid(grids_dir, view.key, p["prob"])
         elif "prob" in p:
             results[row] = score_grid(p["prob"], thresholds, target, models.config.geometry)
-            if grids_dir is not None and row == "GenRe":
-                _write_grid(grids_dir, view.key, p["prob"])
         else:
             pts = p["points"]
             m = {**target.metrics(pts[:POINTS_SMALL], pts), "closed": float("nan")}  # (points: no surface to judge)
