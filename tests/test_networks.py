@@ -223,6 +223,34 @@ def test_hit_head_composes_its_map_from_the_hit_logits_and_the_seen_radius(tmp_p
         dataclasses.replace(TINY.network, inpaint_head="mask")
 
 
+def test_with_inpaint_net_of_takes_the_donors_inpainting_net_and_keeps_the_rest():
+    """The transplant: the donor's head, widths, weights and hit level; the model's depth net, refiner and config."""
+    import dataclasses as dc
+
+    from genre_backend.nets.model import with_inpaint_net, with_inpaint_net_of
+    from tiny_data import TINY
+
+    torch.manual_seed(0)
+    model = GenRe(TINY)
+    donor = with_inpaint_net(GenRe(dc.replace(TINY, geometry=dc.replace(TINY.geometry, sph_hit_probability=0.1))),
+                             head="hit", widths=(16, 32, 64, 128))
+    new = with_inpaint_net_of(model, donor)
+    assert new.config.network.inpaint_head == "hit" and new.config.network.inpaint_widths == (16, 32, 64, 128)
+    assert new.config.geometry.sph_hit_probability == 0.1
+    assert new.config.network.refiner_nf == model.config.network.refiner_nf
+    for part, source in (("depth_net", model), ("refiner", model), ("inpaint_net", donor)):
+        want = getattr(source, part).state_dict()
+        for k, v in getattr(new, part).state_dict().items():
+            assert torch.equal(v, want[k]), (part, k)
+    # the transplanted model computes the donor's maps from the same partial map
+    x = torch.rand(1, TINY.geometry.sph_size, TINY.geometry.sph_size)
+    with torch.no_grad():
+        assert torch.allclose(new.eval().inpaint_net(x), donor.eval().inpaint_net(x))
+    other = GenRe(dc.replace(TINY, geometry=dc.replace(TINY.geometry, sph_size=TINY.geometry.sph_size * 2)))
+    with pytest.raises(ValueError, match="spherical maps"):
+        with_inpaint_net_of(model, other)
+
+
 def test_with_inpaint_net_keeps_the_other_nets():
     from genre_backend.nets.model import with_inpaint_net
     from tiny_data import TINY

@@ -407,6 +407,28 @@ def test_a_wider_inpainting_net_is_trained_fresh_at_the_inpaint_stage_and_refuse
             _cfg("inpaint", tiny_views, tmp_path / "bad", inpaint_widths=bad)
 
 
+def test_inpaint_from_puts_another_runs_inpainting_net_under_the_init_weights(tiny_views, tmp_path):
+    """--inpaint-from: the refine stage starts from --init's depth net and refiner with the donor's inpainting
+    net, which it keeps frozen; a missing donor file is refused by the command line."""
+    from genre_backend.nets.model import with_inpaint_net
+
+    torch.manual_seed(1)
+    init = save_model(GenRe(TINY), tmp_path / "init.safetensors")
+    donor = save_model(with_inpaint_net(GenRe(TINY), head="hit", widths=(16, 32, 64, 128)), tmp_path / "donor.safetensors")
+    run = tmp_path / "run"
+    train(_cfg("refine", tiny_views, run, steps=3, init=str(init), inpaint_from=str(donor)))
+    out = load_model(run / "refine" / "final.safetensors")
+    assert out.config.network.inpaint_head == "hit" and out.config.network.inpaint_widths == (16, 32, 64, 128)
+    assert weights_digest(out.inpaint_net) == weights_digest(load_model(donor).inpaint_net)
+    assert weights_digest(out.depth_net) == weights_digest(load_model(init).depth_net)
+    assert weights_digest(out.refiner) != weights_digest(load_model(init).refiner)  # the stage trained it
+    from training.learn.train import main as train_main
+
+    with pytest.raises(SystemExit):
+        train_main(["refine", "--data", str(tiny_views), "--out", str(tmp_path / "x"), "--init", str(init),
+                    "--inpaint-from", str(tmp_path / "missing.safetensors")])
+
+
 def test_photo_compositing_applies_to_the_stage_that_asks_for_it(tiny_views, tmp_path):
     """--photo-fraction on the refine stage shows the frozen depth net composited images (it was once ignored there)."""
     folder = two_colour_backgrounds(tmp_path / "bg")

@@ -135,6 +135,33 @@ def with_inpaint_net(model: GenRe, *, head: str | None = None, widths: tuple[int
     return new.train(model.training)
 
 
+def with_inpaint_net_of(model: GenRe, donor: GenRe) -> GenRe:
+    """``model`` with ``donor``'s trained inpainting net: its head, widths, weights and hit decision level.
+
+    The depth net and the refiner (and the rest of the config) are
+    ``model``'s.  This puts an inpainting net trained in one run (e.g. a wider
+    net, ``genre train inpaint --inpaint-widths``) under the depth net and
+    refiner of later weights, before a refine stage teaches the refiner its
+    maps.  The two models must share the spherical map's size (ValueError).
+    """
+    mg, dg = model.config.geometry, donor.config.geometry
+    if (mg.sph_size, mg.sph_pad) != (dg.sph_size, dg.sph_pad):
+        raise ValueError(f"the donor's spherical maps are {dg.sph_size} (pad {dg.sph_pad}), the model's {mg.sph_size} "
+                         f"(pad {mg.sph_pad}): an inpainting net cannot move between them")
+    net = model.config.network
+    dnet = donor.config.network
+    config = dataclasses.replace(
+        model.config,
+        network=dataclasses.replace(net, inpaint_head=dnet.inpaint_head, inpaint_widths=tuple(dnet.inpaint_widths),
+                                    inpaint_decoder_blocks=dnet.inpaint_decoder_blocks),
+        geometry=dataclasses.replace(mg, sph_hit_probability=dg.sph_hit_probability))
+    new = GenRe(config).to(next(model.parameters()).device)
+    new.depth_net.load_state_dict(model.depth_net.state_dict())
+    new.inpaint_net.load_state_dict(donor.inpaint_net.state_dict())
+    new.refiner.load_state_dict(model.refiner.state_dict())
+    return new.train(model.training)
+
+
 def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None) -> Path:
     """Write ``path`` (.safetensors, config in its metadata) atomically, and ``path`` with .json beside it."""
     config = model.config.to_dict()

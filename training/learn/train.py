@@ -60,7 +60,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from genre_backend.config import INPAINT_HEADS, PRESETS, TARGETS, GenreConfig, get_preset
-from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model, with_inpaint_net
+from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model, with_inpaint_net, with_inpaint_net_of
 from genre_backend.geometry.spherical import crop_sph, pad_sph
 from genre_backend.nets.inpaint_net import RADIUS_SCALE
 from genre_backend.io import atomic_write, atomic_write_bytes
@@ -104,6 +104,9 @@ class TrainConfig:
     # fresh inpainting net at the inpaint stage (nets.model.with_inpaint_net); other stages refuse them.
     inpaint_head: str | None = None
     inpaint_widths: str | tuple[int, ...] | None = None
+    # weights whose trained inpainting net replaces --init's (nets.model.with_inpaint_net_of), e.g. a wider net
+    # trained in another run put under later weights' depth net and refiner (a resumed stage: the checkpoint wins, as for --init)
+    inpaint_from: str | None = None
     backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
     val_fraction: float = 0.05
     val_every: int = 200
@@ -534,6 +537,8 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         model = load_model(tcfg.init).train()
     else:
         model = GenRe(model_config or get_preset(tcfg.preset))
+    if tcfg.inpaint_from:
+        model = with_inpaint_net_of(model, load_model(tcfg.inpaint_from))
     if tcfg.refiner_full_nf is not None:
         # a recipe with a full-resolution refiner branch grows one on weights without it (same output at step 0)
         model = grow_refiner(model, tcfg.refiner_full_nf)
@@ -765,8 +770,9 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
     if args.dry_run:
         print(json.dumps(dataclasses.asdict(tcfg), sort_keys=True))
         return 0
-    if tcfg.init and not Path(tcfg.init).is_file():
-        parser.error(f"--init: no such weights file: {tcfg.init}")
+    for name in ("init", "inpaint_from"):
+        if getattr(tcfg, name) and not Path(getattr(tcfg, name)).is_file():
+            parser.error(f"--{name.replace('_', '-')}: no such weights file: {getattr(tcfg, name)}")
     model_config = None
     if args.model_config:
         try:
