@@ -162,13 +162,23 @@ def with_inpaint_net_of(model: GenRe, donor: GenRe) -> GenRe:
     return new.train(model.training)
 
 
-def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None) -> Path:
-    """Write ``path`` (.safetensors, config in its metadata) atomically, and ``path`` with .json beside it."""
+def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None, *, half: bool = False) -> Path:
+    """Write ``path`` (.safetensors, config in its metadata) atomically, and ``path`` with .json beside it.
+
+    ``half``: store the floating-point tensors as float16 (half the file; the
+    batch-norm step counters stay integers).  :func:`load_model` reads either
+    into the float32 model, so inference always computes in float32.
+    """
     config = model.config.to_dict()
     meta = {"format": WEIGHTS_FORMAT, "config": json.dumps(config)}
     if extra:
         meta["extra"] = json.dumps(extra)
-    return save_weights(path, model.state_dict(), meta, {"format": WEIGHTS_FORMAT, "config": config, "extra": extra or {}})
+    state = model.state_dict()
+    if half:
+        state = {k: v.to(torch.float16) if v.is_floating_point() else v for k, v in state.items()}
+        meta["storage"] = "float16"
+    return save_weights(path, state, meta, {"format": WEIGHTS_FORMAT, "config": config, "extra": extra or {},
+                                            **({"storage": "float16"} if half else {})})
 
 
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> GenRe:

@@ -50,7 +50,7 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
 def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
             hole_closing: int | None = None, sph_hit_probability: float | None = None,
             silhouette_carve: bool | None = None, visible_fusion: bool | None = None,
-            primitive_snap: float | None = None) -> float:
+            primitive_snap: float | None = None, half: bool = False) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
@@ -66,6 +66,7 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     depth map; chosen on seen-test views by ``scripts/visible_fusion.py``); None keeps the weights' own.
     ``primitive_snap``: store ``geometry.primitive_snap`` (the regular-shape stage's tolerance, 0: off; chosen
     on training-split views by ``scripts/primitive_snap.py``); None keeps the weights' own.
+    ``half``: store the tensors as float16 (``save_model(half=True)``: half the file, read back into float32).
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -112,7 +113,7 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         extra["primitive_snap_from"] = "scripts/primitive_snap.py on training-split views (results/product/ship_rule.txt)"
     if sph_hit_probability is not None:
         extra["sph_hit_probability_from"] = "scripts/stage_errors.py --hit-levels on seen-test views"
-    save_model(model, out, extra)
+    save_model(model, out, extra, half=half)
     if name == PROTOCOL_WEIGHTS_NAME and out.resolve() == shipped.resolve():
         interim = named_weights(DEFAULT_WEIGHTS_NAME)
         if interim.is_file() and _is_interim_copy_of_protocol(interim):
@@ -146,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="store geometry.primitive_snap = TOL (replace the mesh by a fitted box, cylinder, cone, torus or "
                         "ellipsoid within TOL of its size; 0: off; chosen by scripts/primitive_snap.py on training-split "
                         "views; default weights only); default: the weights' own")
+    p.add_argument("--fp16", action="store_true",
+                   help="store the tensors as float16 (half the file; inference still computes in float32; check the "
+                        "scores stay within 1e-3 CD of the float32 file's)")
     args = p.parse_args(argv)
     out = args.out if args.out is not None else named_weights(args.name)
     interim = named_weights(DEFAULT_WEIGHTS_NAME)
@@ -155,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name,
                     hole_closing=args.hole_closing, sph_hit_probability=args.sph_hit_probability,
                     silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
-                    primitive_snap=args.primitive_snap)
+                    primitive_snap=args.primitive_snap, half=args.fp16)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1
