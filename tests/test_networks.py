@@ -111,6 +111,47 @@ def test_weights_round_trip_and_bad_files(tmp_path):
         load_model(other)
 
 
+def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
+    """save_model(half=True): the weights stored as float16, the batch-norm statistics as float32, the step
+    counters as integers; load_model gives the float32 model with the weights rounded to float16, whose nets
+    follow the original's within the rounding; a value float16 cannot hold is kept in float32."""
+    from safetensors import safe_open
+
+    torch.manual_seed(0)
+    model = GenRe(get_preset("default")).eval()
+    full = save_model(model, tmp_path / "full.safetensors")
+    half = save_model(model, tmp_path / "half.safetensors", half=True)
+    assert 0.45 < half.stat().st_size / full.stat().st_size < 0.55
+    with safe_open(str(half), framework="pt") as f:
+        assert f.metadata()["storage"] == "float16"
+        kinds = {k: f.get_tensor(k).dtype for k in f.keys()}
+    assert set(kinds.values()) == {torch.float16, torch.float32, torch.int64}
+    for k, dtype in kinds.items():  # the weights halved; the batch-norm statistics and step counters kept
+        assert dtype == (torch.int64 if k.endswith("num_batches_tracked") else
+                         torch.float32 if k.endswith(("running_mean", "running_var")) else torch.float16), k
+    loaded = load_model(half)
+    for k, v in model.state_dict().items():
+        got = loaded.state_dict()[k]
+        assert got.dtype == v.dtype, k
+        want = v.to(torch.float16).to(v.dtype) if kinds[k] == torch.float16 else v
+        assert torch.equal(got, want), k
+    rgb = torch.rand(1, 3, 128, 128)
+    with torch.no_grad():
+        a = model(rgb)
+        depth = loaded(rgb)["depth"]
+        full = loaded.inpaint_net(a["partial_sph"])  # each net on the float32 model's own inputs
+        logits = loaded.refine(a["vox_sph"], a["vox_depth"])
+    for got, want in ((depth, a["depth"]), (full, a["full_sph"]), (logits, a["logits"])):
+        assert (got - want).abs().max() <= 1e-2 * want.abs().max(), (got - want).abs().max()
+    # a statistic beyond float16's range (a refiner's running variance reached 6e7) survives the round trip
+    bn = next(k for k in model.state_dict() if k.startswith("refiner") and k.endswith("running_var"))
+    model.state_dict()[bn].fill_(6e7)
+    model.state_dict()["refiner.skip.weight"].view(-1)[0] = 1e6  # a weight float16 cannot hold stays float32
+    again = load_model(save_model(model, tmp_path / "big.safetensors", half=True)).state_dict()
+    assert torch.equal(again[bn], model.state_dict()[bn])
+    assert torch.equal(again["refiner.skip.weight"], model.state_dict()["refiner.skip.weight"])
+
+
 def test_grown_refiner_starts_with_the_same_output_and_then_learns_a_sharp_band():
     """grow_refiner adds the full-resolution branch with the logits unchanged; the branch then fits,
     within a few hundred steps, a one-voxel band around an input surface that the coarse path

@@ -317,6 +317,15 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     assert load_model(tmp_path / "again.safetensors").config.geometry.hole_closing == 1
     with pytest.raises(ValueError, match="hole_closing"):
         install(src, 0.4, tmp_path / "bad.safetensors", hole_closing=99)
+    # float16 storage: half the file, the same config, the weights rounded to float16
+    install(src, 0.4, tmp_path / "half.safetensors", half=True)
+    assert (tmp_path / "half.safetensors").stat().st_size < 0.6 * (tmp_path / "level.safetensors").stat().st_size
+    halved = load_model(tmp_path / "half.safetensors")
+    assert halved.config == load_model(tmp_path / "level.safetensors").config
+    assert weights_digest(halved) != weights_digest(model)
+    for k, v in model.state_dict().items():
+        rounded = v.half().to(v.dtype) if v.is_floating_point() and not k.endswith(("running_mean", "running_var")) else v
+        assert torch.equal(halved.state_dict()[k], rounded), k
 
 
 def _extra(path) -> dict:

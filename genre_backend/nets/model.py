@@ -162,12 +162,24 @@ def with_inpaint_net_of(model: GenRe, donor: GenRe) -> GenRe:
     return new.train(model.training)
 
 
+def _half_if_it_fits(name: str, tensor: torch.Tensor) -> torch.Tensor:
+    """``tensor`` as float16 for :func:`save_model`'s half storage, unless it is a batch-norm statistic, not
+    floating-point, or has a value float16 cannot hold (it is then returned as it is)."""
+    if not tensor.is_floating_point() or name.endswith(("running_mean", "running_var")):
+        return tensor
+    half = tensor.to(torch.float16)
+    return half if bool(torch.isfinite(half).all()) else tensor
+
+
 def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None, *, half: bool = False) -> Path:
     """Write ``path`` (.safetensors, config in its metadata) atomically, and ``path`` with .json beside it.
 
-    ``half``: store the floating-point tensors as float16 (half the file; the
-    batch-norm step counters stay integers).  :func:`load_model` reads either
-    into the float32 model, so inference always computes in float32.
+    ``half``: store the floating-point weights as float16 (half the file).
+    The batch-norm statistics stay float32 (a running variance can exceed
+    float16's range, 65,504: one of the refiner's reaches 6e7), as does any
+    tensor that float16 cannot hold, and the step counters stay integers.
+    :func:`load_model` reads either into the float32 model, so inference
+    always computes in float32.
     """
     config = model.config.to_dict()
     meta = {"format": WEIGHTS_FORMAT, "config": json.dumps(config)}
@@ -175,7 +187,7 @@ def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None,
         meta["extra"] = json.dumps(extra)
     state = model.state_dict()
     if half:
-        state = {k: v.to(torch.float16) if v.is_floating_point() else v for k, v in state.items()}
+        state = {k: _half_if_it_fits(k, v) for k, v in state.items()}
         meta["storage"] = "float16"
     return save_weights(path, state, meta, {"format": WEIGHTS_FORMAT, "config": config, "extra": extra or {},
                                             **({"storage": "float16"} if half else {})})
