@@ -42,8 +42,9 @@ def test_each_shipped_file_loads_and_says_which_model_it_is(name):
 
 
 def test_default_is_the_trained_product_model_at_the_protocols_level():
-    """`default` is no longer the interim copy of `protocol`: other weights of the same networks (but for the
-    inpainting net's head: `protocol` has the hit head, `default` the paper's), at the same level."""
+    """`default` is no longer the interim copy of `protocol`: the same depth net and refiner architecture, trained
+    on (every tensor differs), with its own inpainting net (since the fourteenth run twice as wide, the hit head
+    like `protocol`'s), at the same level."""
     import dataclasses
 
     import torch
@@ -53,13 +54,18 @@ def test_default_is_the_trained_product_model_at_the_protocols_level():
     extra = weights_extra(named_weights("default"))
     assert "copy_of" not in extra and extra["model"] == "default"
     a, b = load_model(named_weights("default")), load_model(named_weights("protocol"))
-    assert (a.config.network.inpaint_head, b.config.network.inpaint_head) == ("value", "hit")
-    assert dataclasses.replace(a.config.network, inpaint_head="hit") == b.config.network
+    assert (a.config.network.inpaint_head, b.config.network.inpaint_head) == ("hit", "hit")
+    assert tuple(a.config.network.inpaint_widths) == (32, 64, 128, 256)
+    assert tuple(b.config.network.inpaint_widths) == (16, 32, 64, 128)
+    inpaint = ("inpaint_widths", "inpaint_decoder_blocks")
+    assert dataclasses.replace(a.config.network, **{k: getattr(b.config.network, k) for k in inpaint}) == b.config.network
     assert a.config.geometry.default_threshold == b.config.geometry.default_threshold
-    sa, sb = a.state_dict(), b.state_dict()
-    assert sa.keys() == sb.keys()
-    changed = sum(not torch.equal(sa[k], sb[k]) for k in sa if sa[k].is_floating_point())
-    assert changed > 0.9 * sum(1 for k in sa if sa[k].is_floating_point())  # every net was trained on
+    for part in ("depth_net", "refiner"):
+        sa, sb = getattr(a, part).state_dict(), getattr(b, part).state_dict()
+        assert sa.keys() == sb.keys()
+        floats = [k for k in sa if sa[k].is_floating_point()]
+        changed = sum(not torch.equal(sa[k], sb[k]) for k in floats)
+        assert changed > 0.9 * len(floats), part  # every net was trained on
 
 
 def test_weights_resolve_by_name_or_path(tmp_path, monkeypatch):
