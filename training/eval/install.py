@@ -66,7 +66,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     depth map; chosen on seen-test views by ``scripts/visible_fusion.py``); None keeps the weights' own.
     ``primitive_snap``: store ``geometry.primitive_snap`` (the regular-shape stage's tolerance, 0: off; chosen
     on training-split views by ``scripts/primitive_snap.py``); None keeps the weights' own.
-    ``half``: store the tensors as float16 (``save_model(half=True)``: half the file, read back into float32).
+    ``half``: store the weights as float16, the batch-norm statistics as float32 (``save_model(half=True)``:
+    half the file, read back into float32).
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -148,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
                         "ellipsoid within TOL of its size; 0: off; chosen by scripts/primitive_snap.py on training-split "
                         "views; default weights only); default: the weights' own")
     p.add_argument("--fp16", action="store_true",
-                   help="store the tensors as float16 (half the file; inference still computes in float32; check the "
+                   help="store the weights as float16 (half the file; inference still computes in float32; check the "
                         "scores stay within 1e-3 CD of the float32 file's)")
     args = p.parse_args(argv)
     out = args.out if args.out is not None else named_weights(args.name)
