@@ -136,6 +136,12 @@ class GeometryConfig:
     # 0: off.  Chosen on training-split views by scripts/primitive_snap.py; stored only by the rule in
     # results/product/ship_rule.txt.  Weights stored without the key: 0 (off).
     primitive_snap: float = 0.0
+    # Test-time mirroring (nets.model.mirror_averaged): the view is also run reflected left to right (the
+    # scene mirrored in the view frame's x = 0 plane, a view the nets were trained on with --mirror), the
+    # refiner's output reflected back and the two probabilities averaged before the mesh is made; in
+    # reconstruction and in evaluation (every learned row alike).  Twice the nets' time.  Turned on only by
+    # the rule in results/product/ship_rule.txt.  Weights stored without the key: off.
+    test_time_mirror: bool = False
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at
     # the top of that range for every learned row (first weights: 0.70; the shipped ones: 0.75),
@@ -171,6 +177,8 @@ class GeometryConfig:
         if isinstance(self.primitive_snap, bool) or not isinstance(self.primitive_snap, (int, float)) \
                 or not (math.isfinite(self.primitive_snap) and 0.0 <= self.primitive_snap < 1.0):
             raise ValueError(f"geometry.primitive_snap: expected a share in [0, 1), got {self.primitive_snap!r}")
+        if not isinstance(self.test_time_mirror, bool):
+            raise ValueError(f"geometry.test_time_mirror: expected true or false, got {self.test_time_mirror!r}")
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")
         for name in ("default_threshold", "threshold_min", "threshold_max"):

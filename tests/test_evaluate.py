@@ -461,3 +461,33 @@ def test_hole_closing_script_scores_each_setting_and_applies_the_rule(tiny, tmp_
     assert got["chosen"] == choose_hole_closing({int(k): v["closed"] for k, v in seen.items()})
     assert all(0 <= v["closed"] <= 1 and v["cd"] > 0 for g in got["groups"].values() for v in g.values())
     assert "hole_closing = " in capsys.readouterr().out
+
+
+def test_weights_that_mirror_average_every_learned_row_with_its_own_model(tiny):
+    import dataclasses
+
+    from genre_backend.geometry.voxels import mirror_voxels
+    from genre_backend.nets.model import mean_probability_logits
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(genre.config.geometry, test_time_mirror=True))
+    both = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
+    flip = {"rgb": rgb.flip(-1), "mask": mask.flip(-1), "depth": depth.flip(-1)}
+    with torch.no_grad():
+        pairs = {
+            "GenRe": (genre(rgb, mask=mask)["logits"], genre(flip["rgb"], mask=flip["mask"])["logits"]),
+            "GenRe-Oracle": (genre(rgb, mask=mask, depth=depth)["logits"],
+                             genre(flip["rgb"], mask=flip["mask"], depth=flip["depth"])["logits"]),
+            "3D Completion": (completion(rgb, mask=mask)["logits"], completion(flip["rgb"], mask=flip["mask"])["logits"]),
+            "3D Completion-Oracle": (completion(rgb, mask=mask, depth=depth)["logits"],
+                                     completion(flip["rgb"], mask=flip["mask"], depth=flip["depth"])["logits"]),
+        }
+    for row, (own, mirrored) in pairs.items():
+        want = torch.sigmoid(mean_probability_logits(own, mirror_voxels(mirrored)))[0, 0]
+        assert torch.allclose(both[row]["prob"], want, atol=1e-5), row
+        assert not torch.allclose(both[row]["prob"], plain[row]["prob"], atol=1e-3), row  # the tiny nets are not symmetric
+    assert torch.equal(both[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])  # the truth is left as it is

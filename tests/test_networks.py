@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -309,3 +311,93 @@ def test_with_inpaint_net_keeps_the_other_nets():
         for part in ("depth_net", "refiner"):
             for k, v in getattr(model, part).state_dict().items():
                 assert torch.equal(v, getattr(other, part).state_dict()[k]), (part, k)
+
+
+def test_mean_probability_logits_is_the_mean_of_the_probabilities_and_stays_finite():
+    from genre_backend.nets.model import mean_probability_logits
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(5, 7, generator=g, dtype=torch.float64) * 6
+    b = torch.randn(5, 7, generator=g, dtype=torch.float64) * 6
+    got = mean_probability_logits(a, b)
+    assert torch.allclose(torch.sigmoid(got), (torch.sigmoid(a) + torch.sigmoid(b)) / 2, atol=1e-12)
+    assert torch.allclose(mean_probability_logits(a, a), a, atol=1e-9)  # the mean of a probability with itself
+    # confident logits: the naive log(p / (1 - p)) of the float32 mean is infinite here, these stay finite and right
+    big = torch.tensor([200.0, -200.0, 90.0, -90.0])
+    other = torch.tensor([150.0, -300.0, -90.0, 90.0])
+    out = mean_probability_logits(big, other)
+    assert torch.isfinite(out).all()
+    # 1 − p = (e^−200 + e^−150)/2 ≈ e^−150/2, so the logit is 150 + log 2; p ≈ e^−200/2: −200 − log 2;
+    # p = (σ(90) + σ(−90))/2 = 1/2 exactly: 0
+    assert abs(float(out[0]) - (150.0 + math.log(2.0))) < 1e-3
+    assert abs(float(out[1]) - (-200.0 - math.log(2.0))) < 1e-3
+    assert abs(float(out[2])) < 1e-4 and abs(float(out[3])) < 1e-4
+    with pytest.raises(ValueError, match="shapes"):
+        mean_probability_logits(torch.zeros(2), torch.zeros(3))
+
+
+def test_mirror_averaged_gives_a_mirror_symmetric_model_its_own_output_and_reflects_the_mirror_image_back():
+    """The reflection is exact: a model that is geometry alone (depth → voxels, which commutes with the mirror)
+    gets its own logits back from an object that is nowhere near symmetric; a model that ignores its input gets
+    the mean of its output and that output reflected (so the mirror image's logits were reflected back along x)."""
+    from genre_backend.frame import depth_to_points
+    from genre_backend.geometry.voxels import mirror_voxels, points_to_voxels
+    from genre_backend.nets.model import mean_probability_logits, mirror_averaged
+
+    cfg = get_preset("default")
+    s, n = cfg.geometry.image_size, cfg.geometry.voxel_size
+    ys, xs = torch.meshgrid(torch.arange(s), torch.arange(s), indexing="ij")
+    mask = ((xs - 40) ** 2 + (ys - 50) ** 2 < 25 ** 2) | ((xs > 60) & (xs < 70) & (ys > 20) & (ys < 100))  # a disc and a post, off centre
+    depth = torch.where(mask, 2.0 + 0.003 * xs + 0.001 * ys, torch.zeros(()))[None].float()
+    mask = mask[None]
+
+    def geometric(rgb, m, d, sph):  # the voxels of the masked depth's points, as logits
+        pts = depth_to_points(torch.where(m, d, torch.zeros_like(d)), cfg.camera).flatten(1, 2)
+        return points_to_voxels(pts, n, m.flatten(1))[:, None] * 8.0 - 4.0
+
+    rgb = torch.rand(1, 3, s, s)
+    own = geometric(rgb, mask, depth, None)
+    assert not torch.equal(own, mirror_voxels(own))  # the object is not symmetric
+    assert torch.allclose(mirror_averaged(geometric, rgb, mask, depth), own, atol=1e-5)
+
+    fixed = torch.randn(1, 1, n, n, n, generator=torch.Generator().manual_seed(1)) * 3
+
+    def blind(rgb, m, d, sph):
+        return fixed
+
+    got = mirror_averaged(blind, rgb, mask, depth)
+    assert torch.allclose(got, mean_probability_logits(fixed, mirror_voxels(fixed)), atol=1e-6)
+    assert not torch.allclose(got, fixed, atol=1e-2)
+    # the inputs handed to the mirrored pass: columns flipped, the spherical map by mirror_sph
+    seen = []
+    sph = torch.rand(1, cfg.geometry.sph_size, cfg.geometry.sph_size)
+    mirror_averaged(lambda r, m, d, f: seen.append((r, m, d, f)) or fixed, rgb, mask, depth, sph, logits=fixed)
+    (r, m, d, f), = seen
+    from genre_backend.geometry.spherical import mirror_sph
+
+    assert torch.equal(r, rgb.flip(-1)) and torch.equal(m, mask.flip(-1)) and torch.equal(d, depth.flip(-1))
+    assert torch.equal(f, mirror_sph(sph))
+
+
+@torch.no_grad()
+def test_genre_forward_with_mirror_averages_the_view_and_its_mirror_image():
+    from genre_backend.geometry.voxels import mirror_voxels
+    from genre_backend.nets.model import mean_probability_logits
+
+    torch.manual_seed(0)
+    model = GenRe(get_preset("default")).eval()
+    s = model.config.geometry.image_size
+    rgb = torch.rand(1, 3, s, s)
+    mask = torch.zeros(1, s, s, dtype=torch.bool)
+    mask[:, 30:90, 20:70] = True
+    plain = model(rgb, mask=mask)
+    mirrored = model(rgb.flip(-1), mask=mask.flip(-1))
+    both = model(rgb, mask=mask, mirror=True)
+    assert torch.allclose(both["logits"], mean_probability_logits(plain["logits"], mirror_voxels(mirrored["logits"])), atol=1e-5)
+    assert torch.equal(both["depth"], plain["depth"]) and torch.equal(both["full_sph"], plain["full_sph"])  # the view's own
+    assert not torch.allclose(both["logits"], plain["logits"], atol=1e-3)  # random nets are not symmetric
+    from genre_backend.config import GeometryConfig
+
+    for bad in (1, "yes"):
+        with pytest.raises(ValueError, match="test_time_mirror"):
+            GeometryConfig(test_time_mirror=bad)

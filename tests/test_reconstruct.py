@@ -427,6 +427,28 @@ def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_p
     assert exc.value.code == 2 and "--primitive-snap" in capsys.readouterr().err
 
 
+def test_test_time_mirror_averages_the_photo_with_its_mirror_image(rec, photos, tmp_path, capsys, trained):
+    from genre_backend.geometry.voxels import mirror_voxels
+    from genre_backend.nets.model import mean_probability_logits
+
+    assert rec.config.geometry.test_time_mirror is False  # weights stored without the key: off
+    plain = rec.run(photos["rgba"], threshold=0.3)
+    both = rec.run(photos["rgba"], threshold=0.3, test_time_mirror=True)
+    assert (plain.test_time_mirror, both.test_time_mirror) == (False, True)
+    inter = plain.intermediates
+    with torch.no_grad():  # the mirror image of the crop the nets saw, with the mirror image of its mask
+        mirrored = rec.model(inter["rgb"].flip(-1)[None], mask=inter["mask"].flip(-1)[None])["logits"]
+    want = mean_probability_logits(inter["logits"][None, None], mirror_voxels(mirrored))[0, 0]
+    assert torch.allclose(both.intermediates["logits"], want, atol=1e-5)
+    assert torch.equal(both.intermediates["masked_depth"], inter["masked_depth"])  # the rest is the photo's own
+    assert not np.array_equal(both.faces, plain.faces) or not np.allclose(both.vertices, plain.vertices)
+    for bad in (1, "yes", 0.5):
+        with pytest.raises(ValueError, match="test_time_mirror"):
+            rec.run(photos["rgba"], test_time_mirror=bad)
+    code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "m.obj", "--weights", trained[0], "--test-time-mirror")
+    assert code == 0 and (tmp_path / "m.obj").is_file(), err
+
+
 def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.mesh_voxels import fill_enclosed
     from genre_backend.geometry.voxels import silhouette_ramp

@@ -173,6 +173,8 @@ def test_ping_and_version(server, trained):
         ('{"type": "reconstruct", "id": 21, "image": "a.png", "output": "b.obj", "options": {"primitive_snap": 1.5}}', "bad_field", 21),
         ('{"type": "reconstruct", "id": 22, "image": "a.png", "output": "b.obj", "options": {"primitive_snap": true}}', "bad_field", 22),
         ('{"type": "reconstruct", "id": 23, "image": "a.png", "output": "b.obj", "options": {"primitive_snap": -0.1}}', "bad_field", 23),
+        ('{"type": "reconstruct", "id": 24, "image": "a.png", "output": "b.obj", "options": {"test_time_mirror": 1}}', "bad_field", 24),
+        ('{"type": "reconstruct", "id": 25, "image": "a.png", "output": "b.obj", "options": {"test_time_mirror": "on"}}', "bad_field", 25),
         ('{"type": "reconstruct", "id": true, "image": "a.png", "output": "b.obj"}', "bad_field", None),
         ('{"type": "cancel"}', "missing_field", None),
         ('{"type": "cancel", "id": "nobody"}', "unknown_job", "nobody"),
@@ -188,7 +190,7 @@ def test_malformed_requests_get_error_events(server, line, code, rid):
 
 def test_reconstruct_reports_progress_and_result(server, files, trained):
     out = files["out"] / "box.ply"
-    server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.45, "hole_closing": 2, "silhouette_carve": True, "visible_fusion": True, "primitive_snap": 0.99,
+    server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.45, "hole_closing": 2, "silhouette_carve": True, "visible_fusion": True, "primitive_snap": 0.99, "test_time_mirror": True,
                                                                                                                 "save_intermediates": str(files["out"] / "inter")}})
     events = server.until(lambda e: e["type"] in ("result", "error"))
     result = events[-1]
@@ -202,6 +204,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     assert result["threshold"] == 0.45  # the option, not the weights' level (0.5 here)
     assert result["hole_closing"] == 2 and result["silhouette_carve"] is True and result["visible_fusion"] is True  # likewise
     assert result["primitive"] in ("box", "cylinder", "cone", "torus", "ellipsoid") and result["primitive_snap"] == 0.99  # (so loose a tolerance always snaps)
+    assert result["test_time_mirror"] is True
     assert result["faces"] == len(trimesh.load(out, force="mesh").faces) > 0
     assert set(result["timings"]) >= {"depth", "refine", "mesh", "write"}
     cam = result["camera"]
@@ -225,6 +228,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     assert r["silhouette_carve"] is load_model(trained[0]).config.geometry.silhouette_carve is False
     assert r["visible_fusion"] is load_model(trained[0]).config.geometry.visible_fusion is False
     assert r["primitive"] is None and load_model(trained[0]).config.geometry.primitive_snap == 0.0  # weights without it: off
+    assert r["test_time_mirror"] is load_model(trained[0]).config.geometry.test_time_mirror is False
     server.send({"type": "reconstruct", "id": "job3", "image": str(files["rgba"]), "output": str(files["out"] / "a.obj")})
     r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
     assert r["mask_source"] == "alpha" and r["format"] == "obj"

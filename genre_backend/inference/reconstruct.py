@@ -39,7 +39,7 @@ from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
 from ..geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_surface, voxels_to_mesh
 from ..geometry.primitives import snap
 from ..geometry.voxels import silhouette_ramp
-from ..nets.model import GenRe, WeightsError, load_model
+from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
 from .preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess, uncrop
@@ -156,6 +156,7 @@ class Reconstruction:
     visible face were filled from the depth map, as the mesh was made.  ``primitive_snap``: the tolerance
     of the regular-shape stage (0: off); ``primitive``: the family of the fitted shape that replaced the
     mesh (``"box"``, ``"cylinder"``, ``"cone"``, ``"torus"``, ``"ellipsoid"``), else None.
+    ``test_time_mirror``: whether the output was averaged with the mirror image's.
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -192,6 +193,7 @@ class Reconstruction:
     visible_fusion: bool = False
     primitive_snap: float = 0.0
     primitive: str | None = None
+    test_time_mirror: bool = False
     _texture: PhotoTexture | None = field(default=None, repr=False)
 
     @property
@@ -415,6 +417,7 @@ class Reconstructor:
         silhouette_carve: bool | None = None,
         visible_fusion: bool | None = None,
         primitive_snap: float | None = None,
+        test_time_mirror: bool | None = None,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -439,7 +442,9 @@ class Reconstructor:
         (:func:`..geometry.mesh_voxels.fuse_visible_surface`; default: the config's; distance weights only).
         ``primitive_snap`` (a tolerance in [0, 1); 0: off): replace the mesh by the box, cylinder, cone, torus or
         ellipsoid whose silhouette matches the mask and which stays on the mesh within this tolerance
-        (:func:`..geometry.primitives.snap`; default: the config's).  Raises
+        (:func:`..geometry.primitives.snap`; default: the config's).  ``test_time_mirror``: average the refiner's
+        output with that of the photo's mirror image, reflected back (:func:`..nets.model.mirror_averaged`; twice
+        the nets' time; default: the config's).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
@@ -463,6 +468,10 @@ class Reconstructor:
             primitive_snap = g.primitive_snap
         if isinstance(primitive_snap, bool) or not isinstance(primitive_snap, (int, float)) or not (math.isfinite(primitive_snap) and 0.0 <= primitive_snap < 1.0):
             raise ValueError(f"primitive_snap: expected a share in [0, 1) (0: off), got {primitive_snap!r}")
+        if test_time_mirror is None:
+            test_time_mirror = g.test_time_mirror
+        if not isinstance(test_time_mirror, bool):
+            raise ValueError(f"test_time_mirror: expected True or False, got {test_time_mirror!r}")
         if isinstance(keep_fraction, bool) or not isinstance(keep_fraction, (int, float)) or not 0.0 <= keep_fraction <= 1.0:
             raise ValueError(f"keep_fraction: expected a number in [0, 1], got {keep_fraction!r}")
         timings: dict[str, float] = {}
@@ -502,6 +511,9 @@ class Reconstructor:
             vox_depth = model.depth_voxels(masked)
             stage("refine")
             logits = model.refine(vox_sph, vox_depth)
+            if test_time_mirror:  # the mirror image through every net, its output reflected back
+                logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k)["logits"], pre.rgb[None].to(self.device), mask,
+                                         logits=logits)
             stage("mesh")
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
             if silhouette_carve:
@@ -560,5 +572,6 @@ class Reconstructor:
             silhouette_carve=silhouette_carve,
             visible_fusion=visible_fusion,
             primitive_snap=float(primitive_snap),
+            test_time_mirror=test_time_mirror,
             primitive=primitive,
         )

@@ -74,6 +74,9 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                         help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette "
                              "matches the mask (1 - IoU) and it stays on the mesh (twice the mean distance over its size) "
                              "within TOL, in [0, 1); 0 turns it off; default: the weights' config, geometry.primitive_snap)")
+    parser.add_argument("--test-time-mirror", action=argparse.BooleanOptionalAction, default=None,
+                        help="also run the photo's mirror image and average the two (about twice the nets' time; "
+                             "default: the weights' config, geometry.test_time_mirror)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
     parser.add_argument("--texture", action="store_true",
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
@@ -179,7 +182,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
                              refine=not args.no_refine, hole_closing=args.hole_closing,
                              silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
-                             primitive_snap=args.primitive_snap)
+                             primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror)
             path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)

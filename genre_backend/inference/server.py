@@ -33,7 +33,7 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "primitive_snap", "format", "save_intermediates", "texture", "all_parts")
+_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "primitive_snap", "test_time_mirror", "format", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
 
 
@@ -60,6 +60,7 @@ class Job:
     silhouette_carve: bool | None = None
     visible_fusion: bool | None = None
     primitive_snap: float | None = None
+    test_time_mirror: bool | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -208,6 +209,9 @@ class Server:
         fusion = options.get("visible_fusion")
         if fusion is not None and not isinstance(fusion, bool):
             raise RequestError("bad_field", f"option 'visible_fusion' must be true or false, got {_show(fusion)}", rid)
+        mirror = options.get("test_time_mirror")
+        if mirror is not None and not isinstance(mirror, bool):
+            raise RequestError("bad_field", f"option 'test_time_mirror' must be true or false, got {_show(mirror)}", rid)
         snap = options.get("primitive_snap")
         if snap is not None and (isinstance(snap, bool) or not isinstance(snap, (int, float)) or not 0.0 <= snap < 1.0):
             raise RequestError("bad_field", f"option 'primitive_snap' must be a number in [0, 1) (0: off), got {_show(snap)}", rid)
@@ -224,7 +228,7 @@ class Server:
             flags[name] = value
         return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
                    hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve,
-                   visible_fusion=fusion, primitive_snap=None if snap is None else float(snap))
+                   visible_fusion=fusion, primitive_snap=None if snap is None else float(snap), test_time_mirror=mirror)
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -358,6 +362,7 @@ class Server:
                 silhouette_carve=job.silhouette_carve,
                 visible_fusion=job.visible_fusion,
                 primitive_snap=job.primitive_snap,
+                test_time_mirror=job.test_time_mirror,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
                 keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
@@ -405,6 +410,7 @@ class Server:
                 "visible_fusion": result.visible_fusion,
                 "primitive_snap": result.primitive_snap,
                 "primitive": result.primitive,
+                "test_time_mirror": result.test_time_mirror,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},
                 "camera": result.camera(),
             }

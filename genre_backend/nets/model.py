@@ -26,12 +26,12 @@ from .depth_net import DepthNet
 from ..frame import depth_to_points
 from .inpaint_net import InpaintNet
 from .refiner import VoxelRefiner
-from ..geometry.spherical import depth_to_sph, sph_to_voxels
+from ..geometry.spherical import depth_to_sph, mirror_sph, sph_to_voxels
 from ..validation import check_tensor
-from ..geometry.voxels import points_to_voxels
+from ..geometry.voxels import mirror_voxels, points_to_voxels
 from ..io import WeightsError, load_state_strict, read_weights, save_weights, stored_config
 
-__all__ = ["GenRe", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
+__all__ = ["GenRe", "mirror_averaged", "mean_probability_logits", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
 
 WEIGHTS_FORMAT = "genre-weights/1"
 
@@ -70,13 +70,16 @@ class GenRe(nn.Module):
         return self.refiner(torch.cat([vox_sph, vox_depth], dim=1))
 
     # -- the whole pipeline -----------------------------------------------------------------
-    def forward(self, rgb: torch.Tensor, mask: torch.Tensor | None = None, depth: torch.Tensor | None = None, full_sph: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def forward(self, rgb: torch.Tensor, mask: torch.Tensor | None = None, depth: torch.Tensor | None = None,
+                full_sph: torch.Tensor | None = None, mirror: bool = False) -> dict[str, torch.Tensor]:
         """Run the pipeline; every intermediate is returned.
 
         rgb: (B, 3, S, S) in [0, 1].  mask: (B, S, S) bool, optional (else the
         depth net's silhouette > 0.5).  ``depth`` (B, S, S) or ``full_sph``
         (B, H, H) replace the depth net's or the inpainting net's output (the
-        oracle variants).
+        oracle variants).  ``mirror``: ``logits`` are :func:`mirror_averaged`'s
+        (the view and its mirror image; ``geometry.test_time_mirror``); the
+        other intermediates are the view's own.
         """
         s = self.config.geometry.image_size
         check_tensor("rgb", rgb, ("B", 3, s, s))
@@ -92,7 +95,46 @@ class GenRe(nn.Module):
         out["vox_sph"] = self.sph_voxels(out["full_sph"])
         out["vox_depth"] = self.depth_voxels(out["masked_depth"])
         out["logits"] = self.refine(out["vox_sph"], out["vox_depth"])
+        if mirror:
+            out["logits"] = mirror_averaged(lambda r, k, d, s: self.forward(r, k, d, s)["logits"], rgb, mask, depth,
+                                            full_sph, logits=out["logits"])
         return out
+
+
+def mean_probability_logits(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Logits whose sigmoid is the mean of ``sigmoid(a)`` and ``sigmoid(b)`` (same shapes), finite wherever both are.
+
+    Computed in log space (``log p − log(1 − p)`` with each term a log-sum-exp
+    of log-sigmoids), so that confident logits do not round to a probability of
+    exactly 0 or 1.
+    """
+    if a.shape != b.shape:
+        raise ValueError(f"logits of different shapes: {tuple(a.shape)} and {tuple(b.shape)}")
+    f = torch.nn.functional.logsigmoid
+    return torch.logaddexp(f(a), f(b)) - torch.logaddexp(f(-a), f(-b))
+
+
+def mirror_averaged(predict, rgb: torch.Tensor, mask: torch.Tensor | None = None, depth: torch.Tensor | None = None,
+                    full_sph: torch.Tensor | None = None, logits: torch.Tensor | None = None) -> torch.Tensor:
+    """Voxel logits (B, 1, N, N, N) of a view and of its mirror image, averaged as probabilities.
+
+    ``predict(rgb, mask, depth, full_sph)`` → logits (B, 1, N, N, N) is any
+    row's model (``None`` inputs are passed as ``None``).  The mirror image is
+    the scene reflected in the view frame's x = 0 plane: ``rgb`` (B, 3, S, S),
+    ``mask`` and ``depth`` (B, S, S) flip their columns, ``full_sph`` (B, H, H)
+    is :func:`~genre_backend.geometry.spherical.mirror_sph`'s; its logits are
+    reflected back (:func:`~genre_backend.geometry.voxels.mirror_voxels`) and
+    joined to the view's own (``logits``, computed when not given) by
+    :func:`mean_probability_logits`.  A model that is itself symmetric under
+    the reflection gets its own logits back.
+    """
+    def flip(x):
+        return None if x is None else torch.flip(x, dims=(-1,))
+
+    if logits is None:
+        logits = predict(rgb, mask, depth, full_sph)
+    mirrored = predict(flip(rgb), flip(mask), flip(depth), None if full_sph is None else mirror_sph(full_sph))
+    return mean_probability_logits(logits, mirror_voxels(mirrored))
 
 
 def grow_refiner(model: GenRe, full_nf: int) -> GenRe:

@@ -25,7 +25,9 @@ fill the holes in the visible face from the depth map
 its own (GenRe and GenRe-1step GenRe's depth net's, 3D Completion its own, the
 oracles the true depth), after the carving.  When they replace a mesh by a fitted
 regular shape (``geometry.primitive_snap``), every row with a depth map is fitted
-likewise, to its own depth map and its mesh at the weights' level.
+likewise, to its own depth map and its mesh at the weights' level.  When they average each view with its
+mirror image (``geometry.test_time_mirror``), every learned row does so with its own model
+(:func:`genre_backend.nets.model.mirror_averaged`).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from genre_backend.config import GenreConfig
 from genre_backend.geometry.mesh_voxels import fuse_visible_surface, grid_to_surface
 from genre_backend.geometry.primitives import snap
 from genre_backend.geometry.voxels import silhouette_ramp
-from genre_backend.nets.model import GenRe, WeightsError
+from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
 from .protocol import REPRESENTATION, ROWS
 
@@ -89,26 +91,34 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     full = sample["full_sph"][None].to(device)
     out: dict[str, dict] = {}
     true_depth = torch.where(mask, depth, torch.zeros_like(depth))[0].cpu()
-    g = m(rgb, mask=mask)
+    mirror = m.config.geometry.test_time_mirror  # every learned row alike
+    g = m(rgb, mask=mask, mirror=mirror)
     out["GenRe"] = {"prob": torch.sigmoid(g["logits"])[0, 0].cpu(), "depth": g["masked_depth"][0].cpu()}
     pred_depth = g["masked_depth"]
     valid = mask & (depth > 0)
     err = float(((g["depth"] - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
     out["depth_abs_err"] = err
     if "GenRe-Oracle" in models.wanted:
-        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu(), "depth": true_depth}
+        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, mirror=mirror)["logits"])[0, 0].cpu(), "depth": true_depth}
     if "GenRe-SphOracle" in models.wanted:
-        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full)["logits"])[0, 0].cpu(),
+        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror)["logits"])[0, 0].cpu(),
                                   "depth": true_depth}
     if models.completion is not None:
+        def completion(r, k, d, s):
+            return models.completion(r, mask=k, depth=d)["logits"]
+
         c = models.completion(rgb, mask=mask)
-        out["3D Completion"] = {"prob": torch.sigmoid(c["logits"])[0, 0].cpu(), "depth": c["masked_depth"][0].cpu()}
+        logits = mirror_averaged(completion, rgb, mask, logits=c["logits"]) if mirror else c["logits"]
+        out["3D Completion"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": c["masked_depth"][0].cpu()}
         if "3D Completion-Oracle" in models.wanted:  # the baseline from the true depth: GenRe-Oracle's counterpart
-            out["3D Completion-Oracle"] = {"prob": torch.sigmoid(models.completion(rgb, mask=mask, depth=depth)["logits"])[0, 0].cpu(),
-                                           "depth": true_depth}
+            logits = mirror_averaged(completion, rgb, mask, depth) if mirror else completion(rgb, mask, depth, None)
+            out["3D Completion-Oracle"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": true_depth}
     if models.onestep is not None:
-        sph = models.onestep(rgb).clamp(0.0, 1.0)
-        logits = m.refine(m.sph_voxels(sph), m.depth_voxels(pred_depth))
+        def onestep(r, k, d, s):  # the depth channel from GenRe's depth net, as in the view's own pass
+            own = pred_depth if r is rgb else m.masked_depth(m.depth_net(r)["depth"], k)
+            return m.refine(m.sph_voxels(models.onestep(r).clamp(0.0, 1.0)), m.depth_voxels(own))
+
+        logits = mirror_averaged(onestep, rgb, mask) if mirror else onestep(rgb, mask, None, None)
         out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu()}
     if m.config.geometry.silhouette_carve:  # every learned row alike (the truth is left as it is)
         ramp = silhouette_ramp(mask.cpu(), m.config.camera, m.config.geometry.voxel_size)[0, 0]
