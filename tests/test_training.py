@@ -326,6 +326,12 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     for k, v in model.state_dict().items():
         rounded = v.half().to(v.dtype) if v.is_floating_point() and not k.endswith(("running_mean", "running_var")) else v
         assert torch.equal(halved.state_dict()[k], rounded), k
+    # test-time mirroring: stored, and kept by a later install that does not name it
+    assert load_model(tmp_path / "level.safetensors").config.geometry.test_time_mirror is False
+    install(src, 0.4, tmp_path / "mirror.safetensors", test_time_mirror=True)
+    assert load_model(tmp_path / "mirror.safetensors").config.geometry.test_time_mirror is True
+    install(tmp_path / "mirror.safetensors", 0.45, tmp_path / "mirror2.safetensors")
+    assert load_model(tmp_path / "mirror2.safetensors").config.geometry.test_time_mirror is True
 
 
 def _extra(path) -> dict:
