@@ -41,6 +41,7 @@ class JobSpec:
     threshold: float | None = None
     hole_closing: int | None = None
     silhouette_carve: bool | None = None
+    test_time_mirror: bool | None = None  # None: the weights' own mirror averaging
     smoothing: int = 0
     target_faces: int = 0
     add_camera: bool = True
@@ -64,6 +65,8 @@ class JobSpec:
             payload["options"]["hole_closing"] = int(self.hole_closing)
         if self.silhouette_carve is not None:
             payload["options"]["silhouette_carve"] = bool(self.silhouette_carve)
+        if self.test_time_mirror is not None:
+            payload["options"]["test_time_mirror"] = bool(self.test_time_mirror)
         if self.colour_from_photo:
             payload["options"]["texture"] = True
         if self.keep_all_parts:
@@ -164,6 +167,7 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     spec.threshold = float(settings.threshold) if settings.use_threshold else None
     spec.hole_closing = int(settings.hole_closing) if getattr(settings, "use_hole_closing", False) else None
     spec.silhouette_carve = bool(settings.silhouette_carve) if getattr(settings, "use_silhouette_carve", False) else None
+    spec.test_time_mirror = bool(settings.test_time_mirror) if getattr(settings, "use_test_time_mirror", False) else None
     spec.smoothing = int(settings.smoothing)
     spec.target_faces = int(settings.target_faces)
     spec.add_camera = bool(settings.add_camera)

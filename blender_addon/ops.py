@@ -111,6 +111,9 @@ def _follow_threshold(scene, result: dict) -> None:
     carve = result.get("silhouette_carve")  # and the outline trim
     if settings is not None and not getattr(settings, "use_silhouette_carve", True) and isinstance(carve, bool):
         settings.silhouette_carve = carve
+    mirror = result.get("test_time_mirror")  # and the mirror averaging
+    if settings is not None and not getattr(settings, "use_test_time_mirror", True) and isinstance(mirror, bool):
+        settings.test_time_mirror = mirror
 
 
 def finish_job(job: Job, status, outcome) -> None:

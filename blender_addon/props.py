@@ -51,6 +51,14 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         # The shipped 'default' weights' setting; the field follows what the backend reports.
         default=False,
     )
+    use_test_time_mirror: BoolProperty(name="Custom Mirror Average", description="Override the weights' mirror averaging", default=False)
+    test_time_mirror: BoolProperty(
+        name="Mirror Average", description="Also reconstruct the photo's mirror image and average the two meshes' "
+                                           "voxels (the networks' errors that are not mirror-symmetric partly cancel); "
+                                           "about twice the networks' time",
+        # The shipped 'default' weights' setting; the field follows what the backend reports.
+        default=False,
+    )
     smoothing: IntProperty(
         name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
     )

@@ -48,6 +48,11 @@ class GENRE_PT_panel(bpy.types.Panel):
         sub = row.row()
         sub.enabled = settings.use_silhouette_carve
         sub.prop(settings, "silhouette_carve")
+        row = box.row(align=True)
+        row.prop(settings, "use_test_time_mirror", text="")
+        sub = row.row()
+        sub.enabled = settings.use_test_time_mirror
+        sub.prop(settings, "test_time_mirror")
         box.prop(settings, "smoothing")
         box.prop(settings, "target_faces")
         box.prop(settings, "colour_from_photo")

@@ -211,6 +211,7 @@ def scenario_reconstruct(args: dict) -> dict:
     settings.hole_closing = 7  # likewise the hole sealing
     settings.silhouette_carve = True  # and the outline trim (the test weights do not carve)
     settings.primitive_snap = 0.3  # and the regular-shape snapping (the test weights do not snap)
+    settings.test_time_mirror = True  # and the mirror averaging (the test weights do not mirror)
     status = bpy.context.window_manager.genre_status
     out = {}
     snap = _Snapshot(bpy)
@@ -221,6 +222,7 @@ def scenario_reconstruct(args: dict) -> dict:
     out["hole_closing_field_after"] = settings.hole_closing
     out["silhouette_carve_field_after"] = settings.silhouette_carve
     out["primitive_snap_field_after"] = settings.primitive_snap
+    out["test_time_mirror_field_after"] = settings.test_time_mirror
     out["outcome"] = list(outcome)
     out["result_event"] = job.request.result
     out["stages"] = sorted({s[1] for s in states})
@@ -649,6 +651,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert ev["silhouette_carve"] is load_model(weights).config.geometry.silhouette_carve is r["silhouette_carve_field_after"] is False
     assert ev["primitive_snap"] == load_model(weights).config.geometry.primitive_snap == r["primitive_snap_field_after"] == 0.0
     assert ev["primitive"] is None
+    assert ev["test_time_mirror"] is load_model(weights).config.geometry.test_time_mirror is r["test_time_mirror_field_after"] is False
     mesh = r["mesh"]
     assert mesh["name"] == "box"
     assert mesh["collections"] == ["GenRe"]

@@ -170,3 +170,8 @@ def test_addon_threshold_default_is_the_shipped_weights_level():
     defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "silhouette_carve"
                 for kw in node.annotation.keywords if kw.arg == "default"]
     assert defaults == [carve]
+    # and its mirror-averaging field at theirs
+    mirror = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("test_time_mirror", False)
+    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "test_time_mirror"
+                for kw in node.annotation.keywords if kw.arg == "default"]
+    assert defaults == [mirror]
