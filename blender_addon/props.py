@@ -57,7 +57,7 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
                                            "voxels (the networks' errors that are not mirror-symmetric partly cancel); "
                                            "about twice the networks' time",
         # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=False,
+        default=True,
     )
     smoothing: IntProperty(
         name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,

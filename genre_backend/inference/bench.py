@@ -175,7 +175,7 @@ def _bench_image(folder: Path) -> Path:
     return path
 
 
-def _inference_worker(preset: str, device: str, repeats: int, threshold: float | None) -> dict:
+def _inference_worker(preset: str, device: str, repeats: int, threshold: float | None, mirror: bool = False) -> dict:
     """Run in a fresh process: time the pipeline of one preset; returns a JSON-able summary."""
     import tempfile
     import threading
@@ -217,7 +217,7 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
         out_path = Path(tmp) / "mesh.obj"
         for i in range(repeats + 1):  # the first run warms up caches and the allocator
             t0 = time.perf_counter()
-            result = rec.run(image, threshold=threshold, progress=progress)
+            result = rec.run(image, threshold=threshold, progress=progress, test_time_mirror=mirror)
             progress("write", 1.0)
             result.save_mesh(out_path)
             if cuda:
@@ -243,6 +243,7 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
     med = {k: statistics.median(r[k] for r in runs) for k in [*STAGES, "total"] if all(k in r for r in runs)}
     return {
         "preset": preset,
+        "test_time_mirror": mirror,
         "device": str(rec.device),
         "threads": torch.get_num_threads(),
         "params_m": params / 1e6,
@@ -260,10 +261,12 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
     }
 
 
-def inference_benchmark(preset: str, device: str = "cpu", repeats: int = 5, threshold: float | None = None, threads: int | None = None) -> dict:
+def inference_benchmark(preset: str, device: str = "cpu", repeats: int = 5, threshold: float | None = None, threads: int | None = None,
+                        mirror: bool = False) -> dict:
     """Time the pipeline of ``preset`` in a fresh subprocess (so its peak memory is its own).
 
-    ``threshold`` None: the preset's ``geometry.default_threshold``.
+    ``threshold`` None: the preset's ``geometry.default_threshold``.  ``mirror``: with test-time
+    mirroring (``geometry.test_time_mirror``: the nets run twice).
     """
     import json
     import subprocess
@@ -275,6 +278,8 @@ def inference_benchmark(preset: str, device: str = "cpu", repeats: int = 5, thre
         cmd += ["--threshold", str(threshold)]
     if threads:
         cmd += ["--threads", str(threads)]
+    if mirror:
+        cmd.append("--test-time-mirror")
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
@@ -289,7 +294,8 @@ def _print_inference(summary: dict) -> None:
     from .reconstruct import STAGES
 
     s = summary
-    print(f"\n{s['preset']} on {s['device']} ({s['threads']} threads, {s['params_m']:.1f} M parameters, median of {s['repeats']} runs; "
+    mirrored = ", averaged with the mirror image" if s.get("test_time_mirror") else ""
+    print(f"\n{s['preset']}{mirrored} on {s['device']} ({s['threads']} threads, {s['params_m']:.1f} M parameters, median of {s['repeats']} runs; "
           f"mesh {s['vertices']} vertices / {s['faces']} faces, mask from {s['mask_source']})")
     print(f"  {'stage':<12} {'median ms':>10} {'peak MB':>9}")
     for st in STAGES:
@@ -318,6 +324,8 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     inf.add_argument("--repeats", type=int, default=5, help="timed runs per preset after one warm-up (median reported)")
     inf.add_argument("--threshold", type=float, default=None, help="isosurface level (default: the preset's default_threshold)")
     inf.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    inf.add_argument("--test-time-mirror", action="store_true",
+                     help="also time each preset with test-time mirroring (the nets run on the mirror image too)")
     inf.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
     worker = sub.add_parser("_inference-worker")  # internal: one preset in a fresh process
     worker.add_argument("--preset", required=True)
@@ -325,6 +333,7 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     worker.add_argument("--repeats", type=int, required=True)
     worker.add_argument("--threshold", type=float, default=None)
     worker.add_argument("--threads", type=int, default=None)
+    worker.add_argument("--test-time-mirror", action="store_true")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -333,7 +342,7 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     if args.what == "_inference-worker":
         import json
 
-        print(json.dumps(_inference_worker(args.preset, args.device, args.repeats, args.threshold)))
+        print(json.dumps(_inference_worker(args.preset, args.device, args.repeats, args.threshold, args.test_time_mirror)))
         return 0
     if args.what == "inference":
         import json
@@ -354,13 +363,14 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
         summaries = []
         for device in devices:
             for preset in presets:
-                try:
-                    summary = inference_benchmark(preset, device, args.repeats, args.threshold, args.threads)
-                except RuntimeError as exc:
-                    print(f"{prog}: error: {exc}", file=sys.stderr)
-                    return 1
-                summaries.append(summary)
-                _print_inference(summary)
+                for mirror in ((False, True) if args.test_time_mirror else (False,)):
+                    try:
+                        summary = inference_benchmark(preset, device, args.repeats, args.threshold, args.threads, mirror)
+                    except RuntimeError as exc:
+                        print(f"{prog}: error: {exc}", file=sys.stderr)
+                        return 1
+                    summaries.append(summary)
+                    _print_inference(summary)
         if args.json:
             print(json.dumps(summaries, indent=2))
         return 0
