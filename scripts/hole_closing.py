@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             s = data.sample(i, None)
             gt, _ = truth.posed(view)
             target = CloudScorer(gt[:POINTS_SMALL], gt)
-            prob = torch.sigmoid(model(s["rgb"][None], mask=s["mask"][None])["logits"])[0, 0]
+            prob = torch.sigmoid(model(s["rgb"][None], mask=s["mask"][None], mirror=model.config.geometry.test_time_mirror)["logits"])[0, 0]
             groups = list(group_of_shape(entries.get(view.shape_dir.name, {"class": view.cls})))
             if SEEN_TEST in view.groups:
                 groups.append("seen-test (chooses k)")

@@ -95,7 +95,7 @@ def _score(item) -> dict:
     t0 = time.perf_counter()
     s = ViewDataset([ViewRef(view.shape_dir, view.view)], model.config).sample(0, None)
     with torch.no_grad():
-        out = model(s["rgb"][None], mask=s["mask"][None])
+        out = model(s["rgb"][None], mask=s["mask"][None], mirror=model.config.geometry.test_time_mirror)
     gt, _ = truth.posed(view)
     target = CloudScorer(gt[:POINTS_SMALL], gt)
     v, f = grid_to_surface(torch.sigmoid(out["logits"])[0, 0], g.default_threshold, g)

@@ -37,6 +37,12 @@ normalised):
   in the inpainted one; for the hit head, the true depth's inpainted map
   projected at several hit-probability levels).
 
+With weights that average each view with its mirror image
+(``geometry.test_time_mirror``), the GenRe model's rows that go through the
+refiner to a mesh (the two oracles, GenRe, the depth offset removed) are
+averaged likewise; the emptied spherical channel, the projected maps, the
+depth's errors and the 3D Completion rows are the view's own pass.
+
 Seen classes only: what it shows is used to change the model, and the
 unseen classes must stay untouched by such choices.  ``--groups train`` (on
 the training views) scores the same rows on views the nets were fitted on:
@@ -124,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     if weights_extra(weights).get("model") == "default":
         print(f"warning: {weights} are the product weights ('default'); research figures come from 'protocol'", file=sys.stderr)
     model = load_model(weights)
+    mirror = model.config.geometry.test_time_mirror  # the rows that reach a mesh, as genre eval and reconstruct make it
     completion = None
     if args.completion:
         from training.learn.baselines import load_baseline
@@ -152,12 +159,12 @@ def main(argv: list[str] | None = None) -> int:
             rgb, mask, depth, full = s["rgb"][None], s["mask"][None], s["depth"][None], s["full_sph"][None]
             target_fraction.append(float((s["voxels"] > 0).float().mean()))
             add(f"true {model.config.geometry.target}, its surface", score_grid(s["voxels"], thresholds, target, model.config.geometry))
-            sph_oracle = model(rgb, mask=mask, depth=depth, full_sph=full)
+            sph_oracle = model(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror)
             add("true spherical map, projected", score_grid(sph_oracle["vox_sph"][0, 0], [HIT], target))
             add("refiner <- true depth + true map", score_grid(torch.sigmoid(sph_oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
-            oracle = model(rgb, mask=mask, depth=depth)
+            oracle = model(rgb, mask=mask, depth=depth, mirror=mirror)
             add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
-            genre = model(rgb, mask=mask)
+            genre = model(rgb, mask=mask, mirror=mirror)
             # how much the refiner leans on the spherical channel: the same depth voxels, the spherical ones emptied
             emptied = model.refine(torch.zeros_like(genre["vox_sph"]), genre["vox_depth"])
             add("GenRe, spherical channel emptied", score_grid(torch.sigmoid(emptied)[0, 0], thresholds, target, model.config.geometry))
@@ -166,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
             valid = mask & (depth > 0)
             offset = (genre["depth"] - depth)[valid].median()
             shifted = genre["depth"] - offset
-            add("GenRe, depth offset removed", score_grid(torch.sigmoid(model(rgb, mask=mask, depth=shifted)["logits"])[0, 0],
+            add("GenRe, depth offset removed", score_grid(torch.sigmoid(model(rgb, mask=mask, depth=shifted, mirror=mirror)["logits"])[0, 0],
                                                           thresholds, target, model.config.geometry))
             if completion is not None:
                 own = completion.depth_net(rgb)["depth"]  # the baseline's own (frozen) depth net

@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             gt, _ = truth.posed(view)
             target = CloudScorer(gt[:POINTS_SMALL], gt)
             mask = s["mask"]
-            out = model(s["rgb"][None], mask=mask[None])
+            out = model(s["rgb"][None], mask=mask[None], mirror=model.config.geometry.test_time_mirror)
             prob = torch.sigmoid(out["logits"])[0, 0]
             if geometry.silhouette_carve:
                 prob = torch.minimum(prob, silhouette_ramp(mask[None], camera, geometry.voxel_size)[0, 0])
