@@ -40,6 +40,7 @@ class JobSpec:
     mask_path: str = ""
     threshold: float | None = None
     hole_closing: int | None = None
+    pit_sealing: int | None = None  # None: the weights' own pit sealing
     silhouette_carve: bool | None = None
     test_time_mirror: bool | None = None  # None: the weights' own mirror averaging
     smoothing: int = 0
@@ -63,6 +64,8 @@ class JobSpec:
             payload["options"]["threshold"] = float(self.threshold)
         if self.hole_closing is not None:
             payload["options"]["hole_closing"] = int(self.hole_closing)
+        if self.pit_sealing is not None:
+            payload["options"]["pit_sealing"] = int(self.pit_sealing)
         if self.silhouette_carve is not None:
             payload["options"]["silhouette_carve"] = bool(self.silhouette_carve)
         if self.test_time_mirror is not None:
@@ -166,6 +169,7 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     spec.mask_path = mask
     spec.threshold = float(settings.threshold) if settings.use_threshold else None
     spec.hole_closing = int(settings.hole_closing) if getattr(settings, "use_hole_closing", False) else None
+    spec.pit_sealing = int(settings.pit_sealing) if getattr(settings, "use_pit_sealing", False) else None
     spec.silhouette_carve = bool(settings.silhouette_carve) if getattr(settings, "use_silhouette_carve", False) else None
     spec.test_time_mirror = bool(settings.test_time_mirror) if getattr(settings, "use_test_time_mirror", False) else None
     spec.smoothing = int(settings.smoothing)

@@ -104,6 +104,10 @@ def _follow_threshold(scene, result: dict) -> None:
     if (settings is not None and not getattr(settings, "use_hole_closing", True) and isinstance(sealing, int)
             and not isinstance(sealing, bool) and 0 <= sealing <= 8):
         settings.hole_closing = sealing
+    pits = result.get("pit_sealing")  # and the pit sealing
+    if (settings is not None and not getattr(settings, "use_pit_sealing", True) and isinstance(pits, int)
+            and not isinstance(pits, bool) and 0 <= pits <= 8):
+        settings.pit_sealing = pits
     snap = result.get("primitive_snap")  # and the regular-shape snapping
     if (settings is not None and not getattr(settings, "use_primitive_snap", True) and isinstance(snap, (int, float))
             and not isinstance(snap, bool) and 0.0 <= snap <= 0.5):

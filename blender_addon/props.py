@@ -44,6 +44,13 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         # The shipped 'default' weights' setting; the field follows what the backend reports.
         default=1, min=0, max=8,
     )
+    use_pit_sealing: BoolProperty(name="Custom Pit Sealing", description="Override the weights' pit sealing", default=False)
+    pit_sealing: IntProperty(
+        name="Seal Pits", description="Fill narrow, deep pits in the side the photo shows, up to about twice this many "
+                                      "voxels across, with the surface around them (0: none)",
+        # The shipped 'default' weights' setting; the field follows what the backend reports.
+        default=0, min=0, max=8,
+    )
     use_silhouette_carve: BoolProperty(name="Custom Outline Trim", description="Override the weights' outline trim", default=False)
     silhouette_carve: BoolProperty(
         name="Trim to Outline", description="Cut away whatever would stick out past the object's outline in the photo "

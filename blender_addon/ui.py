@@ -44,6 +44,11 @@ class GENRE_PT_panel(bpy.types.Panel):
         sub.enabled = settings.use_hole_closing
         sub.prop(settings, "hole_closing")
         row = box.row(align=True)
+        row.prop(settings, "use_pit_sealing", text="")
+        sub = row.row()
+        sub.enabled = settings.use_pit_sealing
+        sub.prop(settings, "pit_sealing")
+        row = box.row(align=True)
         row.prop(settings, "use_silhouette_carve", text="")
         sub = row.row()
         sub.enabled = settings.use_silhouette_carve

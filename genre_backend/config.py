@@ -129,6 +129,14 @@ class GeometryConfig:
     # 4.4 % / 4.6 % (default, pits deeper than 10 voxels only: 2.9 %; results/visible_fusion/).
     # Weights stored without the key: off.
     visible_fusion: bool = False
+    # Pits in the face the camera sees (geometry.mesh_voxels.seal_pits): a blurry front wall whose
+    # crossing falls through onto the inside of the back leaves a narrow, deep well, dark in a render
+    # (real photos: the apple's and the orange's fronts).  The basins of the grid's own visible front
+    # deeper than 2 voxels and at most about twice this many voxels across are filled with the front
+    # around them before the mesh is made, in reconstruction and in evaluation (every row with a mask
+    # alike, after any fusion).  0: off.  Chosen by the rule in results/product/ship_rule.txt
+    # (scripts/visible_fusion.py --pit-sealing).  Weights stored without the key: 0 (off).
+    pit_sealing: int = 0
     # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
     # ellipsoid fitted to the mask's outline, the mesh and the depth when its disagreement (1 - the IoU of
     # its silhouette with the mask, or twice the mesh's mean distance to it over its diagonal, whichever
@@ -174,6 +182,9 @@ class GeometryConfig:
             raise ValueError(f"geometry.visible_fusion: expected true or false, got {self.visible_fusion!r}")
         if self.visible_fusion and self.target != "distance":
             raise ValueError("geometry.visible_fusion: the visible surface is fused only into the distance target")
+        check_hole_closing("geometry.pit_sealing", self.pit_sealing)
+        if self.pit_sealing and self.target != "distance":
+            raise ValueError("geometry.pit_sealing: pits are sealed only in the distance target")
         if isinstance(self.primitive_snap, bool) or not isinstance(self.primitive_snap, (int, float)) \
                 or not (math.isfinite(self.primitive_snap) and 0.0 <= self.primitive_snap < 1.0):
             raise ValueError(f"geometry.primitive_snap: expected a share in [0, 1), got {self.primitive_snap!r}")

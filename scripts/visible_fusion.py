@@ -32,7 +32,15 @@ re-rendering the same views moves it (0.1 %) by an order of magnitude less than
 the differences between weights.  The other groups are reported, never used
 to choose.
 
+``--pit-sealing K[,K...]`` compares, instead of the fusion, the sealing of the
+narrow wells in the grid's own front (``geometry.pit_sealing``,
+:func:`genre_backend.geometry.mesh_voxels.seal_pits`) at each width K; its rule
+(``results/product/ship_rule.txt``) picks the largest K whose CD rises by at
+most ``CD_TOLERANCE`` on the group given by ``--choose-group``.
+
     .venv/bin/python scripts/visible_fusion.py --weights protocol --views $GENRE_HOME/views/eval --groups test
+    .venv/bin/python scripts/visible_fusion.py --weights default --views $GENRE_HOME/views/product_eval \
+        --groups product-test --pit-sealing 2,4 --choose-group all
 """
 
 from __future__ import annotations
@@ -49,7 +57,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.geometry.mesh_voxels import fuse_visible_surface  # noqa: E402
+from genre_backend.geometry.mesh_voxels import fuse_visible_surface, seal_pits  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 from genre_backend.inference.colour import zbuffer  # noqa: E402
@@ -78,18 +86,38 @@ def choose(seen: dict[bool, dict[str, float]]) -> bool:
     return bool(seen[True]["cd"] <= (1.0 + CD_TOLERANCE) * seen[False]["cd"])
 
 
+def choose_width(figures: dict[str, dict[str, float]]) -> int:
+    """The pit-sealing rule: the largest width ``K`` (variants named ``"pits K"``) whose mean CD is at most
+    (1 + CD_TOLERANCE) × that of ``"off"``; 0 (off) when none is."""
+    widths = [int(name.split()[1]) for name in figures if name.startswith("pits ")]
+    ok = [k for k in widths if figures[f"pits {k}"]["cd"] <= (1.0 + CD_TOLERANCE) * figures["off"]["cd"]]
+    return max(ok, default=0)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", default="default", help="'default', 'protocol' or a weights file")
     p.add_argument("--views", required=True, help="evaluation views (genre data render + targets)")
     p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--groups", default="test", help="manifest groups of the views to score (comma-separated)")
-    p.add_argument("--max-views", type=int, default=None, help="at most this many views (default: all)")
+    p.add_argument("--max-views", type=int, default=None, help="at most this many views of each shape (default: all)")
     p.add_argument("--level", type=float, default=None, help="isosurface level (default: the weights')")
     p.add_argument("--pit-voxels", type=float, default=None, metavar="P",
                    help="also fill pits deeper than P voxels behind the depth map (default: holes only, as the setting does)")
+    p.add_argument("--pit-sealing", default=None, metavar="K[,K...]",
+                   help="compare sealing the pits of the grid's own front at these widths (voxels) instead of the fusion")
+    p.add_argument("--choose-group", default="seen-test (chooses)",
+                   help="the group whose mean chooses (default: the seen-test views; 'all' for the product test split)")
     p.add_argument("--json", default=None, help="also write the figures here")
     args = p.parse_args(argv)
+    widths = None
+    if args.pit_sealing is not None:
+        try:
+            widths = [int(k) for k in args.pit_sealing.split(",")]
+        except ValueError:
+            p.error(f"--pit-sealing: expected comma-separated ints, got {args.pit_sealing!r}")
+        if not widths or any(not 1 <= k <= 8 for k in widths):
+            p.error(f"--pit-sealing: widths must be in 1-8, got {args.pit_sealing!r}")
     try:
         weights = resolve_weights(args.weights)
     except ValueError as exc:
@@ -104,8 +132,15 @@ def main(argv: list[str] | None = None) -> int:
     if geometry.target != "distance":
         p.error(f"{weights}: the visible surface is fused only into distance-target grids (these weights: {geometry.target})")
     level = geometry.default_threshold if args.level is None else args.level
+    if widths is None:
+        variants = {"off": lambda prob, depth, mask: prob,
+                    "fused": lambda prob, depth, mask: fuse_visible_surface(prob, depth, camera, geometry, level, pit_voxels=args.pit_voxels)}
+    else:
+        variants = {"off": lambda prob, depth, mask: prob}
+        for k in widths:
+            variants[f"pits {k}"] = lambda prob, depth, mask, k=k: seal_pits(prob, mask, camera, geometry, level, k)
     truth = Truth()
-    figures: dict[str, dict[bool, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+    figures: dict[str, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     with torch.no_grad():
         for i, view in enumerate(views):
             s = data.sample(i, None)
@@ -119,33 +154,42 @@ def main(argv: list[str] | None = None) -> int:
             groups = list(group_of_shape(entries.get(view.shape_dir.name, {"class": view.cls})))
             if SEEN_TEST in view.groups:
                 groups.append("seen-test (chooses)")
-            for fused in (False, True):
-                grid = fuse_visible_surface(prob, out["masked_depth"][0], camera, geometry, level, pit_voxels=args.pit_voxels) if fused else prob
+            for name, variant in variants.items():
+                grid = variant(prob, out["masked_depth"][0], mask.bool())
                 m = score_grid(grid, [level], target, geometry)[level]
                 c = coverage(grid, mask, level, geometry, camera)
                 for g in groups:
-                    figures[g][fused]["cd"].append(m["cd1k"])
-                    figures[g][fused]["coverage"].append(c)
-                    figures[g][fused]["under"].append(float(c < COVERED))
+                    figures[g][name]["cd"].append(m["cd1k"])
+                    figures[g][name]["coverage"].append(c)
+                    figures[g][name]["under"].append(float(c < COVERED))
             if (i + 1) % 25 == 0:
                 print(f"  {i + 1}/{len(views)} views", file=sys.stderr)
-    result = {"weights": str(weights), "level": level, "views": len(views), "pit_voxels": args.pit_voxels, "groups": {}}
+    result = {"weights": str(weights), "level": level, "views": len(views), "pit_voxels": args.pit_voxels,
+              "pit_sealing": widths, "groups": {}}
+    what = (f"pits sealed at widths {', '.join(map(str, widths))}" if widths is not None else
+            "filled: holes" + (f" and pits deeper than {args.pit_voxels:g} voxels" if args.pit_voxels is not None else " only"))
     print(f"{len(views)} views of {args.views} ({args.groups}); weights {weights}; level {level:.2f}; "
-          f"hole_closing {geometry.hole_closing}; carve {geometry.silhouette_carve}; filled: holes"
-          + (f" and pits deeper than {args.pit_voxels:g} voxels" if args.pit_voxels is not None else " only"))
-    print("| group | views | CD off | CD fused | coverage off | coverage fused | views < 90 % off | fused |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+          f"hole_closing {geometry.hole_closing}; carve {geometry.silhouette_carve}; {what}")
+    names = list(variants)
+    print("| group | views | " + " | ".join(f"CD {n}" for n in names) + " | " + " | ".join(f"coverage {n}" for n in names)
+          + " | " + " | ".join(f"views < 90 % {n}" for n in names) + " |")
+    print("| --- | ---: |" + " ---: |" * (3 * len(names)))
     for g in sorted(figures, key=lambda g: (g != "all", g)):
-        per = {fused: {k: float(np.mean(v)) for k, v in figures[g][fused].items()} for fused in (False, True)}
-        result["groups"][g] = {"off": per[False], "fused": per[True]}
-        n = len(figures[g][False]["cd"])
-        print(f"| {g} | {n} | {per[False]['cd']:.4f} | {per[True]['cd']:.4f} | {100 * per[False]['coverage']:.1f} % | "
-              f"{100 * per[True]['coverage']:.1f} % | {100 * per[False]['under']:.0f} % | {100 * per[True]['under']:.0f} % |")
-    seen = result["groups"].get("seen-test (chooses)")
-    if seen:
-        chosen = choose({False: seen["off"], True: seen["fused"]})
+        per = {name: {k: float(np.mean(v)) for k, v in figures[g][name].items()} for name in names}
+        result["groups"][g] = per
+        n = len(figures[g]["off"]["cd"])
+        print(f"| {g} | {n} | " + " | ".join(f"{per[v]['cd']:.4f}" for v in names) + " | "
+              + " | ".join(f"{100 * per[v]['coverage']:.1f} %" for v in names) + " | "
+              + " | ".join(f"{100 * per[v]['under']:.0f} %" for v in names) + " |")
+    chooser = result["groups"].get(args.choose_group)
+    if chooser:
+        if widths is None:
+            chosen = choose({False: chooser["off"], True: chooser["fused"]})
+            print(f"chosen on {args.choose_group} (on when CD rises by <= {100 * CD_TOLERANCE:.0f} %): visible_fusion = {chosen}")
+        else:
+            chosen = choose_width(chooser)
+            print(f"chosen on {args.choose_group} (the widest K whose CD rises by <= {100 * CD_TOLERANCE:.0f} %): pit_sealing = {chosen}")
         result["chosen"] = chosen
-        print(f"chosen on the seen-test views (on when CD rises by <= {100 * CD_TOLERANCE:.0f} %): visible_fusion = {chosen}")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
     return 0

@@ -209,6 +209,7 @@ def scenario_reconstruct(args: dict) -> dict:
     else:
         settings.threshold = 0.2  # not the weights' level: a plain run should bring the field to it
     settings.hole_closing = 7  # likewise the hole sealing
+    settings.pit_sealing = 5  # and the pit sealing (the test weights do not seal pits)
     settings.silhouette_carve = True  # and the outline trim (the test weights do not carve)
     settings.primitive_snap = 0.3  # and the regular-shape snapping (the test weights do not snap)
     settings.test_time_mirror = True  # and the mirror averaging (the test weights do not mirror)
@@ -220,6 +221,7 @@ def scenario_reconstruct(args: dict) -> dict:
     out["first_seconds"] = time.monotonic() - t0
     out["threshold_field_after"] = settings.threshold
     out["hole_closing_field_after"] = settings.hole_closing
+    out["pit_sealing_field_after"] = settings.pit_sealing
     out["silhouette_carve_field_after"] = settings.silhouette_carve
     out["primitive_snap_field_after"] = settings.primitive_snap
     out["test_time_mirror_field_after"] = settings.test_time_mirror
@@ -648,6 +650,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     level = load_model(weights).config.geometry.default_threshold
     assert ev["threshold"] == level and r["threshold_field_after"] == pytest.approx(level)
     assert ev["hole_closing"] == load_model(weights).config.geometry.hole_closing == r["hole_closing_field_after"]
+    assert ev["pit_sealing"] == load_model(weights).config.geometry.pit_sealing == r["pit_sealing_field_after"] == 0
     assert ev["silhouette_carve"] is load_model(weights).config.geometry.silhouette_carve is r["silhouette_carve_field_after"] is False
     assert ev["primitive_snap"] == load_model(weights).config.geometry.primitive_snap == r["primitive_snap_field_after"] == 0.0
     assert ev["primitive"] is None

@@ -181,6 +181,38 @@ def test_weights_that_fuse_the_visible_surface_fill_every_depth_row_from_its_own
     assert torch.equal(fused[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
 
 
+def test_weights_that_seal_pits_seal_every_learned_row_through_the_views_mask(tiny, monkeypatch):
+    import dataclasses
+
+    import training.eval.rows as rows_module
+    from genre_backend.geometry.mesh_voxels import seal_pits
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    geometry = dataclasses.replace(genre.config.geometry, target="distance")
+    genre.config = dataclasses.replace(genre.config, geometry=geometry)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    calls = []
+
+    def recording(prob, mask, camera, g, level, width):  # the real function, its calls recorded
+        calls.append((prob.clone(), mask.clone(), level, width))
+        return seal_pits(prob, mask, camera, g, level, width)
+
+    monkeypatch.setattr(rows_module, "seal_pits", recording)
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(geometry, pit_sealing=8))
+    sealed = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle"]
+    assert len(calls) == len(rows)  # once per learned voxel row; the truth is not sealed
+    for (prob, mask, level, width), row in zip(calls, rows):
+        assert torch.equal(prob, plain[row]["prob"]), row
+        assert torch.equal(mask, sample["mask"]) and mask.dtype == torch.bool
+        assert (level, width) == (geometry.default_threshold, 8)
+        want = seal_pits(plain[row]["prob"], sample["mask"], genre.config.camera, genre.config.geometry, level, 8)
+        assert torch.equal(sealed[row]["prob"], want), row
+    assert torch.equal(sealed[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
+
+
 def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     _, views, _ = tiny
     meta = json.loads((views / "table" / "view_000.json").read_text())

@@ -165,6 +165,11 @@ def test_addon_threshold_default_is_the_shipped_weights_level():
     defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "hole_closing"
                 for kw in node.annotation.keywords if kw.arg == "default"]
     assert defaults == [sealing]
+    # and its pit-sealing field at theirs
+    pits = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("pit_sealing", 0)
+    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "pit_sealing"
+                for kw in node.annotation.keywords if kw.arg == "default"]
+    assert defaults == [pits]
     # and its outline-trim field at theirs
     carve = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("silhouette_carve", False)
     defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "silhouette_carve"

@@ -353,3 +353,55 @@ def test_a_pit_in_the_front_is_filled_where_the_depth_map_says_and_an_offset_dep
         refilled = ray_first_hit(fused, level, camera, g.image_size)
         inner = (depth > 0) & ((refilled - ray_first_hit(whole, level, camera, g.image_size)).abs() < 1.5 / n)
         assert float(inner.float().sum() / (depth > 0).sum()) > 0.97  # the front is where the whole sphere's is
+
+
+def test_sealing_pits_fills_a_narrow_well_in_the_front_with_the_front_around_it_and_nothing_else():
+    from genre_backend.geometry.mesh_voxels import PIT_MIN_DEPTH_VOXELS, seal_pits
+    from genre_backend.geometry.voxels import ray_first_hit
+
+    camera, g, depth, (x, y, z), whole = _sphere_seen_and_its_tube()
+    n, level, size = g.voxel_size, g.default_threshold, g.image_size
+    obj = depth > 0
+    front = ray_first_hit(whole, level, camera, size)
+    # a convex front falls away toward the outline everywhere: nothing to seal, at any width
+    for k in (1, 4, 8):
+        assert torch.equal(seal_pits(whole, obj, camera, g, level, k), whole)
+    assert torch.equal(seal_pits(whole, obj, camera, g, level, 0), whole)  # 0: off
+
+    def well(radius: float) -> torch.Tensor:  # the front cap missing over a disc: its rays meet the inside of the back
+        return torch.where((z > 0) & (x * x + y * y < radius ** 2), torch.zeros_like(whole), whole)
+
+    narrow = well(0.025)  # 3.2 voxels across
+    hit = ray_first_hit(narrow, level, camera, size)
+    assert torch.isfinite(hit[obj]).all()  # a pit, not a hole
+    pit = obj & (hit - front > PIT_MIN_DEPTH_VOXELS / n)
+    assert int(pit.sum()) > 20
+    sealed = seal_pits(narrow, obj, camera, g, level, 2)
+    assert torch.equal(torch.maximum(sealed, narrow), sealed)  # only ever adds
+    changed = sealed != narrow
+    assert bool((z[changed] > 0.2).all()) and bool((x[changed] ** 2 + y[changed] ** 2 < 0.12 ** 2).all())  # on the cap, around the well
+    assert float((sealed - whole)[changed].abs().max()) < 0.35  # the sphere's own distance, within a voxel's error
+    refilled = ray_first_hit(sealed, level, camera, size)
+    assert float((refilled - front)[obj].abs().max()) < 1.0 / n  # the front is the whole sphere's again, within a voxel
+    # a well wider than the limit is a feature (a bowl's inside), not a pit: left alone at that width, sealed at a wider one
+    wide = well(0.1)  # 12.8 voxels across
+    assert torch.equal(seal_pits(wide, obj, camera, g, level, 2), wide)
+    lid = ray_first_hit(seal_pits(wide, obj, camera, g, level, 8), level, camera, size)
+    assert torch.isfinite(lid[obj]).all() and float((lid - front)[obj].max()) < 2.5 / n  # a flat lid at the rim: the cap's 1.1-voxel sagitta lost
+    # a narrow tunnel through front and back (its rays meet nothing) is sealed in front, the back left open
+    tunnel = torch.where((x.abs() < 0.02) & (y.abs() < 0.02), torch.zeros_like(whole), whole)
+    assert not torch.isfinite(ray_first_hit(tunnel, level, camera, size)[obj]).all()
+    closed = seal_pits(tunnel, obj, camera, g, level, 2)
+    assert torch.isfinite(ray_first_hit(closed, level, camera, size)[obj]).all()
+    assert bool((z[closed != tunnel] > 0.2).all())
+    with pytest.raises(ValueError, match="distance"):
+        seal_pits(narrow, obj, camera, dataclasses.replace(g, target="shell"), level, 2)
+    for bad in (-1, 9, 2.0, True):
+        with pytest.raises(ValueError, match="width_voxels"):
+            seal_pits(narrow, obj, camera, g, level, bad)
+    with pytest.raises(ValueError, match="bool"):
+        seal_pits(narrow, obj.float(), camera, g, level, 2)
+    with pytest.raises(ValueError, match="pit_sealing"):
+        dataclasses.replace(g, pit_sealing=9)
+    with pytest.raises(ValueError, match="pit_sealing"):
+        dataclasses.replace(g, pit_sealing=1, target="shell")

@@ -369,6 +369,39 @@ def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys,
     assert exc.value.code == 2 and "--hole-closing" in capsys.readouterr().err
 
 
+def test_pit_sealing_fills_the_pits_of_the_grids_own_front(photos, tmp_path, capsys, trained):
+    import dataclasses
+
+    from genre_backend.geometry.mesh_voxels import fill_enclosed, seal_pits
+    from genre_backend.nets.model import load_model
+
+    model = load_model(trained[0])
+    g = model.config.geometry
+    if g.target != "distance":  # pits are sealed in the distance target only
+        model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(g, target="distance"))
+    rec = Reconstructor.from_model(model)
+    assert rec.config.geometry.pit_sealing == 0  # weights stored without the key: off
+    plain = rec.run(photos["rgba"], threshold=0.3)
+    sealed = rec.run(photos["rgba"], threshold=0.3, pit_sealing=8)
+    assert (plain.pit_sealing, sealed.pit_sealing) == (0, 8)
+    inter = sealed.intermediates
+    assert torch.equal(inter["logits"], plain.intermediates["logits"])  # the nets are untouched
+    expected = seal_pits(torch.sigmoid(inter["logits"]), inter["mask"], rec.config.camera, rec.config.geometry, 0.3, 8)
+    expected = torch.from_numpy(fill_enclosed(expected, 0.3, sealed.hole_closing))
+    assert torch.allclose(inter["probability"], expected)
+    for bad in (-1, 9, 2.5, True):
+        with pytest.raises(ValueError, match="pit_sealing"):
+            rec.run(photos["rgba"], pit_sealing=bad)
+    model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, target="shell"))
+    with pytest.raises(ValueError, match="pit_sealing"):
+        Reconstructor.from_model(model).run(photos["rgba"], pit_sealing=2)
+    with pytest.raises(SystemExit) as exc:
+        _cli(capsys, photos["rgba"], "-o", tmp_path / "p.obj", "--weights", trained[0], "--pit-sealing", 9)
+    assert exc.value.code == 2 and "--pit-sealing" in capsys.readouterr().err
+    if g.target == "distance":
+        code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "p.obj", "--weights", trained[0], "--pit-sealing", 2)
+        assert code == 0, err
+
 def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photos, tmp_path, capsys, trained):
     import dataclasses
 

@@ -175,6 +175,8 @@ def test_ping_and_version(server, trained):
         ('{"type": "reconstruct", "id": 23, "image": "a.png", "output": "b.obj", "options": {"primitive_snap": -0.1}}', "bad_field", 23),
         ('{"type": "reconstruct", "id": 24, "image": "a.png", "output": "b.obj", "options": {"test_time_mirror": 1}}', "bad_field", 24),
         ('{"type": "reconstruct", "id": 25, "image": "a.png", "output": "b.obj", "options": {"test_time_mirror": "on"}}', "bad_field", 25),
+        ('{"type": "reconstruct", "id": 26, "image": "a.png", "output": "b.obj", "options": {"pit_sealing": 9}}', "bad_field", 26),
+        ('{"type": "reconstruct", "id": 27, "image": "a.png", "output": "b.obj", "options": {"pit_sealing": true}}', "bad_field", 27),
         ('{"type": "reconstruct", "id": true, "image": "a.png", "output": "b.obj"}', "bad_field", None),
         ('{"type": "cancel"}', "missing_field", None),
         ('{"type": "cancel", "id": "nobody"}', "unknown_job", "nobody"),
@@ -191,6 +193,7 @@ def test_malformed_requests_get_error_events(server, line, code, rid):
 def test_reconstruct_reports_progress_and_result(server, files, trained):
     out = files["out"] / "box.ply"
     server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.45, "hole_closing": 2, "silhouette_carve": True, "visible_fusion": True, "primitive_snap": 0.99, "test_time_mirror": True,
+                                                                                                                "pit_sealing": 3,
                                                                                                                 "save_intermediates": str(files["out"] / "inter")}})
     events = server.until(lambda e: e["type"] in ("result", "error"))
     result = events[-1]
@@ -204,7 +207,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     assert result["threshold"] == 0.45  # the option, not the weights' level (0.5 here)
     assert result["hole_closing"] == 2 and result["silhouette_carve"] is True and result["visible_fusion"] is True  # likewise
     assert result["primitive"] in ("box", "cylinder", "cone", "torus", "ellipsoid") and result["primitive_snap"] == 0.99  # (so loose a tolerance always snaps)
-    assert result["test_time_mirror"] is True
+    assert result["test_time_mirror"] is True and result["pit_sealing"] == 3
     assert result["faces"] == len(trimesh.load(out, force="mesh").faces) > 0
     assert set(result["timings"]) >= {"depth", "refine", "mesh", "write"}
     cam = result["camera"]

@@ -332,6 +332,20 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     assert load_model(tmp_path / "mirror.safetensors").config.geometry.test_time_mirror is True
     install(tmp_path / "mirror.safetensors", 0.45, tmp_path / "mirror2.safetensors")
     assert load_model(tmp_path / "mirror2.safetensors").config.geometry.test_time_mirror is True
+    # pit sealing: stored for distance-target weights, kept by a later install, refused for the shell target
+    import dataclasses
+
+    distance = tmp_path / "distance.safetensors"
+    save_model(GenRe(dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, target="distance"))), distance)
+    install(distance, 0.4, tmp_path / "pits.safetensors", pit_sealing=3)
+    assert load_model(tmp_path / "pits.safetensors").config.geometry.pit_sealing == 3
+    assert _extra(tmp_path / "pits.safetensors")["pit_sealing_from"].startswith("scripts/visible_fusion.py")
+    install(tmp_path / "pits.safetensors", 0.45, tmp_path / "pits2.safetensors")
+    assert load_model(tmp_path / "pits2.safetensors").config.geometry.pit_sealing == 3
+    shell = tmp_path / "shell.safetensors"
+    save_model(GenRe(dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, target="shell"))), shell)
+    with pytest.raises(ValueError, match="pit_sealing"):
+        install(shell, 0.4, tmp_path / "bad_pits.safetensors", pit_sealing=2)
 
 
 def _extra(path) -> dict:

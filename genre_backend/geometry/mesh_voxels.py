@@ -29,7 +29,9 @@ view-frame cube ``[-0.5, 0.5]^3``, voxel centre ``(i + 0.5)/N − 0.5``.
   map shows (its pixels triangulated, jumps dropped); :func:`fuse_visible_surface`
   adds it to a predicted grid where the grid leaves a hole (optionally: a
   deep pit) in what the camera sees, so that the mesh's front is whole
-  (``GeometryConfig.visible_fusion``).
+  (``GeometryConfig.visible_fusion``).  :func:`seal_pits` fills the narrow
+  wells in the grid's own visible front from the front around them
+  (``GeometryConfig.pit_sealing``).
 * :func:`voxels_to_mesh` runs marching cubes (scikit-image) and places every
   vertex exactly in the view frame.
 """
@@ -40,7 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..validation import check_positive_int, check_tensor, check_threshold
+from ..validation import check_hole_closing, check_positive_int, check_tensor, check_threshold
 
 __all__ = [
     "surface_lattice",
@@ -55,6 +57,8 @@ __all__ = [
     "mesh_to_target",
     "depth_to_distance",
     "fuse_visible_surface",
+    "seal_pits",
+    "PIT_MIN_DEPTH_VOXELS",
     "voxels_to_mesh",
     "grid_to_surface",
     "fill_enclosed",
@@ -313,6 +317,85 @@ def fuse_visible_surface(prob: torch.Tensor, depth: torch.Tensor, camera, geomet
         holes = ndimage.binary_dilation(holes, np.ones((3, 3), bool), iterations=int(grow_px)) & obj.numpy()
     visible = depth_to_distance(moved.clamp(min=0.0) * obj, camera, geometry, torch.from_numpy(holes))
     return torch.maximum(prob, visible)
+
+
+# A pit's floor must lie at least this many voxels behind its rim for seal_pits to fill it: the level
+# crossing of a blurry front wanders by about a voxel, which is not a pit.
+PIT_MIN_DEPTH_VOXELS = 2.0
+
+
+def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: float, width_voxels: int,
+              grow_px: int = 2) -> torch.Tensor:
+    """A distance-target grid (N, N, N) with the narrow pits in its visible face sealed by its own front.
+
+    prob: (N, N, N) float in [0, 1] (the refiner's sigmoid, after any
+    carving or fusion); mask: (S, S) bool, the object's pixels; ``level``:
+    the iso-level the mesh is made at; ``width_voxels`` (int, 0-8; 0 returns
+    ``prob``): the widest pit sealed is about ``2·width_voxels`` voxels across.
+
+    The depth at which each object pixel's ray first meets the grid
+    (:func:`..voxels.ray_first_hit`; a ray that meets nothing counts as far
+    behind the object) is a height field seen from the camera.  A pit is a
+    basin of it: pixels from which every path to the outside of the mask
+    first climbs to a nearer depth, the well a blurry front wall leaves when
+    its crossing falls through to the inside of the back.  The basins are
+    filled to the depth of their rim (morphological reconstruction by
+    erosion, scikit-image); those whose floor lies more than
+    :data:`PIT_MIN_DEPTH_VOXELS` behind the filled surface and whose half-width
+    (the largest distance from a pixel of the basin to its edge) is at most
+    ``width_voxels`` voxels' worth of pixels are sealed: over the basin, grown
+    by ``grow_px`` pixels so that the patch meets the front around it, the
+    filled height field's own surface (moved behind the crossing to the
+    surface the tube stands for) is added as a distance target,
+    ``max(prob, patch)`` (:func:`depth_to_distance`).  A front that falls
+    away toward the outline (a convex face) and a basin wider than the limit
+    (a bowl seen from above) are left alone, and nothing is ever removed.
+    Returns ``prob`` (float32, on the CPU) when nothing is sealed.  Only for
+    ``geometry.target == "distance"``.
+    """
+    from scipy import ndimage
+    from skimage.morphology import reconstruction
+
+    from .voxels import ray_first_hit
+
+    if geometry.target != "distance":
+        raise ValueError("seal_pits: pits are sealed only in distance-target grids")
+    n = geometry.voxel_size
+    check_tensor("prob", prob, (n, n, n))
+    check_tensor("mask", mask, ("S", "S"), floating=False)
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask: expected a bool tensor, got {mask.dtype}")
+    level = check_threshold("level", level)
+    if isinstance(width_voxels, bool) or not isinstance(width_voxels, int) or not 0 <= width_voxels <= 8:
+        raise ValueError(f"width_voxels: expected an int in 0-8 (0: off), got {width_voxels!r}")
+    prob = prob.detach().cpu().float()
+    if width_voxels == 0:
+        return prob
+    obj = mask.detach().cpu().bool().numpy()
+    size = obj.shape[-1]
+    h = 1.0 / n
+    far = float(camera.distance) + 1.0  # beyond the cube's far side: what a ray that meets nothing sees
+    hit = ray_first_hit(prob, level, camera, size).numpy().astype(np.float64)
+    front = np.where(obj & np.isfinite(hit), hit, far)
+    height = -front  # nearer is higher; outside the mask: the lowest, the sea every basin drains to
+    seed = np.full_like(height, height.max())
+    seed[0, :], seed[-1, :], seed[:, 0], seed[:, -1] = height[0, :], height[-1, :], height[:, 0], height[:, -1]
+    filled = -reconstruction(seed, height, method="erosion")  # each basin raised to its rim: nearer depths
+    basins = obj & (front - filled > PIT_MIN_DEPTH_VOXELS * h) & (filled < far - h)
+    if not basins.any():
+        return prob
+    labels, count = ndimage.label(basins)
+    half_width = ndimage.distance_transform_edt(basins)
+    widest = ndimage.maximum(half_width, labels, np.arange(1, count + 1))
+    narrow = np.isin(labels, 1 + np.flatnonzero(np.asarray(widest) <= width_voxels * size / n))
+    if not narrow.any():
+        return prob
+    if grow_px > 0:
+        narrow = ndimage.binary_dilation(narrow, np.ones((3, 3), bool), iterations=int(grow_px)) & obj & (filled < far - h)
+    surface = filled + (1.0 - level) * geometry.distance_band * h  # the crossing lies this far in front of the surface
+    region = torch.from_numpy(narrow)
+    patch = depth_to_distance(torch.from_numpy(np.where(narrow, surface, 0.0)).float(), camera, geometry, region)
+    return torch.maximum(prob, patch)
 
 
 def grid_index_to_view(index, resolution: int):

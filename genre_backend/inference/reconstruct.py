@@ -36,7 +36,7 @@ from ..config import GenreConfig
 from ..io import DEFAULT_WEIGHTS_NAME, named_weights
 from ..validation import check_hole_closing, check_threshold
 from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
-from ..geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_surface, voxels_to_mesh
+from ..geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_surface, seal_pits, voxels_to_mesh
 from ..geometry.primitives import snap
 from ..geometry.voxels import silhouette_ramp
 from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
@@ -153,7 +153,8 @@ class Reconstruction:
     of the photo or touches most of its border), else None.
     ``threshold``, ``hole_closing``, ``silhouette_carve`` and ``visible_fusion``: the level, the hole
     sealing (voxels), whether the voxels outside the mask were carved away and whether the holes in the
-    visible face were filled from the depth map, as the mesh was made.  ``primitive_snap``: the tolerance
+    visible face were filled from the depth map, as the mesh was made.  ``pit_sealing``: the widest pit
+    in the visible front sealed (voxels; 0: none).  ``primitive_snap``: the tolerance
     of the regular-shape stage (0: off); ``primitive``: the family of the fitted shape that replaced the
     mesh (``"box"``, ``"cylinder"``, ``"cone"``, ``"torus"``, ``"ellipsoid"``), else None.
     ``test_time_mirror``: whether the output was averaged with the mirror image's.
@@ -191,6 +192,7 @@ class Reconstruction:
     hole_closing: int = 0
     silhouette_carve: bool = False
     visible_fusion: bool = False
+    pit_sealing: int = 0
     primitive_snap: float = 0.0
     primitive: str | None = None
     test_time_mirror: bool = False
@@ -418,6 +420,7 @@ class Reconstructor:
         visible_fusion: bool | None = None,
         primitive_snap: float | None = None,
         test_time_mirror: bool | None = None,
+        pit_sealing: int | None = None,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -440,6 +443,9 @@ class Reconstructor:
         (:func:`..geometry.voxels.silhouette_ramp`; default: the config's).  ``visible_fusion``: fill the
         holes the refiner leaves in the face the camera sees with the depth map's surface
         (:func:`..geometry.mesh_voxels.fuse_visible_surface`; default: the config's; distance weights only).
+        ``pit_sealing`` (voxels, 0-8; 0: off): fill the narrow wells in the grid's own visible front, up to about
+        twice this across, with the front around them (:func:`..geometry.mesh_voxels.seal_pits`; default: the
+        config's; distance weights only).
         ``primitive_snap`` (a tolerance in [0, 1); 0: off): replace the mesh by the box, cylinder, cone, torus or
         ellipsoid whose silhouette matches the mask and which stays on the mesh within this tolerance
         (:func:`..geometry.primitives.snap`; default: the config's).  ``test_time_mirror``: average the refiner's
@@ -464,6 +470,11 @@ class Reconstructor:
             raise ValueError(f"visible_fusion: expected True or False, got {visible_fusion!r}")
         if visible_fusion and g.target != "distance":
             raise ValueError(f"visible_fusion: these weights predict the {g.target!r} target; only distance grids take the visible surface")
+        if pit_sealing is None:
+            pit_sealing = g.pit_sealing
+        pit_sealing = check_hole_closing("pit_sealing", pit_sealing)
+        if pit_sealing and g.target != "distance":
+            raise ValueError(f"pit_sealing: these weights predict the {g.target!r} target; pits are sealed only in distance grids")
         if primitive_snap is None:
             primitive_snap = g.primitive_snap
         if isinstance(primitive_snap, bool) or not isinstance(primitive_snap, (int, float)) or not (math.isfinite(primitive_snap) and 0.0 <= primitive_snap < 1.0):
@@ -520,6 +531,8 @@ class Reconstructor:
                 prob = torch.minimum(prob, silhouette_ramp(mask.cpu(), model.config.camera, prob.shape[-1])[0, 0])
             if visible_fusion:
                 prob = fuse_visible_surface(prob, masked[0], model.config.camera, model.config.geometry, threshold)
+            if pit_sealing:
+                prob = seal_pits(prob, mask[0].cpu(), model.config.camera, model.config.geometry, threshold, pit_sealing)
             prob, vertices, faces, clean = mesh_of_probability(prob, threshold, model.config.geometry, hole_closing, keep_fraction)
             if clean is None:
                 raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
@@ -571,6 +584,7 @@ class Reconstructor:
             hole_closing=int(hole_closing),
             silhouette_carve=silhouette_carve,
             visible_fusion=visible_fusion,
+            pit_sealing=pit_sealing,
             primitive_snap=float(primitive_snap),
             test_time_mirror=test_time_mirror,
             primitive=primitive,

@@ -70,6 +70,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     parser.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
                         help="fill the holes the model leaves in the side the photo shows with the estimated depth's "
                              "surface (default: the weights' config, geometry.visible_fusion)")
+    parser.add_argument("--pit-sealing", type=int, metavar="K",
+                        help="fill the narrow, deep wells the model leaves in the side the photo shows, up to about 2·K "
+                             "voxels across, with the surface around them, 0-8 (default: the weights' config, "
+                             "geometry.pit_sealing; 0 seals nothing)")
     parser.add_argument("--primitive-snap", type=float, metavar="TOL",
                         help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette "
                              "matches the mask (1 - IoU) and it stays on the mesh (twice the mean distance over its size) "
@@ -109,6 +113,13 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
 
         try:
             check_hole_closing("--hole-closing", args.hole_closing)
+        except ValueError as exc:
+            parser.error(str(exc))
+    if args.pit_sealing is not None:
+        from ..validation import check_hole_closing
+
+        try:
+            check_hole_closing("--pit-sealing", args.pit_sealing)
         except ValueError as exc:
             parser.error(str(exc))
     if args.primitive_snap is not None and not (0.0 <= args.primitive_snap < 1.0):
@@ -182,7 +193,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
                              refine=not args.no_refine, hole_closing=args.hole_closing,
                              silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
-                             primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror)
+                             primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror,
+                             pit_sealing=args.pit_sealing)
             path, used = result.save_mesh(out, fmt, texture=args.texture)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)

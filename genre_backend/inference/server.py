@@ -33,7 +33,7 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "primitive_snap", "test_time_mirror", "format", "save_intermediates", "texture", "all_parts")
+_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror", "format", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
 
 
@@ -61,6 +61,7 @@ class Job:
     visible_fusion: bool | None = None
     primitive_snap: float | None = None
     test_time_mirror: bool | None = None
+    pit_sealing: int | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -203,6 +204,15 @@ class Server:
             except ValueError:
                 raise RequestError("bad_field", f"option 'hole_closing' must be an integer in [0, 8] (voxels), got {_show(hole_closing)}",
                                    rid) from None
+        pits = options.get("pit_sealing")
+        if pits is not None:
+            from ..validation import check_hole_closing
+
+            try:
+                check_hole_closing("pit_sealing", pits)
+            except ValueError:
+                raise RequestError("bad_field", f"option 'pit_sealing' must be an integer in [0, 8] (voxels), got {_show(pits)}",
+                                   rid) from None
         carve = options.get("silhouette_carve")
         if carve is not None and not isinstance(carve, bool):
             raise RequestError("bad_field", f"option 'silhouette_carve' must be true or false, got {_show(carve)}", rid)
@@ -228,7 +238,8 @@ class Server:
             flags[name] = value
         return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
                    hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve,
-                   visible_fusion=fusion, primitive_snap=None if snap is None else float(snap), test_time_mirror=mirror)
+                   visible_fusion=fusion, primitive_snap=None if snap is None else float(snap), test_time_mirror=mirror,
+                   pit_sealing=None if pits is None else int(pits))
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -363,6 +374,7 @@ class Server:
                 visible_fusion=job.visible_fusion,
                 primitive_snap=job.primitive_snap,
                 test_time_mirror=job.test_time_mirror,
+                pit_sealing=job.pit_sealing,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
                 keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
@@ -408,6 +420,7 @@ class Server:
                 "hole_closing": result.hole_closing,
                 "silhouette_carve": result.silhouette_carve,
                 "visible_fusion": result.visible_fusion,
+                "pit_sealing": result.pit_sealing,
                 "primitive_snap": result.primitive_snap,
                 "primitive": result.primitive,
                 "test_time_mirror": result.test_time_mirror,

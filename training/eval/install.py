@@ -50,7 +50,8 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
 def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
             hole_closing: int | None = None, sph_hit_probability: float | None = None,
             silhouette_carve: bool | None = None, visible_fusion: bool | None = None,
-            primitive_snap: float | None = None, test_time_mirror: bool | None = None, half: bool = False) -> float:
+            primitive_snap: float | None = None, test_time_mirror: bool | None = None, half: bool = False,
+            pit_sealing: int | None = None) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
@@ -68,6 +69,9 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     on training-split views by ``scripts/primitive_snap.py``); None keeps the weights' own.
     ``test_time_mirror``: store ``geometry.test_time_mirror`` (average each view with its mirror image; turned on
     only by the rule in results/product/ship_rule.txt); None keeps the weights' own.
+    ``pit_sealing``: store ``geometry.pit_sealing`` (voxels; the widest pit in the visible front sealed, 0: off;
+    chosen by ``scripts/visible_fusion.py --pit-sealing`` and the rule in results/product/ship_rule.txt); None keeps
+    the weights' own.
     ``half``: store the weights as float16, the batch-norm statistics as float32 (``save_model(half=True)``:
     half the file, read back into float32).
     """
@@ -98,6 +102,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         geometry = dataclasses.replace(geometry, primitive_snap=float(primitive_snap))
     if test_time_mirror is not None:
         geometry = dataclasses.replace(geometry, test_time_mirror=bool(test_time_mirror))
+    if pit_sealing is not None:
+        geometry = dataclasses.replace(geometry, pit_sealing=pit_sealing)  # (validated by the config)
     if sph_hit_probability is not None:
         if config.network.inpaint_head != "hit":
             raise ValueError(f"{weights}: --sph-hit-probability needs hit-head weights (network.inpaint_head = 'hit'), "
@@ -118,6 +124,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
         extra["primitive_snap_from"] = "scripts/primitive_snap.py on training-split views (results/product/ship_rule.txt)"
     if test_time_mirror is not None:
         extra["test_time_mirror_from"] = "results/product/ship_rule.txt"
+    if pit_sealing is not None:
+        extra["pit_sealing_from"] = "scripts/visible_fusion.py --pit-sealing (results/product/ship_rule.txt)"
     if sph_hit_probability is not None:
         extra["sph_hit_probability_from"] = "scripts/stage_errors.py --hit-levels on seen-test views"
     save_model(model, out, extra, half=half)
@@ -157,6 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--test-time-mirror", action=argparse.BooleanOptionalAction, default=None,
                    help="store geometry.test_time_mirror (average each view with its mirror image; twice the nets' "
                         "time; by the rule in results/product/ship_rule.txt); default: the weights' own")
+    p.add_argument("--pit-sealing", type=int, default=None, metavar="K",
+                   help="store geometry.pit_sealing = K (voxels: seal the narrow pits in the visible front up to about 2K "
+                        "across; 0: off; chosen by scripts/visible_fusion.py --pit-sealing); default: the weights' own")
     p.add_argument("--fp16", action="store_true",
                    help="store the weights as float16 (half the file; inference still computes in float32; check the "
                         "scores stay within 1e-3 CD of the float32 file's)")
@@ -169,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name,
                     hole_closing=args.hole_closing, sph_hit_probability=args.sph_hit_probability,
                     silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
-                    primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror, half=args.fp16)
+                    primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror, half=args.fp16,
+                    pit_sealing=args.pit_sealing)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1

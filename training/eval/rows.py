@@ -23,7 +23,8 @@ before its mesh is made, the baselines included; the truth is not.  When they
 fill the holes in the visible face from the depth map
 (``geometry.visible_fusion``), every voxel row with a depth map does so with
 its own (GenRe and GenRe-1step GenRe's depth net's, 3D Completion its own, the
-oracles the true depth), after the carving.  When they replace a mesh by a fitted
+oracles the true depth), after the carving.  When they seal the pits in the visible
+front (``geometry.pit_sealing``), every learned voxel row does so (after any fusion; the truth is left as it is).  When they replace a mesh by a fitted
 regular shape (``geometry.primitive_snap``), every row with a depth map is fitted
 likewise, to its own depth map and its mesh at the weights' level.  When they average each view with its
 mirror image (``geometry.test_time_mirror``), every learned row does so with its own model
@@ -37,7 +38,7 @@ from dataclasses import dataclass
 import torch
 
 from genre_backend.config import GenreConfig
-from genre_backend.geometry.mesh_voxels import fuse_visible_surface, grid_to_surface
+from genre_backend.geometry.mesh_voxels import fuse_visible_surface, grid_to_surface, seal_pits
 from genre_backend.geometry.primitives import snap
 from genre_backend.geometry.voxels import silhouette_ramp
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
@@ -131,6 +132,9 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
             d = row.pop("depth")
             if geometry.visible_fusion:  # at the weights' level: the one the mesh is made at by genre reconstruct
                 row["prob"] = fuse_visible_surface(row["prob"], d, m.config.camera, geometry, geometry.default_threshold)
+            if geometry.pit_sealing:  # the same level; the pits are the grid's own, seen through the view's mask
+                row["prob"] = seal_pits(row["prob"], mask[0].cpu().bool(), m.config.camera, geometry, geometry.default_threshold,
+                                        geometry.pit_sealing)
             if geometry.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
                 v, f = grid_to_surface(row["prob"], geometry.default_threshold, geometry)
                 v, f, fit = snap(v, f, d, m.config.camera, geometry.primitive_snap)
