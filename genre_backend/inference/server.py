@@ -195,24 +195,18 @@ class Server:
                 check_threshold("threshold", threshold)
             except ValueError:
                 raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {_show(threshold)}", rid) from None
-        hole_closing = options.get("hole_closing")
-        if hole_closing is not None:
-            from ..validation import check_hole_closing
+        from ..validation import check_hole_closing
 
-            try:
-                check_hole_closing("hole_closing", hole_closing)
-            except ValueError:
-                raise RequestError("bad_field", f"option 'hole_closing' must be an integer in [0, 8] (voxels), got {_show(hole_closing)}",
-                                   rid) from None
-        pits = options.get("pit_sealing")
-        if pits is not None:
-            from ..validation import check_hole_closing
-
-            try:
-                check_hole_closing("pit_sealing", pits)
-            except ValueError:
-                raise RequestError("bad_field", f"option 'pit_sealing' must be an integer in [0, 8] (voxels), got {_show(pits)}",
-                                   rid) from None
+        widths = {}
+        for name in ("hole_closing", "pit_sealing"):  # voxel widths, one check for both
+            value = widths[name] = options.get(name)
+            if value is not None:
+                try:
+                    check_hole_closing(name, value)
+                except ValueError:
+                    raise RequestError("bad_field", f"option '{name}' must be an integer in [0, 8] (voxels), got {_show(value)}",
+                                       rid) from None
+        hole_closing, pits = widths["hole_closing"], widths["pit_sealing"]
         carve = options.get("silhouette_carve")
         if carve is not None and not isinstance(carve, bool):
             raise RequestError("bad_field", f"option 'silhouette_carve' must be true or false, got {_show(carve)}", rid)
