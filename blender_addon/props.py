@@ -49,7 +49,7 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         name="Seal Pits", description="Fill narrow, deep pits in the side the photo shows, up to about twice this many "
                                       "voxels across, with the surface around them (0: none)",
         # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=0, min=0, max=8,
+        default=4, min=0, max=8,
     )
     use_silhouette_carve: BoolProperty(name="Custom Outline Trim", description="Override the weights' outline trim", default=False)
     silhouette_carve: BoolProperty(

@@ -145,6 +145,8 @@ step compare_primitives $PY -m training.eval.product compare --product "$SCORES/
   --protocol "$SCORES/primitives/protocol" --manifest "$M" --out "$RESULTS/primitives.md" --threshold "$LEVEL" \
   --title "Regular primitives of the product test split, 8 views each"
 # Installing (deliberately not automatic): when the rule in results/product/ship_rule.txt says so,
-#   $PY -m training.eval.install --name default --weights $RUN/joint/round_N.safetensors --threshold $LEVEL --hole-closing K
-# (K from scripts/hole_closing.py on the seen-test views of those weights)
+#   $PY -m training.eval.install --name default --weights $RUN/joint/round_N.safetensors --threshold $LEVEL --hole-closing K \
+#     --fp16 --test-time-mirror --pit-sealing 4
+# (K from scripts/hole_closing.py on the seen-test views of those weights; the mesh settings the installed file carries,
+# genre_backend/weights/default.json, each chosen by its rule in results/product/ship_rule.txt)
 log "done; learning curve: $RESULTS/learning_curve.csv"
