@@ -366,8 +366,7 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     if mask.dtype != torch.bool:
         raise ValueError(f"mask: expected a bool tensor, got {mask.dtype}")
     level = check_threshold("level", level)
-    if isinstance(width_voxels, bool) or not isinstance(width_voxels, int) or not 0 <= width_voxels <= 8:
-        raise ValueError(f"width_voxels: expected an int in 0-8 (0: off), got {width_voxels!r}")
+    width_voxels = check_hole_closing("width_voxels", width_voxels)  # (the same kind of width as hole_closing's)
     prob = prob.detach().cpu().float()
     if width_voxels == 0:
         return prob
