@@ -370,7 +370,7 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     prob = prob.detach().cpu().float()
     if width_voxels == 0:
         return prob
-    obj = mask.detach().cpu().bool().numpy()
+    obj = mask.detach().cpu().numpy()
     size = obj.shape[-1]
     h = 1.0 / n
     far = float(camera.distance) + 1.0  # beyond the cube's far side: what a ray that meets nothing sees
@@ -380,7 +380,8 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     seed = np.full_like(height, height.max())
     seed[0, :], seed[-1, :], seed[:, 0], seed[:, -1] = height[0, :], height[-1, :], height[:, 0], height[:, -1]
     filled = -reconstruction(seed, height, method="erosion")  # each basin raised to its rim: nearer depths
-    basins = obj & (front - filled > PIT_MIN_DEPTH_VOXELS * h) & (filled < far - h)
+    rimmed = filled < far - h  # pixels with a nearer front to seal them with
+    basins = obj & rimmed & (front - filled > PIT_MIN_DEPTH_VOXELS * h)
     if not basins.any():
         return prob
     labels, count = ndimage.label(basins)
@@ -390,7 +391,7 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     if not narrow.any():
         return prob
     if grow_px > 0:
-        narrow = ndimage.binary_dilation(narrow, np.ones((3, 3), bool), iterations=int(grow_px)) & obj & (filled < far - h)
+        narrow = ndimage.binary_dilation(narrow, np.ones((3, 3), bool), iterations=int(grow_px)) & obj & rimmed
     surface = filled + (1.0 - level) * geometry.distance_band * h  # the crossing lies this far in front of the surface
     region = torch.from_numpy(narrow)
     patch = depth_to_distance(torch.from_numpy(np.where(narrow, surface, 0.0)).float(), camera, geometry, region)
