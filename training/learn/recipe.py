@@ -69,6 +69,9 @@ class StageRecipe:
     photo_fraction: float = 0.0
     sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
     depth_weight: float = 0.0  # the joint stage: the depth net's own loss (depth + silhouette) added with this weight
+    # the depth net's loss (depth stage, and joint's depth term): this weight times the multi-scale gradient
+    # matching term (training.learn.train.depth_gradient_loss) added to the depth's MSE; 0 = the MSE alone
+    depth_gradient_weight: float = 0.0
     lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
     sph_teacher: float = 0.0
     depth_dropout: float = 0.0
@@ -92,8 +95,10 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
             raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
-        if not (math.isfinite(self.depth_weight) and self.depth_weight >= 0):
-            raise ValueError(f"depth_weight: expected a finite number >= 0, got {self.depth_weight!r}")
+        for name in ("depth_weight", "depth_gradient_weight"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
         if self.sph_loss not in ("mse", "l1"):
             raise ValueError(f"sph_loss: expected 'mse' or 'l1', got {self.sph_loss!r}")
 

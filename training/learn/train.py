@@ -64,6 +64,7 @@ from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model
 from genre_backend.geometry.spherical import crop_sph, pad_sph
 from genre_backend.nets.inpaint_net import RADIUS_SCALE
 from genre_backend.io import atomic_write, atomic_write_bytes
+from genre_backend.validation import check_tensor
 
 from ..data.dataset import ViewDataset, split_views
 from ..data.views import gather_views
@@ -93,6 +94,7 @@ class TrainConfig:
     photo_fraction: float | None = None
     sph_loss: str | None = None
     depth_weight: float | None = None
+    depth_gradient_weight: float | None = None  # depth, joint: the depth error's gradient matching term's weight
     lr_halflife: int | None = None
     sph_teacher: float | None = None  # refine: the share of samples fed the true full map (teacher forcing)
     depth_dropout: float | None = None  # refine, joint: the share of samples whose depth voxels are emptied
@@ -169,14 +171,51 @@ class TrainConfig:
         return self.lr * 0.5 ** (step / self.lr_halflife) if self.lr_halflife else self.lr
 
 
+DEPTH_GRADIENT_STRIDES = (1, 2, 4, 8)
+
+
+def depth_gradient_loss(pred: torch.Tensor, true: torch.Tensor, valid: torch.Tensor,
+                        strides: tuple[int, ...] = DEPTH_GRADIENT_STRIDES) -> torch.Tensor:
+    """Multi-scale gradient matching of a depth map (after Li & Snavely, MegaDepth, 2018).
+
+    pred, true: (B, H, W) depth; valid: (B, H, W) bool, the pixels whose true
+    depth counts.  For each stride s the error map ``pred - true`` is sampled
+    every s pixels and its differences between horizontally and vertically
+    neighbouring samples, both valid, are taken; the term is the mean absolute
+    difference over those pairs, averaged over the strides (a stride without a
+    pair counts 0).  It is 0 for an error that is constant over each connected
+    valid region (an offset) and grows with a wrong slope or wrong relief,
+    which the MSE of the depth weighs only by their share of the error.
+    Returns a scalar tensor.
+    """
+    check_tensor("pred", pred, ("B", "H", "W"))
+    check_tensor("true", true, tuple(pred.shape))
+    check_tensor("valid", valid, tuple(pred.shape), floating=False, finite=False)
+    if valid.dtype != torch.bool:
+        raise ValueError(f"valid: expected a bool tensor, got {valid.dtype}")
+    if not strides or any(isinstance(s, bool) or not isinstance(s, int) or s < 1 for s in strides):
+        raise ValueError(f"strides: expected positive ints, got {strides!r}")
+    err = pred - true
+    total = err.new_zeros(())
+    for s in strides:
+        e, v = err[:, ::s, ::s], valid[:, ::s, ::s]
+        pairs_x, pairs_y = v[:, :, 1:] & v[:, :, :-1], v[:, 1:, :] & v[:, :-1, :]
+        diff_x = (e[:, :, 1:] - e[:, :, :-1]).abs() * pairs_x
+        diff_y = (e[:, 1:, :] - e[:, :-1, :]).abs() * pairs_y
+        count = pairs_x.sum() + pairs_y.sum()
+        total = total + (diff_x.sum() + diff_y.sum()) / count.clamp(min=1)
+    return total / len(strides)
+
+
 class StageModule(nn.Module):
     """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
 
     def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
-                 sph_teacher: float = 0.0, depth_dropout: float = 0.0):
+                 sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0):
         super().__init__()
         self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
         self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
+        self.depth_gradient_weight = depth_gradient_weight  # the depth loss's gradient matching term
         if sph_teacher > 0 and stage != "refine":
             raise ValueError(f"sph_teacher: only the refine stage feeds the true map (stage {stage!r})")
         if depth_dropout > 0 and stage not in ("refine", "joint"):
@@ -234,7 +273,13 @@ class StageModule(nn.Module):
         err = ((out["depth"] - batch["depth"]) * scale) ** 2
         l_depth = (err * valid).sum() / valid.sum().clamp(min=1)
         l_sil = F.binary_cross_entropy_with_logits(out["silhouette_logits"], batch["mask"].float())
-        return l_depth + l_sil, {"depth_mse": l_depth, "silhouette_bce": l_sil}
+        terms = {"depth_mse": l_depth, "silhouette_bce": l_sil}
+        loss = l_depth + l_sil
+        if self.depth_gradient_weight > 0:
+            l_grad = depth_gradient_loss(out["depth"] * scale, batch["depth"] * scale, valid)
+            terms["depth_gradient_l1"] = l_grad
+            loss = loss + self.depth_gradient_weight * l_grad
+        return loss, terms
 
     def sph_loss(self, parts: dict[str, torch.Tensor], batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The spherical maps' loss on padded maps; ``parts`` is :meth:`InpaintNet.forward_parts`'s output.
@@ -560,7 +605,7 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
         model.config = dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, target=tcfg.target))
     config = model.config
     module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight,
-                         tcfg.sph_teacher, tcfg.depth_dropout).to(device)
+                         tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight).to(device)
     params = [p for p in module.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
 
