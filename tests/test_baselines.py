@@ -72,6 +72,36 @@ def test_save_load_round_trip_gives_the_same_outputs(tmp_path):
         load_baseline(tmp_path / "missing.safetensors")
 
 
+def test_share_depth_net_gives_the_baseline_genres_depth_net_and_keeps_its_completion_net(tmp_path):
+    from genre_backend.nets.model import GenRe, save_model
+    from training.learn.baselines import main, share_depth_net
+
+    torch.manual_seed(0)
+    baseline = CompletionBaseline(TINY).eval()
+    save_baseline(baseline, tmp_path / "completion.safetensors")
+    genre = GenRe(TINY).eval()  # another random depth net
+    save_model(genre, tmp_path / "genre.safetensors")
+    assert main(["share-depth", "--completion", str(tmp_path / "completion.safetensors"), "--weights",
+                 str(tmp_path / "genre.safetensors"), "--out", str(tmp_path / "shared.safetensors")]) == 0
+    shared = load_baseline(tmp_path / "shared.safetensors", "completion").eval()
+    for k, v in genre.depth_net.state_dict().items():
+        assert torch.equal(shared.depth_net.state_dict()[k], v), k
+    for k, v in baseline.completion.state_dict().items():
+        assert torch.equal(shared.completion.state_dict()[k], v), k
+    rgb, mask = torch.rand(1, 3, 64, 64), torch.zeros(1, 64, 64, dtype=torch.bool)
+    mask[:, 16:48, 16:48] = True
+    with torch.no_grad():  # the baseline's pass = GenRe's depth through the old completion net
+        depth = genre.depth_net(rgb)["depth"]
+        want = baseline.complete(baseline.depth_voxels(torch.where(mask, depth, torch.zeros_like(depth))))
+        assert torch.allclose(shared(rgb, mask=mask)["logits"], want, atol=1e-6)
+    paper = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, voxel_size=TINY.geometry.voxel_size * 2))
+    save_model(GenRe(paper), tmp_path / "other.safetensors")
+    with pytest.raises(WeightsError, match="preset"):
+        share_depth_net(tmp_path / "completion.safetensors", tmp_path / "other.safetensors", tmp_path / "x.safetensors")
+    assert main(["share-depth", "--completion", str(tmp_path / "missing.safetensors"), "--weights",
+                 str(tmp_path / "genre.safetensors"), "--out", str(tmp_path / "y.safetensors")]) == 2
+
+
 def test_nearest_index_retrieves_the_view_and_poses_its_shape(tiny_views, tmp_path):
     index = build_nearest_index(tiny_views, TINY)
     assert len(index.views) == 4

@@ -175,7 +175,7 @@ def test_recipes_validate_their_values():
     assert all(s.depth_weight == 0.0 for r in RECIPES.values() for name, s in r.stages.items() if not (r.name.startswith("product") and name == "joint"))
     with pytest.raises(ValueError, match="unknown recipe"):
         get_recipe("fast")
-    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}, {"lr": 1e-3, "lr_halflife": -1}, {"lr": 1e-3, "sph_teacher": 1.1}, {"lr": 1e-3, "depth_dropout": -0.1}, {"lr": 1e-3, "depth_dropout": True}):
+    for bad in ({"lr": 0.0}, {"lr": float("nan")}, {"lr": 1e-3, "steps": 0}, {"lr": 1e-3, "beta1": 1.0}, {"lr": 1e-3, "surface_weight": -1.0}, {"lr": 1e-3, "photo_fraction": 1.5}, {"lr": 1e-3, "sph_loss": "huber"}, {"lr": 1e-3, "depth_weight": -0.5}, {"lr": 1e-3, "lr_halflife": -1}, {"lr": 1e-3, "sph_teacher": 1.1}, {"lr": 1e-3, "depth_dropout": -0.1}, {"lr": 1e-3, "depth_dropout": True}, {"lr": 1e-3, "depth_gradient_weight": -1.0}, {"lr": 1e-3, "depth_gradient_weight": float("inf")}, {"lr": 1e-3, "depth_gradient_weight": True}):
         with pytest.raises(ValueError):
             StageRecipe(**bad)
     with pytest.raises(SystemExit):

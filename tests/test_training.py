@@ -81,6 +81,77 @@ def test_joint_depth_weight_adds_exactly_the_depth_loss(tiny_views):
     assert torch.allclose(weighted - plain, 2.5 * own, rtol=1e-5, atol=1e-6)
 
 
+def _depth_gradient_reference(pred, true, valid, strides):
+    """depth_gradient_loss written out pixel pair by pixel pair."""
+    err = (pred - true).double().numpy()
+    ok = valid.numpy()
+    per_stride = []
+    for s in strides:
+        total, count = 0.0, 0
+        for b in range(err.shape[0]):
+            rows, cols = range(0, err.shape[1], s), range(0, err.shape[2], s)
+            for i in rows:
+                for j in cols:
+                    if not ok[b, i, j]:
+                        continue
+                    for di, dj in ((0, s), (s, 0)):
+                        if i + di < err.shape[1] and j + dj < err.shape[2] and ok[b, i + di, j + dj]:
+                            total += abs(err[b, i + di, j + dj] - err[b, i, j])
+                            count += 1
+        per_stride.append(total / count if count else 0.0)
+    return sum(per_stride) / len(per_stride)
+
+
+def test_depth_gradient_loss_against_its_reference_and_analytic_errors():
+    from training.learn.train import depth_gradient_loss
+
+    g = torch.Generator().manual_seed(0)
+    pred, true = torch.rand(2, 13, 11, generator=g), torch.rand(2, 13, 11, generator=g)
+    valid = torch.rand(2, 13, 11, generator=g) > 0.3
+    for strides in ((1,), (1, 2, 4, 8), (3, 5)):
+        got = float(depth_gradient_loss(pred, true, valid, strides))
+        assert got == pytest.approx(_depth_gradient_reference(pred, true, valid, strides), rel=1e-5)
+    # an offset is not a gradient error; a tilted plane error of slope a per pixel, on a full grid, is a·s
+    # on each of the stride's horizontal pairs and 0 on its vertical ones
+    h, w, a = 16, 16, 0.25
+    x = torch.arange(w, dtype=torch.float32).expand(h, w)[None]
+    full = torch.ones(1, h, w, dtype=torch.bool)
+    assert float(depth_gradient_loss(true[:1, :h, :w].new_full((1, h, w), 0.7) + 3.0, torch.full((1, h, w), 0.7), full)) == 0.0
+    tilted = float(depth_gradient_loss(a * x, torch.zeros(1, h, w), full))
+    expected = sum(a * s * (h // s) * (w // s - 1) / ((h // s) * (w // s - 1) + (h // s - 1) * (w // s))
+                   for s in (1, 2, 4, 8)) / 4
+    assert tilted == pytest.approx(expected, rel=1e-6)
+    # the pairs are taken inside the valid pixels only: a jump across an invalid column is not seen
+    jump = torch.where(x < 8, torch.zeros_like(x), torch.full_like(x, 5.0))
+    gap = (x != 7) & (x != 8)
+    assert float(depth_gradient_loss(jump, torch.zeros(1, h, w), gap, (1,))) == 0.0
+    assert float(depth_gradient_loss(jump, torch.zeros(1, h, w), full, (1,))) > 0.0
+    assert float(depth_gradient_loss(pred, true, torch.zeros_like(valid))) == 0.0  # no pair: 0, not NaN
+    with pytest.raises(ValueError, match="bool"):
+        depth_gradient_loss(pred, true, valid.float())
+    with pytest.raises(ValueError, match="true"):
+        depth_gradient_loss(pred, true[:, :5], valid)
+    with pytest.raises(ValueError, match="strides"):
+        depth_gradient_loss(pred, true, valid, (0,))
+
+
+def test_the_depth_gradient_weight_adds_exactly_its_term(tiny_views):
+    from training.data.dataset import ViewDataset, find_views
+    from training.learn.train import depth_gradient_loss
+
+    data = ViewDataset(find_views(tiny_views), TINY)
+    batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
+    model = GenRe(TINY).eval()
+    with torch.no_grad():
+        out = model.depth_net(batch["rgb"])
+        plain, plain_terms = StageModule(model, "depth", 0.1).eval().depth_loss(out, batch)
+        weighted, terms = StageModule(model, "depth", 0.1, depth_gradient_weight=3.0).eval().depth_loss(out, batch)
+        scale = TINY.network.depth_output_scale
+        own = depth_gradient_loss(out["depth"] * scale, batch["depth"] * scale, batch["depth"] > 0)
+    assert "depth_gradient_l1" not in plain_terms and float(terms["depth_gradient_l1"]) > 0
+    assert torch.allclose(weighted - plain, 3.0 * own, rtol=1e-5, atol=1e-6)
+
+
 def test_refiner_input_choices_change_exactly_the_chosen_samples_in_training_only(tiny_views):
     """depth_dropout empties the depth voxels and sph_teacher feeds the true full map, per sample by its coin."""
     from genre_backend.geometry.spherical import crop_sph, pad_sph

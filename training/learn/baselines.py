@@ -53,6 +53,7 @@ __all__ = [
     "load_baseline",
     "depth_thumbnail",
     "build_nearest_index",
+    "share_depth_net",
 ]
 
 BASELINE_FORMAT = "genre-baseline/1"
@@ -125,6 +126,28 @@ def save_baseline(net: nn.Module, path: str | os.PathLike, extra: dict | None = 
     meta = {"format": BASELINE_FORMAT, "kind": net.kind, "config": json.dumps(config), "extra": json.dumps(extra or {})}
     sidecar = {"format": BASELINE_FORMAT, "kind": net.kind, "config": config, "extra": extra or {}}
     return save_weights(path, net.state_dict(), meta, sidecar)
+
+
+def share_depth_net(completion_path: str | os.PathLike, genre_weights: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """Write the 3D Completion baseline of ``completion_path`` with GenRe's depth net of ``genre_weights``.
+
+    The completion net is trained on a frozen copy of GenRe's depth net
+    (``genre train completion``), so the depth net is a stage the two rows
+    share.  When GenRe's depth net is trained on (``genre train depth
+    --init``) this gives the baseline the same one, its completion net
+    untouched, so that Table 1 compares the two with equal depth nets.
+    The two must be of one preset.  Returns the path written (``out``).
+    """
+    from genre_backend.nets.model import load_model
+
+    baseline = load_baseline(completion_path, "completion")
+    genre = load_model(genre_weights)
+    g, b = genre.config.geometry, baseline.config.geometry
+    if (g.image_size, g.sph_size, g.voxel_size) != (b.image_size, b.sph_size, b.voxel_size):
+        raise WeightsError(f"{genre_weights}: made for another preset than the baseline's ({genre.config.preset} vs {baseline.config.preset})")
+    baseline.depth_net.load_state_dict(genre.depth_net.state_dict())
+    extra = {"depth_net_from": str(Path(genre_weights).resolve()), "completion_from": str(Path(completion_path).resolve())}
+    return save_baseline(baseline, out, extra)
 
 
 def load_baseline(path: str | os.PathLike, kind: str | None = None, device: str | torch.device = "cpu") -> nn.Module:
@@ -221,3 +244,27 @@ def build_nearest_index(views_root: str | os.PathLike, config: GenreConfig, shap
         dirs.append(str(r.shape_dir.resolve()))
         views.append(r.view)
     return NearestIndex(torch.stack(thumbs), torch.stack(rots), dirs, views)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m training.learn.baselines share-depth --completion IN --weights W --out OUT``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m training.learn.baselines",
+                                     description="Give a 3D Completion baseline GenRe's depth net (share_depth_net).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    share = sub.add_parser("share-depth", help="write the baseline with the depth net of GenRe's weights")
+    share.add_argument("--completion", required=True, help="3D Completion weights (RUN/completion/best.safetensors)")
+    share.add_argument("--weights", required=True, help="GenRe weights whose depth net the baseline takes")
+    share.add_argument("--out", required=True, help="the baseline file to write")
+    args = parser.parse_args(argv)
+    try:
+        print(share_depth_net(args.completion, args.weights, args.out))
+    except (WeightsError, FileNotFoundError) as exc:
+        print(f"{parser.prog}: error: {exc}")
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
