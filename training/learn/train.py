@@ -183,9 +183,9 @@ def depth_gradient_loss(pred: torch.Tensor, true: torch.Tensor, valid: torch.Ten
     every s pixels and its differences between horizontally and vertically
     neighbouring samples, both valid, are taken; the term is the mean absolute
     difference over those pairs, averaged over the strides (a stride without a
-    pair counts 0).  It is 0 for an error that is constant over each connected
-    valid region (an offset) and grows with a wrong slope or wrong relief,
-    which the MSE of the depth weighs only by their share of the error.
+    pair counts 0).  It is 0 for an error that is the same at every valid
+    pixel (an offset) and grows with a wrong slope or wrong relief, which the
+    MSE of the depth weighs only by their share of the error.
     Returns a scalar tensor.
     """
     check_tensor("pred", pred, ("B", "H", "W"))
