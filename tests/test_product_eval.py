@@ -97,3 +97,25 @@ def test_curve_point_sums_the_stages_processor_time(tmp_path):
         product.curve_point(run, ev, stages=("depht",))
     with pytest.raises(ValueError, match="no view in common"):
         product.compare_table(ev, _eval_dir(tmp_path / "x", 0.45, []), MANIFEST)
+
+
+def test_compare_table_reads_the_product_folders_chosen_row(tmp_path):
+    """--product-row: the product folder's oracle row against the protocol's GenRe, at that row's own level."""
+    rows = _rows({"plane": [0.10, 0.20], "lamp": [0.11], "procedural-primitive-000": [0.04], "procedural-lathe-000": [0.10]})
+    oracle = [(key, shape, cls, "GenRe-SphOracle", cd / 2) for key, shape, cls, row, cd in rows if row == "GenRe"]
+    a = _eval_dir(tmp_path / "a", 0.45, rows + oracle)
+    chosen = json.loads((a / "thresholds.json").read_text())
+    chosen["seen"]["GenRe-SphOracle"] = 0.45
+    (a / "thresholds.json").write_text(json.dumps(chosen))
+    b = _eval_dir(tmp_path / "b", 0.50, _rows({"plane": [0.16, 0.14], "lamp": [0.24], "procedural-primitive-000": [0.09],
+                                               "procedural-lathe-000": [0.10]}))
+    text = product.compare_table(a, b, MANIFEST, product_row="GenRe-SphOracle")
+    lines = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in text.splitlines() if line.startswith("| ")}
+    # half of GenRe's figures: all (0.075 + 0.055 + 0.02 + 0.05) / 4 = 0.050; the protocol's unchanged (0.145)
+    assert lines["all"][:4] == ["4", "0.050", "0.145", "0.345"]
+    assert lines["regular primitives"][:3] == ["1", "0.020", "0.090"] and lines["regular primitives"][5] == "1.00×"
+    assert "its row GenRe-SphOracle" in text
+    # the default row is still GenRe
+    assert "| all | 4 | 0.100 | 0.145 |" in product.compare_table(a, b, MANIFEST)
+    with pytest.raises(ValueError, match="no row 'GenRe-Oracle'"):
+        product.compare_table(a, b, MANIFEST, product_row="GenRe-Oracle")

@@ -101,13 +101,16 @@ def _shape_means(scores: dict[str, dict], field: str) -> dict[str, float]:
 
 
 def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: str = "",
-                  thresholds: tuple[float | None, float | None] = (None, None)) -> str:
+                  thresholds: tuple[float | None, float | None] = (None, None), product_row: str = "GenRe") -> str:
     """Markdown: mean CD per group and per class of the two models on the views both scored.
 
     Means are over shapes (a shape's views averaged first). ``thresholds``: the
-    product's and the protocol's level (None: each run's ``thresholds.json``).
+    product's and the protocol's level (None: each run's ``thresholds.json``). ``product_row``: the row of the
+    product folder to read (``GenRe-Oracle``, ``GenRe-SphOracle``: the product weights given true inputs); the
+    protocol folder's is always ``GenRe``.
     """
-    a, b = load_scores(product_dir, threshold=thresholds[0]), load_scores(protocol_dir, threshold=thresholds[1])
+    a = load_scores(product_dir, row=product_row, threshold=thresholds[0])
+    b = load_scores(protocol_dir, threshold=thresholds[1])
     common = sorted(set(a) & set(b))
     if not common:
         raise ValueError(f"{product_dir} and {protocol_dir} have no view in common")
@@ -119,12 +122,13 @@ def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: 
     shapes = sorted(cd_a)
     cls_of = {v["shape"]: v["class"] for v in a.values()}
     groups = {s: group_of_shape(entries.get(s, {"class": cls_of[s]})) for s in shapes}
-    ta = thresholds[0] if thresholds[0] is not None else json.loads((Path(product_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
+    ta = thresholds[0] if thresholds[0] is not None else json.loads((Path(product_dir) / "thresholds.json").read_text())["seen"][product_row]
     tb = thresholds[1] if thresholds[1] is not None else json.loads((Path(protocol_dir) / "thresholds.json").read_text())["seen"]["GenRe"]
     lines = [f"# {title or 'The product model against the protocol model'}", "",
              f"{len(common)} views of {len(shapes)} shapes of the product test split; each model at the threshold its "
              f"weights install (product t = {ta:.2f}, protocol t = {tb:.2f}); CD with 1,024 points, means over shapes. "
-             f"Product: `{product_dir}`; protocol: `{protocol_dir}`.", "",
+             f"Product: `{product_dir}`" + (f", its row {product_row}" if product_row != "GenRe" else "")
+             + f"; protocol: `{protocol_dir}`.", "",
              "| group | shapes | product | protocol | product ÷ protocol | noise floor | product ÷ floor | truth through the representation |",
              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for g in GROUPS:
@@ -255,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--out", required=True, help="markdown file to write")
     c.add_argument("--threshold", type=float, help="score both models at this level (default: each run's thresholds.json)")
     c.add_argument("--title", default="", help="the table's heading (default: 'The product model against the protocol model')")
+    c.add_argument("--product-row", default="GenRe",
+                   help="the product folder's row (default GenRe; GenRe-Oracle or GenRe-SphOracle: the product weights "
+                        "given the true depth, or the true depth and full spherical map); the protocol's is GenRe")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
@@ -274,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "compare":
             manifest = json.loads(Path(args.manifest).read_text())
             text = compare_table(Path(args.product), Path(args.protocol), manifest, title=args.title,
-                                 thresholds=(args.threshold, args.threshold))
+                                 thresholds=(args.threshold, args.threshold), product_row=args.product_row)
             atomic_write_text(Path(args.out), text)
             print(text)
         else:
