@@ -135,6 +135,38 @@ class CameraSetup:
     resolution: tuple[int, int]
 
 
+def upright_pixels(pixels, orientation: int):
+    """A photo's pixels as stored in its file → as its EXIF ``orientation`` says to show them.
+
+    ``pixels``: (height, width, channels) array in Blender's order (the
+    bottom row first, as ``Image.pixels`` holds them).  ``orientation``: the
+    EXIF tag, 1-8 (TIFF's meaning; the result's ``camera.exif_orientation``).
+    Returns the (height', width', channels) array, bottom row first, that
+    Pillow's ``ImageOps.exif_transpose`` would give (Blender's image loader
+    ignores the tag, the backend applies it).  1 returns ``pixels`` itself.
+    """
+    import numpy as np
+
+    a = np.asarray(pixels)
+    if a.ndim != 3:
+        raise ValueError(f"pixels: expected (height, width, channels), got shape {a.shape}")
+    if isinstance(orientation, bool) or orientation not in range(1, 9):
+        raise ValueError(f"orientation: expected an EXIF orientation 1-8, got {orientation!r}")
+    if orientation == 1:
+        return a
+    top = a[::-1]  # rows top first, as the file and the tag count them
+    up = {
+        2: lambda t: t[:, ::-1],  # mirrored left to right
+        3: lambda t: t[::-1, ::-1],  # turned 180°
+        4: lambda t: t[::-1],  # mirrored top to bottom
+        5: lambda t: t.transpose(1, 0, 2),  # mirrored across the main diagonal
+        6: lambda t: np.rot90(t, -1),  # stored turned 90° anticlockwise: turn it clockwise
+        7: lambda t: t[::-1, ::-1].transpose(1, 0, 2),  # mirrored across the other diagonal
+        8: lambda t: np.rot90(t, 1),  # stored turned 90° clockwise: turn it anticlockwise
+    }[orientation](top)
+    return np.ascontiguousarray(up[::-1])
+
+
 def camera_setup(camera: dict, photo_size: tuple[int, int], crop_box=None) -> CameraSetup:
     """The camera that lines the mesh up with the whole photo.
 

@@ -19,7 +19,7 @@ import bpy
 from mathutils import Matrix, Vector
 
 from .backend import STAGE_LABELS, BackendError, BackendManager, Request
-from .geometry import VIEW_TO_BLENDER_FRONT, MeshFileError, camera_setup, read_obj, to_blender_frame
+from .geometry import VIEW_TO_BLENDER_FRONT, MeshFileError, camera_setup, read_obj, to_blender_frame, upright_pixels
 
 __all__ = ["UserError", "JobSpec", "JobLimits", "Job", "prepare_job", "work_root", "COLLECTION_NAME", "BackendError"]
 
@@ -397,8 +397,38 @@ def _photo_image(spec: JobSpec, made: list):
     return image
 
 
+def _upright_copy(image, orientation: int, made: list):
+    """A packed copy of ``image`` turned as its file's EXIF ``orientation`` says (Blender shows the stored pixels)."""
+    import numpy as np
+
+    width, height = image.size
+    channels = image.channels
+    pixels = np.empty(width * height * channels, dtype=np.float32)
+    image.pixels.foreach_get(pixels)
+    up = upright_pixels(pixels.reshape(height, width, channels), orientation)
+    copy = bpy.data.images.new(f"{image.name} (upright)", up.shape[1], up.shape[0], alpha=channels == 4,
+                               float_buffer=image.is_float)
+    made.append(copy)
+    if copy.colorspace_settings.name != image.colorspace_settings.name:  # (before the pixels: it regenerates the image)
+        copy.colorspace_settings.name = image.colorspace_settings.name
+    if channels != 4:  # a new image holds RGBA
+        up = np.concatenate([up[..., :3], np.ones(up.shape[:2] + (1,), np.float32)], axis=2) if channels >= 3 \
+            else np.concatenate([np.repeat(up[..., :1], 3, axis=2), np.ones(up.shape[:2] + (1,), np.float32)], axis=2)
+    copy.pixels.foreach_set(np.ascontiguousarray(up, dtype=np.float32).ravel())
+    copy.pack()  # the job's files go when it ends; the .blend keeps the turned photo
+    return copy
+
+
 def _add_camera(scene, spec: JobSpec, camera: dict, parent, coll, made: list):
     image = _photo_image(spec, made)
+    orientation = camera.get("exif_orientation", 1)
+    if isinstance(orientation, int) and not isinstance(orientation, bool) and 2 <= orientation <= 8:
+        # the backend read the file upright; Blender shows it as stored: give the camera the photo as the mesh sees it
+        stored = image
+        image = _upright_copy(stored, orientation, made)
+        if stored in made:  # loaded for this job only: the turned copy replaces it
+            made.remove(stored)
+            bpy.data.images.remove(stored)
     width, height = image.size
     if width == 0 or height == 0:
         raise ValueError(f"cannot read the photo's size from {spec.photo_file or spec.photo_image}")

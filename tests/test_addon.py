@@ -256,6 +256,33 @@ def scenario_reconstruct(args: dict) -> dict:
     job, outcome, _ = _drive(ops, settings, prefs, status, scene)
     out["doubtful"] = {"outcome": list(outcome), "mask_warning": status.mask_warning, "event": job.request.result.get("mask_warning")}
     settings.mask_path = ""
+    # a photo stored turned, with the EXIF tag that says so (as phones save them): Blender shows the stored
+    # pixels, the backend reads it upright, and the matching camera gets the photo as the mesh was made from it
+    import numpy as np
+
+    with Image.open(args["photo"]) as im:  # widened with its own background, so that a turn changes its shape
+        photo = im.convert("RGBA")
+    upright = Image.new("RGBA", (photo.width + 24, photo.height), photo.getpixel((0, 0)))
+    upright.paste(photo, (12, 0))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # turn 90° clockwise to show
+    turned = os.path.join(tempfile.gettempdir(), "turned.png")
+    upright.transpose(Image.Transpose.ROTATE_90).save(turned, exif=exif.tobytes())
+    settings.photo_path = turned
+    settings.add_camera = True
+    before = set(bpy.data.images)
+    job, outcome, _ = _drive(ops, settings, prefs, status, scene)
+    cam = next(c for c in bpy.data.objects[job.objects[0].name].children if c.type == "CAMERA")
+    bg = cam.data.background_images[0].image
+    px = np.empty(bg.size[0] * bg.size[1] * 4, np.float32)
+    bg.pixels.foreach_get(px)
+    want = np.asarray(upright, np.float32)[::-1] / 255.0  # Blender's rows: bottom first
+    out["exif"] = {"outcome": list(outcome), "camera_event": job.request.result["camera"], "background": bg.name,
+                   "size": list(bg.size), "packed": bool(bg.packed_file), "upright_size": list(upright.size),
+                   "max_pixel_error": float(np.abs(px.reshape(want.shape) - want).max()),
+                   "resolution": [scene.render.resolution_x, scene.render.resolution_y],
+                   "new_images": sorted(i.name for i in set(bpy.data.images) - before)}
+    settings.photo_path = args["photo"]
     # the backend stops when the add-on is disabled
     proc = ops.manager.client._proc
     bpy.ops.preferences.addon_disable(module=module)
@@ -505,6 +532,27 @@ def test_camera_setup_lines_up_the_crop_with_the_photo():
         geometry.camera_setup({"lens_mm": 50}, (64, 64))
 
 
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_upright_pixels_is_pillows_exif_transpose(tmp_path, orientation):
+    """The add-on turns a tagged photo's pixels (Blender's order, bottom row first) exactly as Pillow does."""
+    from PIL import Image, ImageOps
+
+    geometry = _load("genre_addon_geometry", ADDON / "geometry.py")
+    rng = np.random.default_rng(orientation)
+    stored = rng.integers(0, 256, (5, 9, 4), dtype=np.uint8)  # as in the file, top row first; no symmetry
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(stored).save(tmp_path / "p.png", exif=exif.tobytes())
+    with Image.open(tmp_path / "p.png") as im:
+        want = np.asarray(ImageOps.exif_transpose(im))
+    got = geometry.upright_pixels(stored[::-1], orientation)[::-1]  # Blender's rows in, Blender's rows out
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="orientation"):
+        geometry.upright_pixels(stored, 9)
+    with pytest.raises(ValueError, match="height, width, channels"):
+        geometry.upright_pixels(stored[..., 0], orientation)
+
+
 def test_read_obj(tmp_path):
     geometry = _load("genre_addon_geometry", ADDON / "geometry.py")
     p = tmp_path / "m.obj"
@@ -699,6 +747,14 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert r["check"] == ["FINISHED"]
     assert "preset tiny" in r["backend_info"] and "device cpu" in r["backend_info"] and f"threshold {level}" in r["backend_info"]
     assert r["backend_exit_after_disable"] is not None
+    # the turned photo: the backend reports the tag; the camera shows the upright photo, packed, at the right size
+    exif = r["exif"]
+    assert exif["outcome"][0] == "INFO", exif["outcome"]
+    assert exif["camera_event"]["exif_orientation"] == 6 and exif["camera_event"]["image_size"] == exif["upright_size"]
+    assert exif["upright_size"][0] > exif["upright_size"][1]  # wider than tall, stored taller than wide
+    assert exif["size"] == exif["upright_size"] == exif["resolution"] and exif["packed"]
+    assert exif["max_pixel_error"] < 1e-6  # the very pixels Pillow shows
+    assert exif["background"] == "turned.png (upright)" and "turned.png" not in exif["new_images"]
 
 
 def test_failures_leave_nothing_behind_and_say_why(built, trained, tmp_path):

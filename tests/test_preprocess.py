@@ -9,7 +9,7 @@ import zlib
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from PIL import Image, ImageOps
 
 from genre_backend.config import get_preset
 from genre_backend.inference.preprocess import (
@@ -146,6 +146,25 @@ def test_exif_orientation_is_applied(tmp_path):
     assert img.size == (40, 80) and img.original_size == (40, 80)
     # the left of the stored image is the top of the displayed one
     assert img.rgb[5, 20, 0] > 150 and img.rgb[75, 20, 0] < 100
+    assert img.exif_orientation == 6 and "EXIF orientation 6 applied" in img.notes
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_every_exif_orientation_matches_pillows_transpose(tmp_path, orientation):
+    """All eight tags (flips included) give Pillow's own upright image, and the tag is kept for clients."""
+    rng = np.random.default_rng(orientation)
+    a = rng.integers(0, 256, (6, 10, 3), dtype=np.uint8)  # no symmetry: any wrong turn or flip shows
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    p = _save(tmp_path, "o.png", a, exif=exif.tobytes())
+    with Image.open(p) as im:
+        assert im.getexif().get(0x0112) == orientation  # the tag survived the PNG
+        want = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+    img = load_image(p)
+    assert img.exif_orientation == orientation
+    np.testing.assert_array_equal(img.rgb, want)
+    assert img.original_size == (want.shape[1], want.shape[0])
+    assert (f"EXIF orientation {orientation} applied" in img.notes) == (orientation != 1)
 
 
 # ---- masks and framing -------------------------------------------------------------------------

@@ -217,6 +217,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
 
     with Image.open(files["rgb"]) as im:
         assert cam["image_size"] == list(im.size)
+    assert cam["exif_orientation"] == 1  # a file without the tag (the add-on's test turns a tagged one)
     x0, y0, x1, y1 = cam["crop_box"]
     assert x1 - x0 == pytest.approx(y1 - y0) and x1 > x0
     assert (files["out"] / "inter" / "depth.png").is_file()

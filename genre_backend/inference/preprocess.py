@@ -100,6 +100,10 @@ class LoadedImage:
     channel).  ``original_size``: (width, height) as stored in the file
     (after EXIF rotation); ``scale``: ``rgb``'s size / the original size
     (< 1 when the image was downscaled).  ``notes``: what was converted.
+    ``exif_orientation``: the file's EXIF orientation tag (1-8, as TIFF
+    defines it; 1 when absent or out of range), already applied to ``rgb``:
+    a viewer that ignores the tag (Blender's image loader) shows the
+    pixels as stored, turned or mirrored from ``rgb``.
     """
 
     path: Path
@@ -108,6 +112,7 @@ class LoadedImage:
     original_size: tuple[int, int]
     scale: float
     notes: list[str]
+    exif_orientation: int = 1
 
     @property
     def size(self) -> tuple[int, int]:
@@ -239,7 +244,9 @@ def load_image(path: str | os.PathLike, *, max_pixels: int = MAX_PIXELS, work_si
             raise ImageError(code, f"{path}: image too large ({width * height / 1e6:.0f} Mpx, {width}×{height}; limit {max_pixels / 1e6:.0f} Mpx)")
         try:
             im.load()
-            swapped = im.getexif().get(0x0112, 1) in (5, 6, 7, 8)  # EXIF orientations that turn by 90°
+            orientation = im.getexif().get(0x0112, 1)
+            orientation = orientation if isinstance(orientation, int) and 1 <= orientation <= 8 else 1
+            swapped = orientation in (5, 6, 7, 8)  # EXIF orientations that turn by 90°
             orig = (height, width) if swapped else (width, height)
             im = ImageOps.exif_transpose(im)
             im = _to_8bit(im, path, notes)
@@ -248,8 +255,8 @@ def load_image(path: str | os.PathLike, *, max_pixels: int = MAX_PIXELS, work_si
         except (OSError, SyntaxError, ValueError, EOFError, IndexError, MemoryError) as exc:
             reason = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
             raise ImageError(code, f"{path}: corrupt or truncated {fmt} image ({reason})") from None
-        if swapped:
-            notes.append("EXIF orientation applied")
+        if orientation != 1:
+            notes.append(f"EXIF orientation {orientation} applied")
         if max(im.size) > work_side:
             s = work_side / max(im.size)
             new = (max(1, round(im.size[0] * s)), max(1, round(im.size[1] * s)))
@@ -258,7 +265,7 @@ def load_image(path: str | os.PathLike, *, max_pixels: int = MAX_PIXELS, work_si
         arr = np.asarray(im)
     rgb = np.ascontiguousarray(arr[:, :, :3])
     alpha = np.ascontiguousarray(arr[:, :, 3]) if arr.shape[2] == 4 else None
-    return LoadedImage(path, rgb, alpha, (int(orig[0]), int(orig[1])), im.size[0] / orig[0], notes)
+    return LoadedImage(path, rgb, alpha, (int(orig[0]), int(orig[1])), im.size[0] / orig[0], notes, orientation)
 
 
 def load_mask(path: str | os.PathLike, image: LoadedImage) -> np.ndarray:

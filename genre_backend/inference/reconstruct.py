@@ -210,6 +210,9 @@ class Reconstruction:
         square camera; it sees exactly ``crop_box`` (x0, y0, x1, y1; pixels of
         the photo as displayed, rows downward, may extend past the photo) of
         the photo, whose size is ``image_size`` (width, height).
+        ``exif_orientation``: the photo file's EXIF orientation (1-8; 1: none),
+        which ``crop_box`` and ``image_size`` already apply: a client that
+        shows the file with a loader that ignores it must turn the pixels.
         """
         c = self.config.camera
         return {
@@ -218,6 +221,7 @@ class Reconstruction:
             "distance": c.distance,
             "crop_box": [round(float(v), 3) for v in self.crop_box],
             "image_size": [int(v) for v in self.image_size],
+            "exif_orientation": int(self.photo.exif_orientation) if self.photo is not None else 1,
         }
 
     def mask_in_photo(self) -> np.ndarray:
