@@ -411,10 +411,11 @@ def _upright_copy(image, orientation: int, made: list):
     made.append(copy)
     if copy.colorspace_settings.name != image.colorspace_settings.name:  # (before the pixels: it regenerates the image)
         copy.colorspace_settings.name = image.colorspace_settings.name
-    if channels != 4:  # a new image holds RGBA
-        up = np.concatenate([up[..., :3], np.ones(up.shape[:2] + (1,), np.float32)], axis=2) if channels >= 3 \
-            else np.concatenate([np.repeat(up[..., :1], 3, axis=2), np.ones(up.shape[:2] + (1,), np.float32)], axis=2)
-    copy.pixels.foreach_set(np.ascontiguousarray(up, dtype=np.float32).ravel())
+    rgba = np.ones(up.shape[:2] + (4,), np.float32)  # a new image holds RGBA; grey (1 or 2 channels) fills R, G, B
+    rgba[..., :3] = up[..., :3] if channels >= 3 else up[..., :1]
+    if channels in (2, 4):
+        rgba[..., 3] = up[..., -1]
+    copy.pixels.foreach_set(rgba.ravel())
     copy.pack()  # the job's files go when it ends; the .blend keeps the turned photo
     return copy
 
@@ -422,7 +423,7 @@ def _upright_copy(image, orientation: int, made: list):
 def _add_camera(scene, spec: JobSpec, camera: dict, parent, coll, made: list):
     image = _photo_image(spec, made)
     orientation = camera.get("exif_orientation", 1)
-    if isinstance(orientation, int) and not isinstance(orientation, bool) and 2 <= orientation <= 8:
+    if orientation != 1:  # (upright_pixels refuses anything but a tag 1-8)
         # the backend read the file upright; Blender shows it as stored: give the camera the photo as the mesh sees it
         stored = image
         image = _upright_copy(stored, orientation, made)
