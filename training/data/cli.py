@@ -7,6 +7,7 @@
     genre data render ...   (see training/render/cli.py)
     genre data targets ...  (see training/data/targets.py)
     genre data show ...     (see training/data/show.py)
+    genre data pack ...     (see training/data/pack.py)
 """
 
 from __future__ import annotations
@@ -165,6 +166,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/cli.py)")
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")
     sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/data/show.py)")
+    sub.add_parser("pack", add_help=False, help="the training shapes' meshes for a GPU burst (training/data/pack.py)")
     return parser
 
 
@@ -180,6 +182,12 @@ def _show_main():
     return show.main
 
 
+def _pack_main():
+    from . import pack
+
+    return pack.main
+
+
 def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dict | None = None) -> int:
     """Entry point of ``genre data``; returns a process exit code.
 
@@ -188,7 +196,7 @@ def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dic
     the data layer does not import the renderer.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    loaders = {"targets": _targets_main, "show": _show_main, **(delegated or {})}
+    loaders = {"targets": _targets_main, "show": _show_main, "pack": _pack_main, **(delegated or {})}
     if argv and argv[0] in loaders:
         return int(loaders[argv[0]]()(argv[1:], prog=f"{prog} {argv[0]}") or 0)
     args = _parser(prog).parse_args(argv)

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 
-__all__ = ["STAGES", "StageRecipe", "Recipe", "RECIPES", "get_recipe"]
+__all__ = ["STAGES", "StageRecipe", "Recipe", "RECIPES", "get_recipe", "BurstRecipe", "BURST_RECIPES", "get_burst_recipe"]
 
 STAGES = ("depth", "inpaint", "refine", "joint", "completion", "onestep")
 
@@ -219,3 +219,78 @@ def get_recipe(name: str) -> Recipe:
         return RECIPES[name]
     except KeyError:
         raise ValueError(f"unknown recipe {name!r}; choose one of {sorted(RECIPES)}") from None
+
+
+@dataclass(frozen=True)
+class BurstRecipe:
+    """How a GPU burst trains (:mod:`training.learn.burst`): the inpainting net and the refiner together,
+    from true depth maps of the pack's meshes seen from random views, for a wall-clock budget.
+
+    ``network``: NetworkConfig fields the burst's model takes (others stay the
+    ``--init`` weights'); a net whose widths change starts afresh, every tensor
+    whose name and shape match is copied from ``--init``.  ``lr`` peaks after
+    ``warmup_s`` seconds and follows a cosine to ``lr_final`` × lr at the end
+    of the budget.  Views: azimuth uniform, elevation uniform in
+    [``elevation_min_deg``, ``elevation_max_deg``].  ``depth_noise``: the
+    standard deviation (scene units) of a smooth random field added to the
+    true depth before the partial map is made (the depth net's errors are
+    smooth and ~1 voxel; 0 = the true depth).  ``grid_factor``: the object-frame
+    distance grid of each shape is this many times finer than the voxel grid
+    (the view's target is resampled from it).
+    """
+
+    name: str
+    description: str
+    network: tuple[tuple[str, object], ...] = ()
+    lr: float = 1e-3
+    lr_final: float = 0.05
+    warmup_s: float = 20.0
+    beta1: float = 0.9
+    beta2: float = 0.999
+    weight_decay: float = 0.0
+    batch_size: int = 64
+    surface_weight: float = 0.1
+    sph_loss: str = "mse"
+    sph_weight: float = 1.0
+    elevation_min_deg: float = -10.0
+    elevation_max_deg: float = 88.0
+    depth_noise: float = 0.01
+    grid_factor: int = 2
+
+    def __post_init__(self):
+        for name in ("lr", "lr_final", "beta1", "beta2", "surface_weight", "sph_weight", "depth_noise", "warmup_s",
+                     "weight_decay"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+        if not (self.lr > 0 and self.lr_final <= 1 and self.beta1 < 1 and self.beta2 < 1):
+            raise ValueError("lr must be > 0, lr_final ≤ 1, betas < 1")
+        for name in ("batch_size", "grid_factor"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected a positive int, got {value!r}")
+        if not -90.0 < self.elevation_min_deg <= self.elevation_max_deg < 90.0:
+            raise ValueError(f"elevation range [{self.elevation_min_deg}, {self.elevation_max_deg}] must lie in (-90, 90)")
+        if self.sph_loss not in ("mse", "l1"):
+            raise ValueError(f"sph_loss: expected 'mse' or 'l1', got {self.sph_loss!r}")
+
+
+BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
+    BurstRecipe(
+        name="keep",
+        description="the --init weights' widths, every tensor warm-started: the same nets trained longer",
+    ),
+    BurstRecipe(
+        name="wide",
+        description="the refiner twice as wide (nf 16, fc 512) and grown by an 8-channel full-resolution branch; "
+                    "the inpainting net kept from --init; the refiner starts afresh",
+        network=(("refiner_nf", 16), ("refiner_fc", 512), ("refiner_full_nf", 8)),
+    ),
+)}
+
+
+def get_burst_recipe(name: str) -> BurstRecipe:
+    try:
+        return BURST_RECIPES[name]
+    except KeyError:
+        raise ValueError(f"unknown burst recipe {name!r}; choose one of {sorted(BURST_RECIPES)}") from None

@@ -62,15 +62,15 @@ from torch import nn
 from genre_backend.config import INPAINT_HEADS, PRESETS, TARGETS, GenreConfig, get_preset
 from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model, with_inpaint_net, with_inpaint_net_of
 from genre_backend.geometry.spherical import crop_sph, pad_sph
-from genre_backend.nets.inpaint_net import RADIUS_SCALE
 from genre_backend.io import atomic_write, atomic_write_bytes
-from genre_backend.validation import check_tensor
 
 from ..data.dataset import ViewDataset, split_views
 from ..data.views import gather_views
+from .losses import DEPTH_GRADIENT_STRIDES, depth_gradient_loss, sph_loss, voxel_loss
 from .recipe import RECIPES, STAGES, StageRecipe, get_recipe
 
-__all__ = ["STAGES", "TrainConfig", "StageModule", "train", "weights_digest", "main"]
+__all__ = ["STAGES", "TrainConfig", "StageModule", "train", "weights_digest", "main", "depth_gradient_loss",
+           "DEPTH_GRADIENT_STRIDES"]
 
 BASELINE_STAGES = ("completion", "onestep")
 
@@ -171,42 +171,6 @@ class TrainConfig:
         return self.lr * 0.5 ** (step / self.lr_halflife) if self.lr_halflife else self.lr
 
 
-DEPTH_GRADIENT_STRIDES = (1, 2, 4, 8)
-
-
-def depth_gradient_loss(pred: torch.Tensor, true: torch.Tensor, valid: torch.Tensor,
-                        strides: tuple[int, ...] = DEPTH_GRADIENT_STRIDES) -> torch.Tensor:
-    """Multi-scale gradient matching of a depth map (after Li & Snavely, MegaDepth, 2018).
-
-    pred, true: (B, H, W) depth; valid: (B, H, W) bool, the pixels whose true
-    depth counts.  For each stride s the error map ``pred - true`` is sampled
-    every s pixels and its differences between horizontally and vertically
-    neighbouring samples, both valid, are taken; the term is the mean absolute
-    difference over those pairs, averaged over the strides (a stride without a
-    pair counts 0).  It is 0 for an error that is the same at every valid
-    pixel (an offset) and grows with a wrong slope or wrong relief, which the
-    MSE of the depth weighs only by their share of the error.
-    Returns a scalar tensor.
-    """
-    check_tensor("pred", pred, ("B", "H", "W"))
-    check_tensor("true", true, tuple(pred.shape))
-    check_tensor("valid", valid, tuple(pred.shape), floating=False, finite=False)
-    if valid.dtype != torch.bool:
-        raise ValueError(f"valid: expected a bool tensor, got {valid.dtype}")
-    if not strides or any(isinstance(s, bool) or not isinstance(s, int) or s < 1 for s in strides):
-        raise ValueError(f"strides: expected positive ints, got {strides!r}")
-    err = pred - true
-    total = err.new_zeros(())
-    for s in strides:
-        e, v = err[:, ::s, ::s], valid[:, ::s, ::s]
-        pairs_x, pairs_y = v[:, :, 1:] & v[:, :, :-1], v[:, 1:, :] & v[:, :-1, :]
-        diff_x = (e[:, :, 1:] - e[:, :, :-1]).abs() * pairs_x
-        diff_y = (e[:, 1:, :] - e[:, :-1, :]).abs() * pairs_y
-        count = pairs_x.sum() + pairs_y.sum()
-        total = total + (diff_x.sum() + diff_y.sum()) / count.clamp(min=1)
-    return total / len(strides)
-
-
 class StageModule(nn.Module):
     """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
 
@@ -282,38 +246,12 @@ class StageModule(nn.Module):
         return loss, terms
 
     def sph_loss(self, parts: dict[str, torch.Tensor], batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """The spherical maps' loss on padded maps; ``parts`` is :meth:`InpaintNet.forward_parts`'s output.
-
-        The ``"value"`` head: the map's MSE (or L1) against the true full map.
-        The ``"hit"`` head: the hit logits' BCE against the true map's hits,
-        plus the radius's MSE (or L1, ×RADIUS_SCALE) on the true hits.
-        """
-        g = self.model.config.geometry
-        target = pad_sph(batch["full_sph"][:, None], g.sph_pad)
-        err = F.l1_loss if self.sph_loss_kind == "l1" else F.mse_loss
-        name = f"sph_{self.sph_loss_kind}"
-        if "hit_logits" not in parts:
-            loss = err(parts["map"], target)
-            return loss, {name: loss}
-        hit = target < g.sph_nohit_min
-        l_hit = F.binary_cross_entropy_with_logits(parts["hit_logits"], hit.to(target.dtype))
-        per_pixel = err(parts["radius"] * RADIUS_SCALE, (1.0 - target) * RADIUS_SCALE, reduction="none")
-        l_radius = (per_pixel * hit).sum() / hit.sum().clamp(min=1)
-        return l_hit + l_radius, {"sph_hit_bce": l_hit, f"sph_radius_{self.sph_loss_kind}": l_radius}
+        """:func:`training.learn.losses.sph_loss` of the inpainting net's ``parts`` against ``batch["full_sph"]``."""
+        return sph_loss(parts, batch["full_sph"], self.model.config.geometry, self.sph_loss_kind)
 
     def voxel_loss(self, logits, batch):
-        """BCE over the grid + ``surface_weight`` × the BCE weighted by the target (the shell's voxels, or the distance's ramp).
-
-        The target's own entropy is subtracted per voxel (a constant: the
-        gradients are the BCE's), so that the loss is the KL divergence,
-        0 at a perfect fit for the soft distance target as for the binary shell.
-        """
-        target = batch["voxels"][:, None]
-        entropy = -(torch.xlogy(target, target) + torch.xlogy(1 - target, 1 - target))
-        bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none") - entropy
-        l_all = bce.mean()
-        l_surf = (bce * target).sum() / target.sum().clamp(min=1)
-        return l_all + self.surface_weight * l_surf, {"voxel_bce": l_all, "surface_bce": l_surf}
+        """:func:`training.learn.losses.voxel_loss` of the refiner's logits against ``batch["voxels"]``."""
+        return voxel_loss(logits, batch["voxels"], self.surface_weight)
 
     def forward(self, batch: dict[str, torch.Tensor]):
         m = self.model
@@ -785,7 +723,13 @@ def weights_digest(model: nn.Module, buffers: bool = True) -> str:
 
 
 def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
-    parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically).")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["burst"]:  # the GPU burst (training/learn/burst.py): its own options
+        from . import burst
+
+        return burst.main(argv[1:], prog=f"{prog} burst")
+    parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically; "
+                                     "'genre train burst --help': a GPU burst from a training pack).")
     parser.add_argument("stage", choices=STAGES)
     parser.add_argument("--data", required=True, nargs="+",
                         help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets'); a folder "

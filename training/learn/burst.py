@@ -1,0 +1,510 @@
+"""``genre train burst``: train the inpainting net and the refiner on a lent GPU for a wall-clock budget.
+
+A burst is what runs on the device machine (``scripts/gpu_burst.sh``, its
+Python: torch, numpy, safetensors; no Blender, no trimesh).  It reads a
+training pack (:mod:`training.data.pack`: the training shapes' meshes) and
+makes every sample itself, on the GPU (:class:`ViewMaker`):
+
+* a random view (azimuth uniform, elevation in the recipe's range, up to
+  near-vertical: photos are often taken from above),
+* the true planar depth map and mask of the posed mesh (:func:`genre_backend.geometry.raster.mesh_depth`),
+  with a smooth random error added (``depth_noise``: the depth net's output is
+  not exact),
+* the true full spherical map (:func:`genre_backend.geometry.spherical.raycast_triangles`),
+* the refiner's truncated-distance target, resampled from the shape's
+  object-frame distance grid (made once per shape at start-up, ``grid_factor``
+  times finer than the voxel grid, exact point–triangle distances).
+
+The inpainting net and the refiner then train together as in the joint
+stage (the spherical loss plus the voxel loss, :mod:`training.learn.losses`),
+from the partial map of that depth; the depth net is kept as ``--init`` has
+it (photos need RGB renders, which a burst does not have).  Device bring-up:
+TF32, bf16 autocast for the nets, channels-last 2D and 3D tensors, the batch
+the recipe names (halved on running out of memory).  No data loader is
+needed: the samples are made where they are used.
+
+Every ``--checkpoint-minutes`` (default 1) and at the end, the model's
+weights are written as safetensors shards of at most 15 MiB
+(:func:`write_shards`) into ``--out``, so that a call cut off still returns
+weights; :func:`read_shards` (``genre train burst --join DIR --save FILE``)
+turns them back into a weights file bit for bit.  ``log.csv`` holds the loss
+curve, ``loss.png`` draws it, ``summary.json`` the figures (steps/s,
+samples/s, the device).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from genre_backend.config import GenreConfig
+from genre_backend.frame import camera_rotation
+from genre_backend.geometry.mesh_voxels import dilate, point_triangles_distance, surface_lattice
+from genre_backend.geometry.raster import mesh_depth
+from genre_backend.geometry.spherical import crop_sph, pad_sph, raycast_triangles
+from genre_backend.nets.model import GenRe, load_model, save_model
+
+from ..data.pack import Pack, read_pack
+from .losses import sph_loss, voxel_loss
+from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
+
+__all__ = ["BurstSpec", "ViewMaker", "object_distance_grid", "widen", "write_shards", "read_shards", "run_burst", "main"]
+
+SHARD_BYTES = 15 * 2**20  # a file from the device comes back if it is at most 16 MiB
+INDEX_FILE = "weights.index.json"
+
+
+@dataclass(frozen=True)
+class BurstSpec:
+    """One burst: what it reads, where it writes, how long it runs."""
+
+    pack: str
+    init: str
+    out: str
+    recipe: str = "wide"
+    minutes: float = 7.0
+    batch_size: int | None = None  # None: the recipe's
+    device: str = "auto"
+    seed: int = 0
+    checkpoint_minutes: float = 1.0
+    log_every: int = 20
+    max_steps: int | None = None  # stop after this many steps too (tests, smoke runs)
+    shapes: int | None = None  # only the first K shapes of the pack (tests, smoke runs)
+
+    def __post_init__(self):
+        get_burst_recipe(self.recipe)
+        if not (math.isfinite(self.minutes) and self.minutes > 0):
+            raise ValueError(f"minutes: expected a positive number, got {self.minutes!r}")
+        if not (math.isfinite(self.checkpoint_minutes) and self.checkpoint_minutes > 0):
+            raise ValueError(f"checkpoint_minutes: expected a positive number, got {self.checkpoint_minutes!r}")
+        for name in ("batch_size", "max_steps", "shapes"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise ValueError(f"{name}: expected a positive int, got {v!r}")
+
+
+# --------------------------------------------------------------------------- samples made on the device
+
+
+def object_distance_grid(vertices: torch.Tensor, faces: torch.Tensor, geometry, factor: int) -> torch.Tensor:
+    """A shape's truncated-distance target in the object frame: (R, R, R) uint8 (value × 255).
+
+    R = ``factor`` × ``geometry.voxel_size``, over the cube [-E, E]³ with
+    E = 0.5 + (band + 1)/N (a posed shape's band can reach past the unit
+    cube's faces).  The value at a centre is ``clip(1 − d·N/band, 0, 1)``, d its
+    exact distance to the mesh (:func:`point_triangles_distance`), measured
+    only near the surface (the surface lattice's voxels, dilated past the band).
+    """
+    n, band = geometry.voxel_size, geometry.distance_band
+    r = factor * n
+    extent = 0.5 + (band + 1.0) / n
+    out = torch.zeros((r, r, r), dtype=torch.uint8, device=vertices.device)
+    if faces.shape[0] == 0:
+        return out
+    # the lattice at a spacing of half a grid voxel (2E/R): surface_lattice spaces points ≤ 1/(2·res) apart
+    pts = surface_lattice(vertices.double(), faces, max(1, int(math.ceil(r / (2.0 * extent)))))
+    idx = torch.floor((pts + extent) / (2 * extent) * r).long().clamp(0, r - 1)
+    occ = torch.zeros(r**3, dtype=torch.bool, device=vertices.device)
+    occ[(idx[:, 0] * r + idx[:, 1]) * r + idx[:, 2]] = True
+    reach = int(math.ceil(band / n * r / (2 * extent))) + 1
+    cand = torch.nonzero(dilate(occ.view(r, r, r), reach))
+    centres = (cand.to(vertices.dtype) + 0.5) * (2 * extent / r) - extent
+    d = point_triangles_distance(centres, vertices[faces.long()])
+    value = (1.0 - d * n / band).clamp(0.0, 1.0)
+    out[tuple(cand.T)] = torch.round(value * 255.0).to(torch.uint8)
+    return out
+
+
+class ViewMaker:
+    """Training samples of a pack's shapes from random views, made on one device (see the module doc)."""
+
+    def __init__(self, pack: Pack, config: GenreConfig, device: torch.device, grid_factor: int = 2,
+                 shapes: int | None = None, progress=None):
+        self.config, self.device = config, device
+        g = config.geometry
+        if g.target != "distance":
+            raise ValueError(f"a burst trains the distance target; the weights' target is {g.target!r}")
+        count = len(pack) if shapes is None else min(shapes, len(pack))
+        tris, offsets, grids = [], [0], []
+        start = time.time()
+        for i in range(count):
+            v, f = pack.mesh(i)
+            v = torch.from_numpy(v).to(device)
+            f = torch.from_numpy(f).to(device)
+            tris.append(v[f])
+            offsets.append(offsets[-1] + f.shape[0])
+            grids.append(object_distance_grid(v, f, g, grid_factor))
+            if progress and ((i + 1) % 100 == 0 or i + 1 == count):
+                progress(f"distance grids: {i + 1}/{count} shapes, {time.time() - start:.0f} s")
+        self.triangles = torch.cat(tris)  # (F, 3, 3) object frame
+        self.offsets = torch.tensor(offsets, dtype=torch.int64, device=device)
+        self.grids = torch.stack(grids)  # (K, R, R, R) uint8
+        self.extent = 0.5 + (g.distance_band + 1.0) / g.voxel_size
+        n = g.voxel_size
+        c = (torch.arange(n, dtype=torch.float32, device=device) + 0.5) / n - 0.5
+        self.centres = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1).reshape(-1, 3)  # [ix, iy, iz]
+        self.ids = pack.ids[:count]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def draw(self, gen: torch.Generator, batch: int, recipe: BurstRecipe) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Shape indices (B,), azimuths and elevations (B,) in degrees, drawn from ``gen`` (a CPU generator)."""
+        shape = torch.randint(len(self), (batch,), generator=gen)
+        az = torch.rand(batch, generator=gen) * 360.0
+        el = recipe.elevation_min_deg + torch.rand(batch, generator=gen) * (recipe.elevation_max_deg - recipe.elevation_min_deg)
+        return shape, az, el
+
+    def make(self, shape: torch.Tensor, az: torch.Tensor, el: torch.Tensor, depth_noise: float = 0.0,
+             gen: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """The samples of shapes ``shape`` (B,) seen from (``az``, ``el``) (B,) degrees.
+
+        Returns ``depth`` (B, S, S) planar depth with the noise added inside
+        the mask (background 0), ``true_depth``, ``mask`` (B, S, S) bool,
+        ``full_sph`` (B, H, H) and ``voxels`` (B, N, N, N) float in [0, 1].
+        """
+        g, cam, dev = self.config.geometry, self.config.camera, self.device
+        b = shape.shape[0]
+        rot = camera_rotation(az, el).to(dev)  # (B, 3, 3) camera-to-object
+        lo, hi = self.offsets[shape.to(dev)], self.offsets[shape.to(dev) + 1]
+        counts = hi - lo
+        batch_index = torch.repeat_interleave(torch.arange(b, device=dev), counts)
+        first = torch.cumsum(counts, 0) - counts
+        within = torch.arange(int(counts.sum()), device=dev) - torch.repeat_interleave(first, counts)
+        tris = self.triangles[torch.repeat_interleave(lo, counts) + within]  # (T, 3, 3) object frame
+        tris = torch.einsum("tkc,tcd->tkd", tris, rot[batch_index])  # object_to_view: p @ R
+        true_depth = mesh_depth(tris, batch_index, b, cam, g.image_size)
+        mask = true_depth > 0
+        depth = true_depth
+        if depth_noise > 0:
+            noise = torch.randn((b, 1, 4, 4), generator=gen).to(dev) * depth_noise
+            noise = torch.nn.functional.interpolate(noise, size=(g.image_size,) * 2, mode="bicubic", align_corners=False)[:, 0]
+            depth = torch.where(mask, true_depth + noise, true_depth)
+        full_sph = raycast_triangles(tris, batch_index, b, g.sph_size)
+        # the view's voxel centres in the object frame (view_to_object: p @ Rᵀ), as grid_sample's (x=W, y=H, z=D)
+        pts = torch.einsum("pc,bdc->bpd", self.centres, rot) / self.extent
+        n = g.voxel_size
+        grid = pts[..., [2, 1, 0]].reshape(b, n, n, n, 3)
+        vox = torch.nn.functional.grid_sample(self.grids[shape.to(dev)][:, None].float(), grid, mode="bilinear",
+                                              padding_mode="zeros", align_corners=False)[:, 0] / 255.0
+        return {"depth": depth, "true_depth": true_depth, "mask": mask, "full_sph": full_sph, "voxels": vox}
+
+
+# --------------------------------------------------------------------------- the model
+
+
+def widen(model: GenRe, network: dict) -> tuple[GenRe, list[str]]:
+    """``model`` with its NetworkConfig fields replaced by ``network``; every tensor whose name and shape match
+    is copied, the rest start afresh.  Returns the model and the names of the fresh tensors."""
+    if not network:
+        return model, []
+    config = dataclasses.replace(model.config, network=dataclasses.replace(model.config.network, **network))
+    new = GenRe(config)
+    old = model.state_dict()
+    state = new.state_dict()
+    fresh = []
+    for k, v in state.items():
+        if k in old and old[k].shape == v.shape:
+            state[k] = old[k].clone()
+        else:
+            fresh.append(k)
+    new.load_state_dict(state)
+    return new, fresh
+
+
+# --------------------------------------------------------------------------- shards
+
+
+def write_shards(model: GenRe, out: str | os.PathLike, meta: dict, shard_bytes: int = SHARD_BYTES) -> list[Path]:
+    """The model's state as safetensors shards of at most ``shard_bytes`` bytes of tensors, plus ``weights.index.json``.
+
+    A tensor larger than a shard is cut along its flattened length into parts
+    (``name::k/n``).  The index (config, ``meta``, each shard's sha256) is
+    written last, each file atomically, so a reader sees the old set or the
+    new one.  Returns the shard paths.
+    """
+    from safetensors.torch import save_file
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    per_elem = {}
+    items = []
+    for name, t in model.state_dict().items():
+        t = t.detach().cpu().contiguous()
+        size = t.numel() * t.element_size()
+        if size <= shard_bytes:
+            items.append((name, t))
+            continue
+        flat, step = t.reshape(-1), max(1, shard_bytes // t.element_size())
+        parts = [flat[i:i + step].clone() for i in range(0, flat.numel(), step)]
+        per_elem[name] = list(t.shape)
+        items += [(f"{name}::{k}/{len(parts)}", p) for k, p in enumerate(parts)]
+    shards, current, used = [], {}, 0
+    for name, t in items:
+        size = t.numel() * t.element_size()
+        if current and used + size > shard_bytes:
+            shards.append(current)
+            current, used = {}, 0
+        current[name] = t
+        used += size
+    if current:
+        shards.append(current)
+    paths, digests = [], []
+    for k, tensors in enumerate(shards):
+        path = out / f"weights-{k + 1:05d}-of-{len(shards):05d}.safetensors"
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        save_file(tensors, str(tmp))
+        os.replace(tmp, path)
+        paths.append(path)
+        digests.append(hashlib.sha256(path.read_bytes()).hexdigest())
+    for stale in out.glob("weights-*-of-*.safetensors"):
+        if stale not in paths:
+            stale.unlink()
+    index = {"format": "genre-burst-shards/1", "config": model.config.to_dict(), "meta": meta,
+             "split": per_elem, "shards": [{"file": p.name, "sha256": d} for p, d in zip(paths, digests)]}
+    tmp = out / f".{INDEX_FILE}.tmp-{os.getpid()}"
+    tmp.write_text(json.dumps(index, indent=1))
+    os.replace(tmp, out / INDEX_FILE)
+    return paths
+
+
+def read_shards(folder: str | os.PathLike, device: str = "cpu") -> tuple[GenRe, dict]:
+    """The model written by :func:`write_shards` (each shard's sha256 checked) and the index's ``meta``."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    try:
+        index = json.loads((folder / INDEX_FILE).read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{folder}: no readable {INDEX_FILE} ({exc})") from None
+    if index.get("format") != "genre-burst-shards/1":
+        raise ValueError(f"{folder}/{INDEX_FILE}: not a burst's shard index")
+    tensors = {}
+    for shard in index["shards"]:
+        path = folder / shard["file"]
+        if not path.is_file() or hashlib.sha256(path.read_bytes()).hexdigest() != shard["sha256"]:
+            raise ValueError(f"{path}: missing or damaged (sha256 differs from the index)")
+        tensors.update(load_file(str(path)))
+    for name, shape in index.get("split", {}).items():
+        parts = sorted((k for k in tensors if k.startswith(name + "::")), key=lambda k: int(k.rsplit("::", 1)[1].split("/")[0]))
+        tensors[name] = torch.cat([tensors.pop(k) for k in parts]).reshape(shape)
+    model = GenRe(GenreConfig.from_dict(index["config"]))
+    model.load_state_dict(tensors, strict=True)
+    return model.to(device).eval(), index.get("meta", {})
+
+
+# --------------------------------------------------------------------------- the loop
+
+
+def _plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    steps = [r["step"] for r in rows]
+    for key in ("loss", "voxel_bce", "sph"):
+        ax.plot(steps, [r[key] for r in rows], label=key)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.legend()
+    ax.set_title("GPU burst: training loss")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool) -> tuple[torch.Tensor, dict]:
+    g = model.config.geometry
+    dev_type = sample["depth"].device.type
+    with torch.no_grad():
+        partial = model.partial_sph(sample["depth"])
+        vox_depth = model.depth_voxels(sample["depth"])
+    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=amp):
+        padded = pad_sph(partial[:, None], g.sph_pad)
+        if dev_type == "cuda":
+            padded = padded.contiguous(memory_format=torch.channels_last)
+        parts = model.inpaint_net.forward_parts(padded)
+    parts = {k: v.float() for k, v in parts.items()}
+    full = crop_sph(parts["map"], g.sph_pad)[:, 0]
+    vox_sph = model.sph_voxels(full)
+    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=amp):
+        x = torch.cat([vox_sph, vox_depth], dim=1)
+        if dev_type == "cuda":
+            x = x.contiguous(memory_format=torch.channels_last_3d)
+        logits = model.refiner(x)
+    l_vox, terms = voxel_loss(logits.float(), sample["voxels"], recipe.surface_weight)
+    l_sph, sph_terms = sph_loss(parts, sample["full_sph"], g, recipe.sph_loss)
+    terms.update(sph_terms)
+    loss = l_vox + recipe.sph_weight * l_sph
+    terms["sph"] = l_sph
+    return loss, terms
+
+
+def run_burst(spec: BurstSpec, say=print) -> dict:
+    """Run one burst; returns the summary (also written to ``OUT/summary.json``)."""
+    t0 = time.time()
+    deadline = t0 + spec.minutes * 60.0
+    recipe = get_burst_recipe(spec.recipe)
+    device = _device(spec.device)
+    cuda = device.type == "cuda"
+    if cuda:
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+        torch.backends.cudnn.benchmark = True
+        say(f"device: {torch.cuda.get_device_name(device)}, torch {torch.__version__}")
+    else:
+        say(f"device: cpu ({torch.get_num_threads()} threads), torch {torch.__version__}")
+    out = Path(spec.out)
+    out.mkdir(parents=True, exist_ok=True)
+    pack = read_pack(spec.pack)
+    model, fresh = widen(load_model(spec.init), dict(recipe.network))
+    say(f"model: {sum(p.numel() for p in model.parameters()):,} parameters; "
+        f"{len(fresh)} tensors fresh (recipe {recipe.name}), the rest from {spec.init}")
+    model = model.to(device)
+    if cuda:
+        model.inpaint_net.to(memory_format=torch.channels_last)
+        model.refiner.to(memory_format=torch.channels_last_3d)
+    maker = ViewMaker(pack, model.config, device, recipe.grid_factor, spec.shapes, progress=say)
+    say(f"pack: {len(maker)} shapes, {maker.triangles.shape[0]:,} triangles; set-up {time.time() - t0:.0f} s")
+    for p in model.depth_net.parameters():
+        p.requires_grad_(False)
+    params = [p for net in (model.inpaint_net, model.refiner) for p in net.parameters()]
+    opt = torch.optim.AdamW(params, lr=recipe.lr, betas=(recipe.beta1, recipe.beta2), weight_decay=recipe.weight_decay)
+    model.train()
+    model.depth_net.eval()
+    gen = torch.Generator().manual_seed(spec.seed)
+    batch = spec.batch_size or recipe.batch_size
+    rows, step, samples = [], 0, 0
+    train_start = time.time()
+    last_ck = train_start
+    budget = max(deadline - train_start, 1e-3)
+
+    def checkpoint(final: bool) -> None:
+        meta = {"step": step, "samples": samples, "recipe": recipe.name, "init": str(spec.init),
+                "pack_shapes": len(maker), "seconds": round(time.time() - t0, 1), "device": str(device),
+                "final": final, "model": "burst"}
+        write_shards(model, out, meta)
+        with open(out / "log.csv", "w", newline="") as fh:
+            if rows:
+                w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+                w.writeheader()
+                w.writerows(rows)
+        if rows:
+            _plot(rows, out / "loss.png")
+
+    while True:
+        now = time.time()
+        if now >= deadline or (spec.max_steps is not None and step >= spec.max_steps):
+            break
+        frac = (now - train_start) / budget
+        warm = min(1.0, (now - train_start) / recipe.warmup_s) if recipe.warmup_s > 0 else 1.0
+        lr = recipe.lr * warm * (recipe.lr_final + (1 - recipe.lr_final) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
+        for group in opt.param_groups:
+            group["lr"] = lr
+        shape, az, el = maker.draw(gen, batch, recipe)
+        try:
+            sample = maker.make(shape, az, el, recipe.depth_noise, gen)
+            loss, terms = _step_loss(model, sample, recipe, amp=cuda)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        except torch.OutOfMemoryError:
+            if batch == 1:
+                raise
+            batch //= 2
+            opt.zero_grad(set_to_none=True)
+            torch.cuda.empty_cache()
+            say(f"out of memory: batch {batch}")
+            continue
+        step += 1
+        samples += batch
+        if step % spec.log_every == 0 or step == 1:
+            elapsed = time.time() - train_start
+            row = {"step": step, "seconds": round(time.time() - t0, 1), "lr": lr, "batch": batch,
+                   "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}}
+            rows.append(row)
+            say(f"step {step:6d}  loss {row['loss']:.4f}  voxel {row['voxel_bce']:.4f}  sph {row['sph']:.4f}  "
+                f"{step / elapsed:.2f} steps/s  {samples / elapsed:.0f} samples/s  lr {lr:.2e}")
+        if time.time() - last_ck >= spec.checkpoint_minutes * 60.0:
+            checkpoint(False)
+            last_ck = time.time()
+            say(f"checkpoint: step {step}, {out}")
+    checkpoint(True)
+    elapsed = time.time() - train_start
+    summary = {"device": torch.cuda.get_device_name(device) if cuda else f"cpu ({torch.get_num_threads()} threads)",
+               "steps": step, "samples": samples, "batch": batch, "train_seconds": round(elapsed, 1),
+               "setup_seconds": round(train_start - t0, 1), "steps_per_s": step / max(elapsed, 1e-9),
+               "samples_per_s": samples / max(elapsed, 1e-9), "recipe": recipe.name, "init": str(spec.init),
+               "pack": str(spec.pack), "pack_shapes": len(maker), "last_loss": rows[-1]["loss"] if rows else None,
+               "parameters": sum(p.numel() for p in model.parameters())}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    say(f"done: {step} steps in {elapsed:.0f} s ({summary['steps_per_s']:.2f} steps/s, "
+        f"{summary['samples_per_s']:.0f} samples/s); weights in {out}")
+    return summary
+
+
+def main(argv: list[str] | None = None, prog: str = "genre train burst") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description="Train the inpainting net and the refiner on a GPU for a "
+                                     "wall-clock budget, from a training pack (see training/learn/burst.py).")
+    parser.add_argument("--pack", help="a training pack folder (genre data pack)")
+    parser.add_argument("--init", help="weights to start from (e.g. genre_backend/weights/default.safetensors)")
+    parser.add_argument("--out", help="the folder for the shards, log.csv, loss.png and summary.json ($OUT/burst)")
+    parser.add_argument("--recipe", default="wide", choices=sorted(BURST_RECIPES), help="the burst recipe (default wide)")
+    parser.add_argument("--minutes", type=float, default=7.0, help="wall-clock budget, set-up included (default 7)")
+    parser.add_argument("--batch-size", type=int, default=None, help="override the recipe's batch")
+    parser.add_argument("--device", default="auto", help="cuda, cpu or auto (default)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--checkpoint-minutes", type=float, default=1.0)
+    parser.add_argument("--log-every", type=int, default=20)
+    parser.add_argument("--max-steps", type=int, default=None, help="stop after this many steps as well")
+    parser.add_argument("--shapes", type=int, default=None, help="only the first K shapes of the pack")
+    parser.add_argument("--join", metavar="DIR", help="instead of training: join the shards in DIR into --save")
+    parser.add_argument("--save", metavar="FILE", help="with --join: the weights file to write (float32)")
+    args = parser.parse_args(argv)
+    if args.join:
+        if not args.save:
+            parser.error("--join needs --save FILE")
+        try:
+            model, meta = read_shards(args.join)
+        except ValueError as exc:
+            print(f"{prog}: {exc}", file=sys.stderr)
+            return 1
+        save_model(model, args.save, {"burst": meta, "source": str(args.join)})
+        print(f"wrote {args.save} from {args.join} (step {meta.get('step')}, recipe {meta.get('recipe')})")
+        return 0
+    if not (args.pack and args.init and args.out):
+        parser.error("--pack, --init and --out are required")
+    try:
+        spec = BurstSpec(pack=args.pack, init=args.init, out=args.out, recipe=args.recipe, minutes=args.minutes,
+                         batch_size=args.batch_size, device=args.device, seed=args.seed,
+                         checkpoint_minutes=args.checkpoint_minutes, log_every=args.log_every,
+                         max_steps=args.max_steps, shapes=args.shapes)
+        run_burst(spec, say=lambda m: print(m, flush=True))
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
