@@ -28,8 +28,9 @@ weights are written as safetensors shards of at most 15 MiB
 (:func:`write_shards`) into ``--out``, so that a call cut off still returns
 weights; :func:`read_shards` (``genre train burst --join DIR --save FILE``)
 turns them back into a weights file bit for bit.  ``log.csv`` holds the loss
-curve, ``loss.png`` draws it, ``summary.json`` the figures (steps/s,
-samples/s, the device).
+curve, ``loss.png`` draws it, and the index's ``meta.summary`` the figures
+(steps/s, samples/s, the device): with four shards of the ``wide`` model
+that is 7 files, one fewer than a device call brings back.
 """
 
 from __future__ import annotations
@@ -361,7 +362,7 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool) -> tu
 
 
 def run_burst(spec: BurstSpec, say=print) -> dict:
-    """Run one burst; returns the summary (also written to ``OUT/summary.json``)."""
+    """Run one burst; returns the summary (also in ``OUT/weights.index.json``'s ``meta``)."""
     t0 = time.time()
     deadline = t0 + spec.minutes * 60.0
     recipe = get_burst_recipe(spec.recipe)
@@ -399,10 +400,10 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
     last_ck = train_start
     budget = max(deadline - train_start, 1e-3)
 
-    def checkpoint(final: bool) -> None:
+    def checkpoint(final: bool, summary: dict | None = None) -> None:
         meta = {"step": step, "samples": samples, "recipe": recipe.name, "init": str(spec.init),
                 "pack_shapes": len(maker), "seconds": round(time.time() - t0, 1), "device": str(device),
-                "final": final, "model": "burst"}
+                "final": final, "model": "burst", **({"summary": summary} if summary else {})}
         write_shards(model, out, meta)
         with open(out / "log.csv", "w", newline="") as fh:
             if rows:
@@ -449,7 +450,6 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
             checkpoint(False)
             last_ck = time.time()
             say(f"checkpoint: step {step}, {out}")
-    checkpoint(True)
     elapsed = time.time() - train_start
     summary = {"device": torch.cuda.get_device_name(device) if cuda else f"cpu ({torch.get_num_threads()} threads)",
                "steps": step, "samples": samples, "batch": batch, "train_seconds": round(elapsed, 1),
@@ -457,7 +457,7 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
                "samples_per_s": samples / max(elapsed, 1e-9), "recipe": recipe.name, "init": str(spec.init),
                "pack": str(spec.pack), "pack_shapes": len(maker), "last_loss": rows[-1]["loss"] if rows else None,
                "parameters": sum(p.numel() for p in model.parameters())}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    checkpoint(True, summary)  # (the summary travels in the index: a device call brings back 8 files at most)
     say(f"done: {step} steps in {elapsed:.0f} s ({summary['steps_per_s']:.2f} steps/s, "
         f"{summary['samples_per_s']:.0f} samples/s); weights in {out}")
     return summary
@@ -468,7 +468,7 @@ def main(argv: list[str] | None = None, prog: str = "genre train burst") -> int:
                                      "wall-clock budget, from a training pack (see training/learn/burst.py).")
     parser.add_argument("--pack", help="a training pack folder (genre data pack)")
     parser.add_argument("--init", help="weights to start from (e.g. genre_backend/weights/default.safetensors)")
-    parser.add_argument("--out", help="the folder for the shards, log.csv, loss.png and summary.json ($OUT/burst)")
+    parser.add_argument("--out", help="the folder for the shards, their index, log.csv and loss.png ($OUT/burst)")
     parser.add_argument("--recipe", default="wide", choices=sorted(BURST_RECIPES), help="the burst recipe (default wide)")
     parser.add_argument("--minutes", type=float, default=7.0, help="wall-clock budget, set-up included (default 7)")
     parser.add_argument("--batch-size", type=int, default=None, help="override the recipe's batch")
