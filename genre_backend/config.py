@@ -134,7 +134,7 @@ class GeometryConfig:
     # (real photos: the apple's and the orange's fronts).  The basins of the grid's own visible front
     # deeper than 2 voxels and at most about twice this many voxels across are filled with the front
     # around them before the mesh is made, in reconstruction and in evaluation (every row with a mask
-    # alike, after any fusion).  0: off.  Chosen by the rule in results/product/ship_rule.txt
+    # alike, after any fusion).  0: off.  Chosen by the rule in results/decisions.md
     # (scripts/visible_fusion.py --pit-sealing; at most 1 % more CD): the default weights carry 4
     # (product test 0.1193 -> 0.1199, primitives 0.1275 -> 0.1280); the protocol weights 0 (their
     # seen-test CD 0.1020 either way; Table 1 is not re-run for it).  Weights stored without the key: 0 (off).
@@ -144,13 +144,13 @@ class GeometryConfig:
     # its silhouette with the mask, or twice the mesh's mean distance to it over its diagonal, whichever
     # is larger) is at most this; in reconstruction and in evaluation (every row with a depth map alike).
     # 0: off.  Chosen on training-split views by scripts/primitive_snap.py; stored only by the rule in
-    # results/product/ship_rule.txt.  Weights stored without the key: 0 (off).
+    # results/decisions.md.  Weights stored without the key: 0 (off).
     primitive_snap: float = 0.0
     # Test-time mirroring (nets.model.mirror_averaged): the view is also run reflected left to right (the
     # scene mirrored in the view frame's x = 0 plane, a view the nets were trained on with --mirror), the
     # refiner's output reflected back and the two probabilities averaged before the mesh is made; in
     # reconstruction and in evaluation (every learned row alike).  Twice the nets' time.  Turned on only by
-    # the rule in results/product/ship_rule.txt.  Weights stored without the key: off.
+    # the rule in results/decisions.md.  Weights stored without the key: off.
     test_time_mirror: bool = False
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at

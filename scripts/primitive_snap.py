@@ -12,7 +12,7 @@ mesh's mean distance to it over its diagonal, whichever is larger:
 ``PrimitiveFit.disagreement``) is at most ``tau``, so
 one pass gives the mean CD at every ``tau`` of the grid.
 
-The rule (``results/product/ship_rule.txt``, fixed before any fit ran): the
+The rule (``results/decisions.md``, fixed before any fit ran): the
 views are one seeded view of each of ``--shapes`` seeded shapes of each
 ``--views`` folder named with ``:all`` omitted, and views 0 to ``--first-views``
 − 1 of every shape of a folder named ``FOLDER:all``; the tolerance is the grid
@@ -21,7 +21,7 @@ training views: a test view never chooses the tolerance.
 
     .venv/bin/python scripts/primitive_snap.py --weights default \\
         --views $GENRE_HOME/views/product $GENRE_HOME/views/product_primitives:all \\
-        --csv $GENRE_HOME/results/product/primitive_snap/per_view.csv --json results/product/primitive_snap.json
+        --csv $GENRE_HOME/results/product/primitive_snap/per_view.csv --json $GENRE_HOME/results/product/primitive_snap.json
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@
 # then joint rounds:
 #   RECIPE=product_full FIRST_CHAIN=refine RUN=$GENRE_HOME/runs/product_full ROUNDS=0 bash scripts/train_product.sh
 # Installing the weights is a separate, deliberate step (the rule is fixed in
-# results/product/ship_rule.txt): see the end of this script.
+# results/decisions.md): see the end of this script.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 G=.venv/bin/genre
@@ -50,7 +50,7 @@ BASE_HOURS=${BASE_HOURS:-0}
 FIRST_CHAIN=${FIRST_CHAIN:-1}
 RECIPE=${RECIPE:-product}  # training/learn/recipe.py: product, or product_full (the refiner grown)
 CURVE_PREFIX=${CURVE_PREFIX:-}
-# The level every score is read at (results/product/ship_rule.txt): the one the starting weights install.
+# The level every score is read at (results/decisions.md): the one the starting weights install.
 LEVEL=${LEVEL:-$($PY -c "import sys; from genre_backend.nets.model import load_model; print(load_model(sys.argv[1]).config.geometry.default_threshold)" "$INIT")}
 SKIP_TO=${SKIP_TO:-}
 DRY_RUN=${DRY_RUN:-}
@@ -144,9 +144,9 @@ step compare $PY -m training.eval.product compare --product "$SCORES/$LAST" --pr
 step compare_primitives $PY -m training.eval.product compare --product "$SCORES/primitives/$LAST" \
   --protocol "$SCORES/primitives/protocol" --manifest "$M" --out "$RESULTS/primitives.md" --threshold "$LEVEL" \
   --title "Regular primitives of the product test split, 8 views each"
-# Installing (deliberately not automatic): when the rule in results/product/ship_rule.txt says so,
+# Installing (deliberately not automatic): when the rule in results/decisions.md says so,
 #   $PY -m training.eval.install --name default --weights $RUN/joint/round_N.safetensors --threshold $LEVEL --hole-closing K \
 #     --fp16 --test-time-mirror --pit-sealing 4
 # (K from scripts/hole_closing.py on the seen-test views of those weights; the mesh settings the installed file carries,
-# genre_backend/weights/default.json, each chosen by its rule in results/product/ship_rule.txt)
+# genre_backend/weights/default.json, each chosen by its rule in results/decisions.md)
 log "done; learning curve: $RESULTS/learning_curve.csv"

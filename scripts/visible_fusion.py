@@ -35,7 +35,7 @@ to choose.
 ``--pit-sealing K[,K...]`` compares, instead of the fusion, the sealing of the
 narrow wells in the grid's own front (``geometry.pit_sealing``,
 :func:`genre_backend.geometry.mesh_voxels.seal_pits`) at each width K; its rule
-(``results/product/ship_rule.txt``) picks the largest K whose CD rises by at
+(``results/decisions.md``) picks the largest K whose CD rises by at
 most ``CD_TOLERANCE`` on the group given by ``--choose-group``.
 
     .venv/bin/python scripts/visible_fusion.py --weights protocol --views $GENRE_HOME/views/eval --groups test

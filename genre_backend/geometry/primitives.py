@@ -85,7 +85,7 @@ MESH_WEIGHT = 0.3
 EDGE_SHARE = 1.0 / 48.0
 _SECTIONS = 96
 # The snap decision's weight on the mesh points' mean distance to the fit (chosen on the calibration views among 1,
-# 2 and 4: results/product/ship_rule.txt).
+# 2 and 4: results/decisions.md).
 MESH_FACTOR = 2.0
 _EPS2 = 1e-14  # added under square roots: distances exact to 1e-7, gradients finite everywhere
 

@@ -55,7 +55,7 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
-    (the product model keeps the level of the weights it started from: results/product/ship_rule.txt).
+    (the product model keeps the level of the weights it started from: results/decisions.md).
     Returns that threshold.  ``name`` (``protocol`` or ``default``) is stored as ``extra.model``.
     ``hole_closing``: the mesh setting ``geometry.hole_closing`` to store (chosen on seen-test views by
     ``scripts/hole_closing.py``); None keeps the weights' own.
@@ -68,9 +68,9 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     ``primitive_snap``: store ``geometry.primitive_snap`` (the regular-shape stage's tolerance, 0: off; chosen
     on training-split views by ``scripts/primitive_snap.py``); None keeps the weights' own.
     ``test_time_mirror``: store ``geometry.test_time_mirror`` (average each view with its mirror image; turned on
-    only by the rule in results/product/ship_rule.txt); None keeps the weights' own.
+    only by the rule in results/decisions.md); None keeps the weights' own.
     ``pit_sealing``: store ``geometry.pit_sealing`` (voxels; the widest pit in the visible front sealed, 0: off;
-    chosen by ``scripts/visible_fusion.py --pit-sealing`` and the rule in results/product/ship_rule.txt); None keeps
+    chosen by ``scripts/visible_fusion.py --pit-sealing`` and the rule in results/decisions.md); None keeps
     the weights' own.
     ``half``: store the weights as float16, the batch-norm statistics as float32 (``save_model(half=True)``:
     half the file, read back into float32).
@@ -117,15 +117,15 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     if hole_closing is not None:
         extra["hole_closing_from"] = "scripts/hole_closing.py on seen-test views"
     if silhouette_carve is not None:
-        extra["silhouette_carve_from"] = "chosen on seen-test views (results/carve/ship_rule.txt)"
+        extra["silhouette_carve_from"] = "chosen on seen-test views (results/decisions.md)"
     if visible_fusion is not None:
         extra["visible_fusion_from"] = "scripts/visible_fusion.py on seen-test views"
     if primitive_snap is not None:
-        extra["primitive_snap_from"] = "scripts/primitive_snap.py on training-split views (results/product/ship_rule.txt)"
+        extra["primitive_snap_from"] = "scripts/primitive_snap.py on training-split views (results/decisions.md)"
     if test_time_mirror is not None:
-        extra["test_time_mirror_from"] = "results/product/ship_rule.txt"
+        extra["test_time_mirror_from"] = "results/decisions.md"
     if pit_sealing is not None:
-        extra["pit_sealing_from"] = "scripts/visible_fusion.py --pit-sealing (results/product/ship_rule.txt)"
+        extra["pit_sealing_from"] = "scripts/visible_fusion.py --pit-sealing (results/decisions.md)"
     if sph_hit_probability is not None:
         extra["sph_hit_probability_from"] = "scripts/stage_errors.py --hit-levels on seen-test views"
     save_model(model, out, extra, half=half)
@@ -164,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                         "views; default weights only); default: the weights' own")
     p.add_argument("--test-time-mirror", action=argparse.BooleanOptionalAction, default=None,
                    help="store geometry.test_time_mirror (average each view with its mirror image; twice the nets' "
-                        "time; by the rule in results/product/ship_rule.txt); default: the weights' own")
+                        "time; by the rule in results/decisions.md); default: the weights' own")
     p.add_argument("--pit-sealing", type=int, default=None, metavar="K",
                    help="store geometry.pit_sealing = K (voxels: seal the narrow pits in the visible front up to about 2K "
                         "across; 0: off; chosen by scripts/visible_fusion.py --pit-sealing); default: the weights' own")
