@@ -6,6 +6,8 @@ Two presets share one code path:
   maps padded to 160², 128³ voxels).
 * ``default`` -- the CPU preset this project trains and ships (128² images,
   64² spherical maps padded to 96², 64³ voxels, narrow networks).
+* ``wide``    -- ``default``'s resolutions with the nets a GPU burst trains
+  (the shipped weights' inpainting net, a refiner twice as wide).
 
 Modules never hard-code a resolution: they take a :class:`GenreConfig` (or one
 of its parts) and read it from there.  Configs round-trip through plain JSON
@@ -333,6 +335,14 @@ _DATACLASS_TYPES: dict[str, type] = {
 
 PRESETS: dict[str, GenreConfig] = {
     "default": GenreConfig(preset="default", geometry=GeometryConfig(target="distance")),
+    # the nets a GPU burst trains (training/learn/recipe.py: BURST_RECIPES["wide"]): the shipped default weights'
+    # depth and inpainting nets, the refiner twice as wide with an 8-channel full-resolution branch
+    "wide": GenreConfig(
+        preset="wide",
+        geometry=GeometryConfig(target="distance"),
+        network=NetworkConfig(inpaint_widths=(32, 64, 128, 256), inpaint_head="hit", refiner_nf=16, refiner_fc=512,
+                              refiner_full_nf=8),
+    ),
     "paper": GenreConfig(
         preset="paper",
         geometry=GeometryConfig(image_size=256, sph_size=128, sph_pad=16, voxel_size=128, threshold_max=0.70, target="shell"),

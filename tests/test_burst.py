@@ -210,3 +210,15 @@ def test_training_code_is_numpy_2_clean():
     done = subprocess.run([sys.executable, "-m", "ruff", "check", "--select", "NPY201", "--no-cache",
                            "genre_backend", "training"], cwd=ROOT, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_the_repository_travels_with_its_pack():
+    """A device call carries 64 MiB: the tracked tree, the pack and the wheels must fit with a margin."""
+    import subprocess
+
+    from training.data.pack import DEVICE_CARRY_MIB, PACK_BUDGET_MIB, TREE_BUDGET_MIB, WHEELS_BUDGET_MIB
+
+    assert TREE_BUDGET_MIB + PACK_BUDGET_MIB + WHEELS_BUDGET_MIB <= DEVICE_CARRY_MIB - 3  # 3 MiB spare
+    files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout.split(b"\0")
+    tracked = sum((ROOT / f.decode()).stat().st_size for f in files if f and (ROOT / f.decode()).is_file())
+    assert tracked <= TREE_BUDGET_MIB * 2**20, f"the tracked tree is {tracked / 2**20:.1f} MiB"

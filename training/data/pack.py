@@ -42,10 +42,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PACK_FORMAT", "TRAIN_SPLITS", "TEST_SPLITS", "Pack", "pack_bytes", "build_pack", "read_pack",
+__all__ = ["PACK_FORMAT", "DEVICE_CARRY_MIB", "TREE_BUDGET_MIB", "PACK_BUDGET_MIB", "WHEELS_BUDGET_MIB", "TRAIN_SPLITS", "TEST_SPLITS", "Pack", "pack_bytes", "build_pack", "read_pack",
            "quantise", "dequantise", "main"]
 
 PACK_FORMAT = "genre-pack/1"
+# What travels to a device call (64 MiB in all): the tracked tree, the pack and the carried wheels (.whl).
+# tests/test_burst.py holds the tree to its budget; the builder refuses a pack over its own.
+DEVICE_CARRY_MIB = 64
+TREE_BUDGET_MIB = 40
+PACK_BUDGET_MIB = 20
+WHEELS_BUDGET_MIB = 1
 TRAIN_SPLITS = ("product-train", "train")  # the product model's training split; the protocol's (seen classes)
 TEST_SPLITS = ("product-test", "test")
 _JSON, _ARRAYS = "pack.json", "meshes.npz"
@@ -221,7 +227,8 @@ def main(argv: list[str] | None = None, prog: str = "genre data pack") -> int:
     parser.add_argument("--split", default="product-train", choices=TRAIN_SPLITS, help="the training split (default product-train)")
     parser.add_argument("--max-faces", type=int, default=2000, help="decimate meshes above this many triangles (default 2000)")
     parser.add_argument("--limit", type=int, default=None, help="only the first K shapes (tests, smoke runs)")
-    parser.add_argument("--max-mib", type=float, default=None, help="refuse a pack larger than this (MiB)")
+    parser.add_argument("--max-mib", type=float, default=PACK_BUDGET_MIB,
+                        help=f"refuse a pack larger than this (default {PACK_BUDGET_MIB} MiB: what a device call leaves it)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     try:

@@ -26,10 +26,13 @@ REPRESENTATION = "Truth through the representation"  # the true voxel target →
 FLOOR = "Noise floor (truth resampled)"
 
 
-GROUPS = ("test", "unseen", "unseen-pix3d", "product-test")  # Table 1's three; the product model's test split
+# Table 1's three; the product model's test split; and its training split (the fit diagnostic: a fixed sample of
+# training views, CD beside the test split's: while both are alike and far from the floor, the model underfits)
+GROUPS = ("test", "unseen", "unseen-pix3d", "product-test", "product-train")
 
 
-GROUP_LABEL = {"test": "seen-test", "unseen": "unseen", "unseen-pix3d": "unseen-pix3d", "product-test": "product-test"}
+GROUP_LABEL = {"test": "seen-test", "unseen": "unseen", "unseen-pix3d": "unseen-pix3d", "product-test": "product-test",
+               "product-train": "product-train"}
 
 
 EMPTY_CD = 1.0  # the CD given to a threshold whose mesh is empty (normalised clouds: a large error)

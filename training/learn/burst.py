@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from genre_backend.config import GenreConfig
+from genre_backend.config import GenreConfig, get_preset
 from genre_backend.frame import camera_rotation
 from genre_backend.geometry.mesh_voxels import dilate, point_triangles_distance, surface_lattice
 from genre_backend.geometry.raster import mesh_depth
@@ -206,12 +206,16 @@ class ViewMaker:
 # --------------------------------------------------------------------------- the model
 
 
-def widen(model: GenRe, network: dict) -> tuple[GenRe, list[str]]:
-    """``model`` with its NetworkConfig fields replaced by ``network``; every tensor whose name and shape match
-    is copied, the rest start afresh.  Returns the model and the names of the fresh tensors."""
-    if not network:
+def widen(model: GenRe, preset: str | None) -> tuple[GenRe, list[str]]:
+    """``model`` with the inpainting net and refiner of ``preset`` (None: its own), its own depth net, geometry and camera;
+    every tensor whose name and shape match is copied, the rest start afresh.  Returns the model and the
+    names of the fresh tensors."""
+    if preset is None:
         return model, []
-    config = dataclasses.replace(model.config, network=dataclasses.replace(model.config.network, **network))
+    own = model.config.network  # the depth net is never trained by a burst: it stays the weights' own
+    network = dataclasses.replace(get_preset(preset).network, depth_widths=own.depth_widths,
+                                  depth_decoder_blocks=own.depth_decoder_blocks, depth_output_scale=own.depth_output_scale)
+    config = dataclasses.replace(model.config, network=network)
     new = GenRe(config)
     old = model.state_dict()
     state = new.state_dict()
@@ -378,7 +382,7 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
     out = Path(spec.out)
     out.mkdir(parents=True, exist_ok=True)
     pack = read_pack(spec.pack)
-    model, fresh = widen(load_model(spec.init), dict(recipe.network))
+    model, fresh = widen(load_model(spec.init), recipe.preset)
     say(f"model: {sum(p.numel() for p in model.parameters()):,} parameters; "
         f"{len(fresh)} tensors fresh (recipe {recipe.name}), the rest from {spec.init}")
     model = model.to(device)

@@ -226,9 +226,10 @@ class BurstRecipe:
     """How a GPU burst trains (:mod:`training.learn.burst`): the inpainting net and the refiner together,
     from true depth maps of the pack's meshes seen from random views, for a wall-clock budget.
 
-    ``network``: NetworkConfig fields the burst's model takes (others stay the
-    ``--init`` weights'); a net whose widths change starts afresh, every tensor
-    whose name and shape match is copied from ``--init``.  ``lr`` peaks after
+    ``preset``: the model preset whose nets (NetworkConfig) the burst trains
+    (:mod:`genre_backend.config`; None: the ``--init`` weights' own); the
+    geometry stays the ``--init`` weights'.  Every tensor whose name and shape
+    match is copied from ``--init``; the others start afresh.  ``lr`` peaks after
     ``warmup_s`` seconds and follows a cosine to ``lr_final`` × lr at the end
     of the budget.  Views: azimuth uniform, elevation uniform in
     [``elevation_min_deg``, ``elevation_max_deg``].  ``depth_noise``: the
@@ -241,7 +242,7 @@ class BurstRecipe:
 
     name: str
     description: str
-    network: tuple[tuple[str, object], ...] = ()
+    preset: str | None = None
     lr: float = 1e-3
     lr_final: float = 0.05
     warmup_s: float = 20.0
@@ -282,9 +283,9 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
     ),
     BurstRecipe(
         name="wide",
-        description="the refiner twice as wide (nf 16, fc 512) and grown by an 8-channel full-resolution branch; "
-                    "the inpainting net kept from --init; the refiner starts afresh",
-        network=(("refiner_nf", 16), ("refiner_fc", 512), ("refiner_full_nf", 8)),
+        description="the preset 'wide': the refiner twice as wide (nf 16, fc 512) with an 8-channel full-resolution "
+                    "branch, starting afresh; the inpainting net kept from --init",
+        preset="wide",
     ),
 )}
 
