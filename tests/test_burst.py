@@ -62,6 +62,21 @@ def test_point_triangles_distance_matches_its_reference(device):
     assert np.abs(got - ref).max() < 1e-12
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_near_surface_distance_is_exact_within_its_reach(device):
+    from genre_backend.geometry.mesh_voxels import near_surface_distance
+
+    torus = trimesh.creation.torus(0.3, 0.06, major_sections=24, minor_sections=8)
+    tris = torch.from_numpy(torus.vertices[torus.faces]).to(device)
+    points = torch.from_numpy(np.random.default_rng(1).uniform(-0.45, 0.45, (4000, 3))).to(device)
+    full = point_triangles_distance(points, tris)
+    near = near_surface_distance(points, tris, reach=0.05, block=0.07, chunk_pairs=20_000)
+    inside = full <= 0.05
+    assert int(inside.sum()) > 200
+    assert torch.equal(near[inside], full[inside])
+    assert bool((near[~inside] >= full[~inside]).all())
+
+
 def _manifest(tmp: Path, meshes: dict[str, tuple[trimesh.Trimesh, str]]) -> Path:
     (tmp / "shapes").mkdir(parents=True, exist_ok=True)
     shapes = []

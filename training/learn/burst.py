@@ -52,7 +52,7 @@ import torch
 
 from genre_backend.config import GenreConfig, get_preset
 from genre_backend.frame import camera_rotation
-from genre_backend.geometry.mesh_voxels import dilate, point_triangles_distance, surface_lattice
+from genre_backend.geometry.mesh_voxels import dilate, near_surface_distance, surface_lattice
 from genre_backend.geometry.raster import mesh_depth
 from genre_backend.geometry.spherical import crop_sph, pad_sph, raycast_triangles
 from genre_backend.nets.model import GenRe, load_model, save_model
@@ -105,7 +105,7 @@ def object_distance_grid(vertices: torch.Tensor, faces: torch.Tensor, geometry, 
     R = ``factor`` × ``geometry.voxel_size``, over the cube [-E, E]³ with
     E = 0.5 + (band + 1)/N (a posed shape's band can reach past the unit
     cube's faces).  The value at a centre is ``clip(1 − d·N/band, 0, 1)``, d its
-    exact distance to the mesh (:func:`point_triangles_distance`), measured
+    exact distance to the mesh (:func:`near_surface_distance`), measured
     only near the surface (the surface lattice's voxels, dilated past the band).
     """
     n, band = geometry.voxel_size, geometry.distance_band
@@ -122,7 +122,7 @@ def object_distance_grid(vertices: torch.Tensor, faces: torch.Tensor, geometry, 
     reach = int(math.ceil(band / n * r / (2 * extent))) + 1
     cand = torch.nonzero(dilate(occ.view(r, r, r), reach))
     centres = (cand.to(vertices.dtype) + 0.5) * (2 * extent / r) - extent
-    d = point_triangles_distance(centres, vertices[faces.long()])
+    d = near_surface_distance(centres, vertices[faces.long()], band / n)
     value = (1.0 - d * n / band).clamp(0.0, 1.0)
     out[tuple(cand.T)] = torch.round(value * 255.0).to(torch.uint8)
     return out
