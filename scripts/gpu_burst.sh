@@ -13,6 +13,7 @@ INIT=${INIT:-genre_backend/weights/default.safetensors}
 PACK=${PACK:-.pack}
 OUT=${OUT:-$PWD/out/device}
 PY=${PY:-python3}
+BURST_ARGS=${BURST_ARGS:-}  # more options for genre train burst (a smoke run here: --device cpu --shapes 8 --max-steps 3)
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
 "$PY" -c "import torch, numpy; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'numpy', numpy.__version__)"
@@ -22,7 +23,7 @@ if [ -d .whl ] && ls .whl/*.whl >/dev/null 2>&1; then
 fi
 mkdir -p "$OUT/burst"
 "$PY" -m training.learn.burst --pack "$PACK" --init "$INIT" --out "$OUT/burst" --recipe "$RECIPE" --minutes "$MINUTES" \
-  --log-every 50
+  --log-every 50 $BURST_ARGS
 burst=$?
 echo "burst exit $burst"
 # the CUDA cases of the geometry tests (skipped on machines without a GPU, so CI never runs them)

@@ -176,7 +176,7 @@ def test_shards_read_back_bit_for_bit(tmp_path):
     torch.manual_seed(0)
     model = GenRe(TINY)
     paths = write_shards(model, tmp_path, {"step": 3}, shard_bytes=64 * 1024)  # small shards: big tensors are cut
-    assert len(paths) > 3 and all(p.stat().st_size <= 64 * 1024 + 4096 for p in paths)
+    assert len(paths) > 3 and all(p.stat().st_size <= 64 * 1024 + 16 * 1024 for p in paths)  # (+ the JSON header)
     index = json.loads((tmp_path / "weights.index.json").read_text())
     assert index["split"]  # at least one tensor was cut into parts
     back, meta = read_shards(tmp_path)

@@ -24,7 +24,7 @@ the recipe names (halved on running out of memory).  No data loader is
 needed: the samples are made where they are used.
 
 Every ``--checkpoint-minutes`` (default 1) and at the end, the model's
-weights are written as safetensors shards of at most 15 MiB
+weights are written as safetensors shards of at most 16 MiB
 (:func:`write_shards`) into ``--out``, so that a call cut off still returns
 weights; :func:`read_shards` (``genre train burst --join DIR --save FILE``)
 turns them back into a weights file bit for bit.  ``log.csv`` holds the loss
@@ -63,7 +63,7 @@ from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
 
 __all__ = ["BurstSpec", "ViewMaker", "object_distance_grid", "widen", "write_shards", "read_shards", "run_burst", "main"]
 
-SHARD_BYTES = 15 * 2**20  # a file from the device comes back if it is at most 16 MiB
+SHARD_BYTES = 16 * 2**20 - 2**16  # a file from the device comes back if it is at most 16 MiB (64 KiB for the header)
 INDEX_FILE = "weights.index.json"
 
 
@@ -233,7 +233,8 @@ def widen(model: GenRe, preset: str | None) -> tuple[GenRe, list[str]]:
 
 
 def write_shards(model: GenRe, out: str | os.PathLike, meta: dict, shard_bytes: int = SHARD_BYTES) -> list[Path]:
-    """The model's state as safetensors shards of at most ``shard_bytes`` bytes of tensors, plus ``weights.index.json``.
+    """The model's state as safetensors shards of at most ``shard_bytes`` bytes of tensors (first-fit decreasing),
+    plus ``weights.index.json``.
 
     A tensor larger than a shard is cut along its flattened length into parts
     (``name::k/n``).  The index (config, ``meta``, each shard's sha256) is
@@ -256,16 +257,17 @@ def write_shards(model: GenRe, out: str | os.PathLike, meta: dict, shard_bytes: 
         parts = [flat[i:i + step].clone() for i in range(0, flat.numel(), step)]
         per_elem[name] = list(t.shape)
         items += [(f"{name}::{k}/{len(parts)}", p) for k, p in enumerate(parts)]
-    shards, current, used = [], {}, 0
-    for name, t in items:
+    # first-fit decreasing: the fewest shards (a device call brings back 8 files at most)
+    shards, used = [], []
+    for name, t in sorted(items, key=lambda it: -it[1].numel() * it[1].element_size()):
         size = t.numel() * t.element_size()
-        if current and used + size > shard_bytes:
-            shards.append(current)
-            current, used = {}, 0
-        current[name] = t
-        used += size
-    if current:
-        shards.append(current)
+        k = next((i for i, u in enumerate(used) if u + size <= shard_bytes), None)
+        if k is None:
+            shards.append({})
+            used.append(0)
+            k = len(shards) - 1
+        shards[k][name] = t
+        used[k] += size
     paths, digests = [], []
     for k, tensors in enumerate(shards):
         path = out / f"weights-{k + 1:05d}-of-{len(shards):05d}.safetensors"
