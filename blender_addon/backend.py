@@ -27,8 +27,10 @@ import os
 import queue
 import shlex
 import shutil
+import stat
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -43,6 +45,7 @@ __all__ = [
     "weights_argument",
     "MODELS",
     "STAGE_LABELS",
+    "private_temp_root",
 ]
 
 # The add-on preferences' Model choices (identifier, label, description): the backend's two shipped
@@ -538,4 +541,28 @@ class BackendManager:
     def request(self, argv: list[str], kind: str, payload: dict[str, Any] | None = None, **limits: float) -> Request:
         """A :class:`Request` bound to this manager's backend started with ``argv``."""
         return Request(get_client=lambda: self.get(argv), discard_client=self.discard, kind=kind, payload=dict(payload or {}), **limits)
+
+
+def private_temp_root(name: str) -> str:
+    """``<tmp>/name`` when it is (or is now made) a real folder of this user's that only they can enter; else a
+    fresh folder from :func:`tempfile.mkdtemp`.
+
+    The system temp folder is shared: another user may have made a folder of
+    that predictable name, or a link of that name to somewhere else, first.
+    """
+    path = os.path.join(tempfile.gettempdir(), name)
+    try:
+        os.mkdir(path, 0o700)
+    except FileExistsError:
+        pass
+    except OSError:
+        return tempfile.mkdtemp(prefix=name + "-")
+    try:
+        st = os.lstat(path)
+        trusted = stat.S_ISDIR(st.st_mode) and (not hasattr(os, "getuid") or st.st_uid == os.getuid())
+        if trusted and hasattr(os, "getuid") and stat.S_IMODE(st.st_mode) & 0o077:
+            os.chmod(path, 0o700)
+    except OSError:
+        trusted = False
+    return path if trusted else tempfile.mkdtemp(prefix=name + "-")
 

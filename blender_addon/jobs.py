@@ -18,7 +18,7 @@ from typing import Any
 import bpy
 from mathutils import Matrix, Vector
 
-from .backend import STAGE_LABELS, BackendError, BackendManager, Request
+from .backend import STAGE_LABELS, BackendError, BackendManager, Request, private_temp_root
 from .geometry import VIEW_TO_BLENDER_FRONT, MeshFileError, camera_setup, read_obj, to_blender_frame, upright_pixels
 
 __all__ = ["UserError", "JobSpec", "JobLimits", "Job", "prepare_job", "work_root", "COLLECTION_NAME", "BackendError"]
@@ -89,8 +89,7 @@ def work_root(package: str) -> str:
         except (ValueError, KeyError, OSError):
             root = None  # a legacy add-on has no extension folder
     if not root:
-        root = os.path.join(tempfile.gettempdir(), f"genre-addon-jobs-{os.getuid() if hasattr(os, 'getuid') else 'user'}")
-        os.makedirs(root, exist_ok=True)
+        root = private_temp_root(f"genre-addon-jobs-{os.getuid() if hasattr(os, 'getuid') else 'user'}")
     return root
 
 

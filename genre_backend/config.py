@@ -35,6 +35,52 @@ __all__ = [
     "get_preset",
 ]
 
+# ---- bounds: what a config may hold (a weights file carries one; anything outside is refused at load) ----
+# The resolutions are bounded by what one 24 GiB device (or the CPU's memory) can run: at the bounds
+# the refiner's full-resolution grids are 256³ (64 MiB a channel) and the spherical map's points
+# (512·8)² = 16.8 M.  The widths are bounded each here, and the whole model's parameter count at
+# load (nets.model.MAX_PARAMETERS), so that building a model never allocates more than a few GiB.
+MAX_IMAGE_SIZE = 1024
+MAX_SPH_SIZE = 512
+MAX_VOXEL_SIZE = 256
+MAX_SPH_SUPERSAMPLE = 8
+MAX_SHELL_DILATION = 8
+MAX_CHAMFER_POINTS = 1_000_000
+MIN_THRESHOLD_STEP = 0.001
+MIN_OBJECT_FRACTION = 0.05
+MAX_NET_WIDTH = 2048  # each of depth_widths, inpaint_widths
+MAX_DECODER_BLOCKS = 8
+MAX_REFINER_NF = 64
+MAX_REFINER_FC = 8192
+MAX_REFINER_FULL_NF = 256
+MAX_FULL_BRANCH_FLOATS = 2**29  # refiner_full_nf · voxel_size³: 2 GiB of float32 per full-resolution activation
+MAX_MM = 1000.0  # lens and sensor, millimetres
+MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
+# The camera must stay outside the voxel cube [-0.5, 0.5]³, whose corners lie √3/2 ≈ 0.866 from its
+# centre, and near enough for the object (diagonal 1) to span more than a pixel or two.
+MIN_DISTANCE, MAX_DISTANCE = 0.87, 100.0
+MAX_PRESET_CHARS = 100
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _check_int(where: str, value, lo: int, hi: int) -> None:
+    if not (isinstance(value, int) and not isinstance(value, bool) and lo <= value <= hi):
+        raise ValueError(f"{where}: expected an int in [{lo}, {hi:,}], got {_shown(value)}")
+
+
+def _check_float(where: str, value, lo: float, hi: float, lo_open: bool = False) -> None:
+    ok = _number(value) and math.isfinite(value) and (lo < value if lo_open else lo <= value) and value <= hi
+    if not ok:
+        raise ValueError(f"{where}: expected a finite number in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {_shown(value)}")
+
+
+def _shown(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:80] + "…"
+
 
 @dataclass(frozen=True)
 class CameraConfig:
@@ -51,6 +97,18 @@ class CameraConfig:
     # Elevation range (degrees) of random training views; azimuth is uniform.
     elevation_min_deg: float = -10.0
     elevation_max_deg: float = 45.0
+
+    def __post_init__(self):
+        _check_float("camera.lens_mm", self.lens_mm, 0.0, MAX_MM, lo_open=True)
+        _check_float("camera.sensor_mm", self.sensor_mm, 0.0, MAX_MM, lo_open=True)
+        if not MIN_FOV_DEG <= self.fov_deg <= MAX_FOV_DEG:
+            raise ValueError(f"camera: lens_mm {self.lens_mm:g} on sensor_mm {self.sensor_mm:g} gives a field of view of "
+                             f"{self.fov_deg:.3g}°, expected {MIN_FOV_DEG:g}–{MAX_FOV_DEG:g}°")
+        _check_float("camera.distance", self.distance, MIN_DISTANCE, MAX_DISTANCE, lo_open=True)
+        _check_float("camera.elevation_min_deg", self.elevation_min_deg, -90.0, 90.0)
+        _check_float("camera.elevation_max_deg", self.elevation_max_deg, -90.0, 90.0)
+        if self.elevation_min_deg > self.elevation_max_deg:
+            raise ValueError(f"camera: elevation_min_deg {self.elevation_min_deg:g} is above elevation_max_deg {self.elevation_max_deg:g}")
 
     @property
     def fov_deg(self) -> float:
@@ -170,11 +228,15 @@ class GeometryConfig:
     object_fraction: float = 0.5
 
     def __post_init__(self):
-        for name in ("image_size", "sph_size", "voxel_size", "sph_supersample", "chamfer_points"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"geometry.{name}: expected a positive int, got {getattr(self, name)!r}")
-        if self.sph_pad < 0 or self.shell_dilation < 0:
-            raise ValueError("geometry.sph_pad and geometry.shell_dilation must be >= 0")
+        for name, hi in (("image_size", MAX_IMAGE_SIZE), ("sph_size", MAX_SPH_SIZE), ("voxel_size", MAX_VOXEL_SIZE),
+                         ("sph_supersample", MAX_SPH_SUPERSAMPLE), ("chamfer_points", MAX_CHAMFER_POINTS)):
+            _check_int(f"geometry.{name}", getattr(self, name), 1, hi)
+        _check_int("geometry.sph_pad", self.sph_pad, 0, self.sph_size)
+        _check_int("geometry.shell_dilation", self.shell_dilation, 0, MAX_SHELL_DILATION)
+        _check_float("geometry.sph_nohit_min", self.sph_nohit_min, 0.0, 1.0, lo_open=True)
+        _check_float("geometry.depth_edge_max_ratio", self.depth_edge_max_ratio, 0.0, 1000.0, lo_open=True)
+        _check_float("geometry.threshold_step", self.threshold_step, MIN_THRESHOLD_STEP, 1.0)
+        _check_float("geometry.object_fraction", self.object_fraction, MIN_OBJECT_FRACTION, 1.0)
         if self.target not in TARGETS:
             raise ValueError(f"geometry.target: expected one of {TARGETS}, got {self.target!r}")
         if not (math.isfinite(self.distance_band) and 0.5 <= self.distance_band <= 8.0):
@@ -202,8 +264,6 @@ class GeometryConfig:
             raise ValueError(f"geometry: threshold sweep {self.threshold_min}..{self.threshold_max} step {self.threshold_step} is empty")
         if not (math.isfinite(self.sph_hit_probability) and 0.0 < self.sph_hit_probability < 1.0):
             raise ValueError(f"geometry.sph_hit_probability: expected a number in (0, 1), got {self.sph_hit_probability!r}")
-        if not 0.0 < self.object_fraction <= 1.0:
-            raise ValueError(f"geometry.object_fraction: expected a number in (0, 1], got {self.object_fraction!r}")
 
     @property
     def voxel_pitch(self) -> float:
@@ -251,13 +311,23 @@ class NetworkConfig:
     depth_output_scale: float = 10.0
 
     def __post_init__(self):
-        for name in ("refiner_nf", "refiner_fc"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"network.{name}: expected a positive int, got {getattr(self, name)!r}")
+        for name in ("depth_widths", "inpaint_widths"):
+            widths = getattr(self, name)
+            if not (isinstance(widths, (tuple, list)) and len(widths) == 4):
+                raise ValueError(f"network.{name}: expected 4 widths, got {_shown(widths)}")
+            for w in widths:
+                _check_int(f"network.{name}", w, 1, MAX_NET_WIDTH)
+        _check_int("network.depth_decoder_blocks", self.depth_decoder_blocks, 0, MAX_DECODER_BLOCKS)
+        _check_int("network.inpaint_decoder_blocks", self.inpaint_decoder_blocks, 0, MAX_DECODER_BLOCKS)
+        _check_int("network.refiner_nf", self.refiner_nf, 1, MAX_REFINER_NF)
+        _check_int("network.refiner_fc", self.refiner_fc, 1, MAX_REFINER_FC)
         if self.inpaint_head not in INPAINT_HEADS:
             raise ValueError(f"network.inpaint_head: expected one of {INPAINT_HEADS}, got {self.inpaint_head!r}")
-        if self.refiner_full_nf < 0:
-            raise ValueError(f"network.refiner_full_nf: expected an int >= 0 (0: no full-resolution branch), got {self.refiner_full_nf!r}")
+        if not (isinstance(self.refiner_full_nf, int) and not isinstance(self.refiner_full_nf, bool)
+                and 0 <= self.refiner_full_nf <= MAX_REFINER_FULL_NF):
+            raise ValueError(f"network.refiner_full_nf: expected an int in [0, {MAX_REFINER_FULL_NF}] (0: no full-resolution "
+                             f"branch), got {_shown(self.refiner_full_nf)}")
+        _check_float("network.depth_output_scale", self.depth_output_scale, 0.0, 1e6, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -268,6 +338,15 @@ class GenreConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
+
+    def __post_init__(self):
+        if not (isinstance(self.preset, str) and 0 < len(self.preset) <= MAX_PRESET_CHARS and self.preset.isprintable()):
+            raise ValueError(f"preset: expected a printable name of 1 to {MAX_PRESET_CHARS} characters, got {_shown(self.preset)}")
+        floats = self.network.refiner_full_nf * self.geometry.voxel_size ** 3
+        if floats > MAX_FULL_BRANCH_FLOATS:
+            raise ValueError(f"network.refiner_full_nf {self.network.refiner_full_nf} at geometry.voxel_size "
+                             f"{self.geometry.voxel_size}: {floats:,} floats per full-resolution activation, at most "
+                             f"{MAX_FULL_BRANCH_FLOATS:,}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -38,6 +38,9 @@ __all__ = [
     "save_weights",
     "read_weights",
     "load_state_strict",
+    "check_state",
+    "stored_config",
+    "parse_json_bounded",
 ]
 
 
@@ -223,44 +226,122 @@ def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weigh
     return state, meta
 
 
+# The JSON a weights file's metadata carries is parsed only within these bounds (a hostile file could
+# otherwise nest 100,000 brackets, beyond the parser's recursion limit, or hold megabytes of config):
+MAX_CONFIG_CHARS = 64 * 1024  # a stored config is about 2 KB
+MAX_EXTRA_CHARS = 1024 * 1024
+MAX_JSON_DEPTH = 16  # a config nests 3 deep
+
+
+def _json_depth(text: str) -> int:
+    """The deepest nesting of ``[`` / ``{`` in JSON ``text`` (brackets inside strings do not count)."""
+    import re
+
+    depth = deepest = 0
+    for m in re.finditer(r'"(?:[^"\\]|\\.)*"|[\[{]|[\]}]', text):
+        c = m.group()
+        if c in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif c in "]}":
+            depth -= 1
+    return deepest
+
+
+def parse_json_bounded(text: Any, where: str, max_chars: int, max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """``json.loads(text)``, refused (:class:`WeightsError` naming ``where``) when ``text`` is not a string,
+    is longer than ``max_chars``, nests deeper than ``max_depth`` or is not JSON."""
+    if not isinstance(text, str):
+        raise WeightsError(f"{where}: expected JSON text, got {type(text).__name__}")
+    if len(text) > max_chars:
+        raise WeightsError(f"{where}: {len(text):,} characters of JSON, at most {max_chars:,}")
+    depth = _json_depth(text)
+    if depth > max_depth:
+        raise WeightsError(f"{where}: JSON nested {depth:,} deep, at most {max_depth}")
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise WeightsError(f"{where}: not valid JSON ({_first_line(exc)})") from None
+
+
+def _first_line(exc: BaseException, limit: int = 300) -> str:
+    lines = str(exc).strip().splitlines()
+    line = lines[0] if lines else exc.__class__.__name__
+    return line if len(line) <= limit else line[:limit] + "…"
+
+
 def weights_extra(path: str | os.PathLike) -> dict:
     """The ``extra`` a weights file carries in its metadata (``{}`` if none or unreadable): e.g. ``model``, ``source``."""
     from safetensors import safe_open
 
     try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
-            extra = json.loads((f.metadata() or {}).get("extra") or "{}")
+            extra = parse_json_bounded((f.metadata() or {}).get("extra") or "{}", "extra", MAX_EXTRA_CHARS)
     except Exception:  # noqa: BLE001  (a missing or damaged file has no extra; loading it says why)
         return {}
     return extra if isinstance(extra, dict) else {}
 
 
 def stored_config(path: str | os.PathLike, meta: dict[str, str]):
-    """The :class:`~genre_backend.config.GenreConfig` stored in a weights file's metadata (or WeightsError)."""
+    """The :class:`~genre_backend.config.GenreConfig` stored in a weights file's metadata (or WeightsError).
+
+    The JSON is parsed within bounds (:func:`parse_json_bounded`) and every
+    field is range-checked by the config's classes.
+    """
     from .config import GenreConfig
 
+    if "config" not in meta:
+        raise WeightsError(f"{path}: the stored config is invalid (the metadata has no 'config')")
+    data = parse_json_bounded(meta["config"], f"{path}: the stored config", MAX_CONFIG_CHARS)
     try:
-        return GenreConfig.from_dict(json.loads(meta["config"]))
-    except (KeyError, ValueError, TypeError) as exc:
-        raise WeightsError(f"{path}: the stored config is invalid ({exc})") from None
+        return GenreConfig.from_dict(data)
+    except (KeyError, ValueError, TypeError, OverflowError) as exc:
+        raise WeightsError(f"{path}: the stored config is invalid ({_first_line(exc)})") from None
 
 
-def load_state_strict(module, state: dict, path: str | os.PathLike) -> None:
-    """``module.load_state_dict(state, strict=True)``; a mismatch becomes a one-line :class:`WeightsError`.
+def check_state(wanted: dict, state: dict, path: str | os.PathLike) -> None:
+    """Refuse (:class:`WeightsError`, one line) a file's tensors ``state`` that do not fit a model's ``wanted`` state dict.
 
-    The message names the first tensor that is missing, unexpected, or of
-    another shape (with both shapes).
+    ``wanted``: name → tensor (any device, the meta device included: only
+    shapes and dtypes are read).  Every tensor must be present, none extra,
+    each of the model's shape; where the model's tensor is floating-point the
+    file's must be floating-point (float16, bfloat16, float32 or float64) and
+    finite (no NaN, no ±inf); where it is an integer (batch-norm step
+    counters) the file's must have the same dtype.
     """
-    wanted = module.state_dict()
+    import torch
+
     for name, tensor in wanted.items():
         if name not in state:
             raise WeightsError(f"{path}: weights do not match the stored config (tensor {name} is missing from the file)")
-        if tuple(state[name].shape) != tuple(tensor.shape):
+        got = state[name]
+        if tuple(got.shape) != tuple(tensor.shape):
             raise WeightsError(f"{path}: weights do not match the stored config (tensor {name} has shape "
-                               f"{tuple(state[name].shape)} in the file, the model wants {tuple(tensor.shape)})")
+                               f"{tuple(got.shape)} in the file, the model wants {tuple(tensor.shape)})")
+        if tensor.is_floating_point():
+            if not got.is_floating_point():
+                raise WeightsError(f"{path}: tensor {name} is {str(got.dtype).replace('torch.', '')} in the file; "
+                                   f"the model's weights are floating-point")
+            if not bool(torch.isfinite(got).all()):
+                bad = int((~torch.isfinite(got)).sum())
+                raise WeightsError(f"{path}: tensor {name} holds {bad:,} values that are not finite (NaN or ±inf)")
+        elif got.dtype != tensor.dtype:
+            raise WeightsError(f"{path}: tensor {name} is {str(got.dtype).replace('torch.', '')} in the file, "
+                               f"the model wants {str(tensor.dtype).replace('torch.', '')}")
     extra = sorted(set(state) - set(wanted))
     if extra:
         raise WeightsError(f"{path}: weights do not match the stored config (unexpected tensor {extra[0]} in the file)")
+
+
+def load_state_strict(module, state: dict, path: str | os.PathLike) -> None:
+    """``module.load_state_dict(state, strict=True)`` after :func:`check_state`; a mismatch becomes a one-line
+    :class:`WeightsError`.
+
+    The message names the first tensor that is missing, unexpected, of
+    another shape (with both shapes), of a dtype that does not fit, or not
+    finite.
+    """
+    check_state(module.state_dict(), state, path)
     try:
         module.load_state_dict(state, strict=True)
     except RuntimeError as exc:

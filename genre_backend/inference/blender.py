@@ -11,6 +11,8 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import shutil
+import stat
 import sys
 import tempfile
 from pathlib import Path
@@ -19,7 +21,7 @@ import numpy as np
 
 from ..config import CameraConfig
 
-__all__ = ["prepare_blender_environment", "quiet_stdout", "import_bpy", "render_meshes", "render_textured", "photo_colour_error"]
+__all__ = ["prepare_blender_environment", "own_private_folder", "private_scratch", "quiet_stdout", "import_bpy", "render_meshes", "render_textured", "photo_colour_error"]
 
 
 def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> Path:
@@ -27,19 +29,70 @@ def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> P
 
     Sets ``BLENDER_USER_RESOURCES`` and ``XDG_CACHE_HOME`` unless they are
     already set, so bpy never writes into the home folder.  The default
-    folder is ``$GENRE_BLENDER_CACHE`` or ``<tmp>/genre-blender-<uid>``.
-    Returns the folder used.
+    folder is ``$GENRE_BLENDER_CACHE``, else ``<tmp>/genre-blender-<uid>``
+    when that is a real folder of this user's that nobody else can write
+    (:func:`own_private_folder`), else a fresh private folder from
+    :func:`tempfile.mkdtemp`.  Returns the folder used.
     """
     if cache_dir is None:
-        cache_dir = os.environ.get("GENRE_BLENDER_CACHE") or os.path.join(
-            tempfile.gettempdir(), f"genre-blender-{os.getuid() if hasattr(os, 'getuid') else 'user'}"
-        )
-    root = Path(cache_dir)
+        cache_dir = os.environ.get("GENRE_BLENDER_CACHE")
+    if cache_dir is None:
+        uid = os.getuid() if hasattr(os, "getuid") else "user"
+        root = own_private_folder(Path(tempfile.gettempdir()) / f"genre-blender-{uid}")
+        if root is None:  # someone else's folder (or a link) took the shared name: use a fresh one
+            root = Path(tempfile.mkdtemp(prefix="genre-blender-"))
+    else:
+        root = Path(cache_dir)
     (root / "user").mkdir(parents=True, exist_ok=True)
     (root / "xdg-cache").mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("BLENDER_USER_RESOURCES", str(root / "user"))
     os.environ.setdefault("XDG_CACHE_HOME", str(root / "xdg-cache"))
     return root
+
+
+def own_private_folder(path: Path) -> Path | None:
+    """``path`` as a folder only this user can enter (created 0700 when missing), or None when it cannot be trusted.
+
+    A folder under a shared, world-writable parent (``/tmp``) with a
+    predictable name may have been made by someone else, or be a symbolic
+    link to somewhere else; either is refused (None) rather than written
+    into.  An existing real folder of this user's is made 0700.
+    """
+    try:
+        os.mkdir(path, 0o700)
+    except FileExistsError:
+        pass
+    except OSError:
+        return None
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    if not stat.S_ISDIR(st.st_mode):  # a symbolic link (lstat does not follow it) or a file
+        return None
+    if hasattr(os, "getuid"):
+        if st.st_uid != os.getuid():
+            return None
+        if stat.S_IMODE(st.st_mode) & 0o077:
+            try:
+                os.chmod(path, 0o700, follow_symlinks=False)
+            except (OSError, NotImplementedError):
+                return None
+    return path
+
+
+@contextlib.contextmanager
+def private_scratch(prefix: str = "genre-"):
+    """A fresh folder from :func:`tempfile.mkdtemp` (mode 0700, unpredictable name), removed on exit.
+
+    Every temporary file of a render lies in one of these, so no name a
+    render writes to can be guessed, or planted as a link, by another user.
+    """
+    folder = Path(tempfile.mkdtemp(prefix=prefix))
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -130,8 +183,8 @@ def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, 
     from PIL import Image
 
     out = []
-    tmp = Path(tempfile.gettempdir()) / f"genre_mesh_render_{os.getpid()}.png"
-    try:
+    with private_scratch("genre-mesh-render-") as scratch:
+        tmp = scratch / "render.png"
         for verts, faces in meshes:
             me = bpy.data.meshes.new("m")
             me.from_pydata(np.asarray(verts, float).tolist(), [], np.asarray(faces, int).tolist())
@@ -151,8 +204,6 @@ def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, 
             bpy.data.objects.remove(obj)
             bpy.data.meshes.remove(me)
             out.append(images)
-    finally:
-        tmp.unlink(missing_ok=True)
     return out
 
 
@@ -190,9 +241,8 @@ def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, tex
     scene.camera = cam
     from PIL import Image
 
-    tmp = Path(tempfile.gettempdir()) / f"genre_textured_{os.getpid()}"
-    tex_path, out_path = tmp.with_suffix(".tex.png"), tmp.with_suffix(".png")
-    try:
+    with private_scratch("genre-textured-") as scratch:
+        tex_path, out_path = scratch / "texture.png", scratch / "render.png"
         Image.fromarray(tex).save(tex_path)
         image = bpy.data.images.load(str(tex_path))
         mat = bpy.data.materials.new("photo")
@@ -219,9 +269,6 @@ def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, tex
             bpy.ops.render.render(write_still=True)
         with Image.open(out_path) as im:
             rgba = np.asarray(im.convert("RGBA"))
-    finally:
-        tex_path.unlink(missing_ok=True)
-        out_path.unlink(missing_ok=True)
     return rgba[..., :3].copy(), rgba[..., 3] == 255
 
 

@@ -169,6 +169,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     except (WeightsError, ValueError) as exc:
         print(f"{prog}: error: {_one_line(exc)} [{error_code(exc)}]", file=sys.stderr)
         return 1
+    except Exception as exc:  # noqa: BLE001  (load_model turns a bad file into WeightsError; anything else is one line too)
+        print(f"{prog}: error: internal error while loading {weights}: {exc.__class__.__name__}: {_one_line(exc)} [internal]",
+              file=sys.stderr)
+        return 1
 
     outputs = output_paths(images, args.output, fmt)
     many = len(images) > 1

@@ -485,6 +485,8 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
         return fatal("bad_weights", _one_line(exc))
     except ValueError as exc:
         return fatal("bad_field", _one_line(exc))
+    except Exception as exc:  # noqa: BLE001  (load_model turns a bad file into WeightsError; anything else is one line too)
+        return fatal("internal", f"internal error while loading {weights}: {exc.__class__.__name__}: {_one_line(exc)}")
     log.info("loaded %s (preset %s) on %s", weights, rec.preset, rec.device)
     try:
         return Server(rec, out, str(rec.device)).serve(stdin)

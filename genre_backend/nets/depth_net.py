@@ -34,6 +34,8 @@ class DepthNet(nn.Module):
         super().__init__()
         net = config.network
         self.size = config.geometry.image_size
+        if self.size % 32:  # the encoder halves the image five times; the decoder's skips must line up
+            raise ValueError(f"image side {self.size} must be a multiple of 32")
         self.distance = config.camera.distance
         self.scale = net.depth_output_scale
         self.encoder = ResNetEncoder(3, net.depth_widths)

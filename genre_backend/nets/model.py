@@ -29,9 +29,9 @@ from .refiner import VoxelRefiner
 from ..geometry.spherical import depth_to_sph, mirror_sph, sph_to_voxels
 from ..validation import check_tensor
 from ..geometry.voxels import mirror_voxels, points_to_voxels
-from ..io import WeightsError, load_state_strict, read_weights, save_weights, stored_config
+from ..io import WeightsError, check_state, read_weights, save_weights, stored_config
 
-__all__ = ["GenRe", "mirror_averaged", "mean_probability_logits", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError"]
+__all__ = ["GenRe", "mirror_averaged", "mean_probability_logits", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError", "MAX_PARAMETERS"]
 
 WEIGHTS_FORMAT = "genre-weights/1"
 
@@ -235,13 +235,48 @@ def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None,
                                             **({"storage": "float16"} if half else {})})
 
 
+# The most parameters a weights file's config may ask for, counted on the meta device before anything
+# is allocated: 500 M float32 parameters are 2 GiB (the paper preset has 98 M, the default 1.6 M).
+MAX_PARAMETERS = 500_000_000
+
+
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> GenRe:
     """Load a model saved by :func:`save_model`; the config (preset) comes from the file.
 
+    The file is checked whole before the model is built: the metadata's JSON
+    within bounds, every config field in range (:mod:`genre_backend.config`),
+    the model the config describes built on the meta device (no memory) and
+    its parameters counted (at most :data:`MAX_PARAMETERS`), and every tensor
+    present, of the model's shape, floating-point and finite where the
+    model's is (:func:`genre_backend.io.check_state`).  Anything else raised
+    while the model is built and loaded becomes a :class:`WeightsError` too.
     Raises :class:`WeightsError` with a one-line reason for a missing,
-    corrupt, foreign or version-mismatched file.
+    corrupt, foreign, hostile or version-mismatched file.
     """
     state, meta = read_weights(path, WEIGHTS_FORMAT)
-    model = GenRe(stored_config(path, meta))
-    load_state_strict(model, state, path)
-    return model.to(device).eval()
+    config = stored_config(path, meta)
+    try:
+        with torch.device("meta"):
+            skeleton = GenRe(config)
+        wanted = skeleton.state_dict()
+    except Exception as exc:  # noqa: BLE001  (a config the networks cannot be built from)
+        raise WeightsError(f"{path}: the stored config does not make a model ({_reason(exc)})") from None
+    count = sum(t.numel() for t in wanted.values())
+    if count > MAX_PARAMETERS:
+        raise WeightsError(f"{path}: the stored config asks for {count:,} parameters, at most {MAX_PARAMETERS:,}")
+    check_state(wanted, state, path)
+    del skeleton, wanted
+    try:
+        model = GenRe(config)
+        model.load_state_dict(state, strict=True)  # (checked above: names, shapes, dtypes, finite values)
+        return model.to(device).eval()
+    except WeightsError:
+        raise
+    except Exception as exc:  # noqa: BLE001  (whatever else building it raises: the file is refused whole)
+        raise WeightsError(f"{path}: the model could not be built from the file ({_reason(exc)})") from None
+
+
+def _reason(exc: BaseException, limit: int = 300) -> str:
+    lines = str(exc).strip().splitlines()
+    line = f"{exc.__class__.__name__}: {lines[0]}" if lines else exc.__class__.__name__
+    return line if len(line) <= limit else line[:limit] + "…"

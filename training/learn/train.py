@@ -51,6 +51,7 @@ import math
 import os
 import shutil
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,7 +63,7 @@ from torch import nn
 from genre_backend.config import INPAINT_HEADS, PRESETS, TARGETS, GenreConfig, get_preset
 from genre_backend.nets.model import GenRe, grow_refiner, load_model, save_model, with_inpaint_net, with_inpaint_net_of
 from genre_backend.geometry.spherical import crop_sph, pad_sph
-from genre_backend.io import atomic_write, atomic_write_bytes
+from genre_backend.io import _UMASK, atomic_write, atomic_write_bytes
 
 from ..data.dataset import ViewDataset, split_views
 from ..data.views import gather_views
@@ -367,9 +368,9 @@ def _save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Opti
         "model_config": module.model.config.to_dict(),
         "train_config": dataclasses.asdict(tcfg),
     }
-    tmp = stage_dir / f"checkpoint.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f"checkpoint.tmp-{os.getpid()}-", dir=stage_dir))  # a fresh name, never a planted one
+    os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp makes 0700; the checkpoint gets the usual permissions
     save_file(tensors, str(tmp / "state.safetensors"))
     (tmp / "state.json").write_text(json.dumps(meta))
     final = stage_dir / "checkpoint"
