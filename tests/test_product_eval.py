@@ -119,3 +119,17 @@ def test_compare_table_reads_the_product_folders_chosen_row(tmp_path):
     assert "| all | 4 | 0.100 | 0.145 |" in product.compare_table(a, b, MANIFEST)
     with pytest.raises(ValueError, match="no row 'GenRe-Oracle'"):
         product.compare_table(a, b, MANIFEST, product_row="GenRe-Oracle")
+
+
+def test_fit_table_puts_training_views_beside_the_test_split(tmp_path):
+    train = _eval_dir(tmp_path / "train", 0.45, _rows({"plane": [0.06, 0.08], "lamp": [0.05], "procedural-primitive-000": [0.03],
+                                                       "procedural-lathe-000": [0.04]}))
+    test = _eval_dir(tmp_path / "test", 0.45, _rows({"plane": [0.10, 0.20], "lamp": [0.11], "procedural-primitive-000": [0.04],
+                                                     "procedural-lathe-000": [0.10]}))
+    text = product.fit_table([("installed", train, test)])
+    row = [c.strip() for c in text.splitlines()[2].split("|")[1:-1]]
+    # train: (0.07 + 0.05 + 0.03 + 0.04) / 4 = 0.0475 over a floor of 0.02; test 0.100 (see above); 0.0475 / 0.1 = 0.475
+    assert row == ["installed", "5", "0.0475", "2.38×", "5", "0.1000", "5.00×", "0.475"]
+    out = tmp_path / "fit.md"
+    assert product.main(["fit", "--model", "installed", str(train), str(test), "--out", str(out)]) == 0
+    assert out.read_text() == text

@@ -15,6 +15,9 @@ regular primitives         the procedural cubes, cylinders, cones and tori (rand
 =========================  ====================================================================
 
 ``python -m training.eval.product compare`` writes the side-by-side table;
+``python -m training.eval.product fit`` writes the fit diagnostic (CD on a fixed
+sample of training views beside CD on the test split, each against its noise
+floor: while the two are alike and far from the floor, the model underfits);
 ``python -m training.eval.product curve`` appends one point (cumulative
 processor hours of a product run, its mean CD on the product test split) to
 the learning curve and plots it.
@@ -37,7 +40,7 @@ from genre_backend.io import atomic_write_text
 from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key
 
-__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "curve_point", "main"]
+__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "curve_point", "fit_table", "main"]
 
 PRIMITIVE_KINDS = ("cube", "cylinder", "cone", "torus")  # the issue's regular primitives
 GROUPS = ("all", "seen by protocol", "unseen by protocol", "procedural", "regular primitives")
@@ -249,6 +252,28 @@ def plot_curve(rows: list[dict], png: Path) -> None:
     plt.close(fig)
 
 
+def fit_table(models: list[tuple[str, Path, Path]], threshold: float | None = None) -> str:
+    """The fit diagnostic, one line per model: ``(label, train eval folder, test eval folder)``.
+
+    Each figure is the mean over shapes of the GenRe row's CD (1,024 points)
+    at ``threshold`` (else each folder's chosen level), beside the noise floor
+    of the same views; the last column is train ÷ test.
+    """
+    lines = ["| weights | training views | CD (train) | ÷ floor | test views | CD (test) | ÷ floor | train ÷ test |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for label, train_dir, test_dir in models:
+        figures = []
+        for folder in (train_dir, test_dir):
+            scores = load_scores(folder, threshold=threshold)
+            cd = _mean(_shape_means(scores, "cd").values())
+            floor = _mean(_shape_means(scores, "floor").values())
+            figures.append((len(scores), cd, floor))
+        (n_tr, cd_tr, fl_tr), (n_te, cd_te, fl_te) = figures
+        lines.append(f"| {label} | {n_tr} | {cd_tr:.4f} | {cd_tr / fl_tr:.2f}× | {n_te} | {cd_te:.4f} | "
+                     f"{cd_te / fl_te:.2f}× | {cd_tr / cd_te:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.eval.product", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -262,6 +287,11 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--product-row", default="GenRe",
                    help="the product folder's row (default GenRe; GenRe-Oracle or GenRe-SphOracle: the product weights "
                         "given the true depth, or the true depth and full spherical map); the protocol's is GenRe")
+    f = sub.add_parser("fit", help="the fit diagnostic: CD on training views beside CD on the test split")
+    f.add_argument("--model", nargs=3, action="append", required=True, metavar=("LABEL", "TRAIN_EVAL", "TEST_EVAL"),
+                   help="a model's label and its genre eval folders on product-train and product-test views (repeatable)")
+    f.add_argument("--threshold", type=float, help="score at this level (default: each folder's thresholds.json)")
+    f.add_argument("--out", required=True, help="markdown file to write")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
@@ -284,6 +314,10 @@ def main(argv: list[str] | None = None) -> int:
                                  thresholds=(args.threshold, args.threshold), product_row=args.product_row)
             atomic_write_text(Path(args.out), text)
             print(text)
+        elif args.cmd == "fit":
+            text = fit_table([(label, Path(tr), Path(te)) for label, tr, te in args.model], args.threshold)
+            atomic_write_text(Path(args.out), text)
+            print(text, end="")
         else:
             point = curve_point(Path(args.run) if args.run else None, Path(args.eval), threshold=args.threshold,
                                 base_hours=args.base_hours, stages=tuple(s.strip() for s in args.stages.split(",") if s.strip()))
