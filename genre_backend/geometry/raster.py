@@ -18,6 +18,7 @@ import torch
 
 from ..config import CameraConfig
 from ..validation import check_positive_int, check_tensor
+from .spherical import ray_triangles_reference
 
 __all__ = ["mesh_depth", "mesh_depth_reference", "pixel_rays"]
 
@@ -116,24 +117,12 @@ def mesh_depth_reference(triangles: np.ndarray, camera: CameraConfig, image_size
     float64 from the camera centre along the pixel's ray (planar depth 1);
     returns (S, S) float64 planar depth, 0 where nothing is hit.
     """
-    tri = np.asarray(triangles, dtype=np.float64)
     rays = pixel_rays(camera, image_size, dtype=torch.float64).numpy()
     origin = np.array([0.0, 0.0, camera.distance])
     out = np.zeros((image_size, image_size))
-    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    tvec = origin - v0
     for i in range(image_size):
         for j in range(image_size):
-            d = rays[i, j]
-            p = np.cross(d, e2)
-            det = (e1 * p).sum(-1)
-            ok = np.abs(det) > 1e-15
-            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-            a = (tvec * p).sum(-1) * inv
-            q = np.cross(tvec, e1)
-            b = (d * q).sum(-1) * inv
-            t = (e2 * q).sum(-1) * inv
-            hit = ok & (a >= 0) & (b >= 0) & (a + b <= 1) & (t > 0)
+            hit, t = ray_triangles_reference(origin, rays[i, j], triangles)
             if hit.any():
                 out[i, j] = t[hit].min()
     return out

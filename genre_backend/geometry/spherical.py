@@ -38,6 +38,7 @@ from ..validation import check_positive_int, check_tensor
 from .voxels import points_to_voxels
 
 __all__ = [
+    "ray_triangles_reference",
     "NO_HIT",
     "sph_directions",
     "directions_to_pixels",
@@ -211,23 +212,33 @@ def raycast_triangles_reference(triangles: np.ndarray, height: int, width: int |
     tri = np.asarray(triangles, dtype=np.float64)
     dirs = sph_directions(height, width, dtype=torch.float64).numpy()
     out = np.ones((height, width))
-    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     for i in range(height):
         for j in range(width):
-            d = dirs[i, j]
-            p = np.cross(d, e2)
-            det = (e1 * p).sum(-1)
-            ok = np.abs(det) > 1e-15
-            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-            tvec = -v0  # ray origin is 0
-            u = (tvec * p).sum(-1) * inv
-            q = np.cross(tvec, e1)
-            v = (d * q).sum(-1) * inv
-            t = (e2 * q).sum(-1) * inv
-            hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t <= 1)
+            hit, t = ray_triangles_reference(np.zeros(3), dirs[i, j], tri)
+            hit &= t <= 1
             if hit.any():
                 out[i, j] = 1.0 - t[hit].max()
     return out
+
+
+def ray_triangles_reference(origin: np.ndarray, direction: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Möller–Trumbore in float64: which triangles (T, 3, 3) the ray ``origin + t·direction`` (t > 0) meets, and t.
+
+    Returns ``(hit (T,) bool, t (T,) float64)``; the references of the ray casters
+    (here and :func:`genre_backend.geometry.raster.mesh_depth_reference`) loop over rays with it.
+    """
+    tri = np.asarray(triangles, dtype=np.float64)
+    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    p = np.cross(direction, e2)
+    det = (e1 * p).sum(-1)
+    ok = np.abs(det) > 1e-15
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tvec = origin - v0
+    u = (tvec * p).sum(-1) * inv
+    q = np.cross(tvec, e1)
+    v = (direction * q).sum(-1) * inv
+    t = (e2 * q).sum(-1) * inv
+    return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0), t
 
 
 def depth_to_triangles(
