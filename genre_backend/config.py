@@ -7,7 +7,8 @@ Two presets share one code path:
 * ``default`` -- the CPU preset this project trains and ships (128² images,
   64² spherical maps padded to 96², 64³ voxels, narrow networks).
 * ``wide``    -- ``default``'s resolutions with the nets a GPU burst trains
-  (the shipped weights' inpainting net, a refiner twice as wide).
+  (the shipped weights' inpainting net; a refiner twice as wide at the fine
+  levels, capped at 64 channels, with a full-resolution branch).
 
 Modules never hard-code a resolution: they take a :class:`GenreConfig` (or one
 of its parts) and read it from there.  Configs round-trip through plain JSON
@@ -307,6 +308,10 @@ class NetworkConfig:
     # width of the refiner's non-linear full-resolution branch (0: none; weights stored without the key
     # have none).  The presets have none; the product recipe grows one (training/learn/recipe.py).
     refiner_full_nf: int = 0
+    # the refiner's widths nf·2^k capped at this (0: no cap; weights stored without the key have none): the preset
+    # 'wide' has a wide base without the parameters of the deepest levels, so that its file stays small enough to
+    # travel to a lent GPU and back (training/data/pack.py: the carry budget)
+    refiner_max_width: int = 0
     # the depth net predicts planar depth as distance + output / depth_output_scale
     depth_output_scale: float = 10.0
 
@@ -321,6 +326,7 @@ class NetworkConfig:
         _check_int("network.inpaint_decoder_blocks", self.inpaint_decoder_blocks, 0, MAX_DECODER_BLOCKS)
         _check_int("network.refiner_nf", self.refiner_nf, 1, MAX_REFINER_NF)
         _check_int("network.refiner_fc", self.refiner_fc, 1, MAX_REFINER_FC)
+        _check_int("network.refiner_max_width", self.refiner_max_width, 0, MAX_NET_WIDTH)
         if self.inpaint_head not in INPAINT_HEADS:
             raise ValueError(f"network.inpaint_head: expected one of {INPAINT_HEADS}, got {self.inpaint_head!r}")
         if not (isinstance(self.refiner_full_nf, int) and not isinstance(self.refiner_full_nf, bool)
@@ -415,12 +421,14 @@ _DATACLASS_TYPES: dict[str, type] = {
 PRESETS: dict[str, GenreConfig] = {
     "default": GenreConfig(preset="default", geometry=GeometryConfig(target="distance")),
     # the nets a GPU burst trains (training/learn/recipe.py: BURST_RECIPES["wide"]): the shipped default weights'
-    # depth and inpainting nets, the refiner twice as wide with an 8-channel full-resolution branch
+    # depth and inpainting nets; a refiner twice as wide at every resolution down to 8³ (base 16, capped at 64)
+    # with a 16-channel full-resolution branch: 4x the default refiner's work at 32³ and 16³ for the same
+    # 2.4 M parameters, so that the weights file stays the size of today's (the carry budget, training/data/pack.py)
     "wide": GenreConfig(
         preset="wide",
         geometry=GeometryConfig(target="distance"),
-        network=NetworkConfig(inpaint_widths=(32, 64, 128, 256), inpaint_head="hit", refiner_nf=16, refiner_fc=512,
-                              refiner_full_nf=8),
+        network=NetworkConfig(inpaint_widths=(32, 64, 128, 256), inpaint_head="hit", refiner_nf=16, refiner_fc=256,
+                              refiner_full_nf=16, refiner_max_width=64),
     ),
     "paper": GenreConfig(
         preset="paper",

@@ -44,7 +44,7 @@ class GenRe(nn.Module):
         self.depth_net = DepthNet(config)
         self.inpaint_net = InpaintNet(config)
         n = config.network
-        self.refiner = VoxelRefiner(g.voxel_size, n.refiner_nf, n.refiner_fc, n.refiner_full_nf)
+        self.refiner = VoxelRefiner(g.voxel_size, n.refiner_nf, n.refiner_fc, n.refiner_full_nf, n.refiner_max_width)
 
     # -- the projections between the networks --------------------------------------------
     def masked_depth(self, depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -21,6 +21,10 @@ CD 0.18 from the true spherical and depth maps, against 0.065 for the
 projected true map alone).  It is linear and one channel wide to keep the
 cost at N³ small on the CPU.
 
+``max_width > 0`` caps every level's width (a wide base, ``nf``, without the
+parameters of the deepest levels, which a GPU burst's bf16 time does not need
+and a weights file that must travel cannot carry).
+
 ``full_nf > 0`` adds a second, non-linear full-resolution branch (ours too):
 three 3×3×3 convolutions (``full_nf`` channels, then one) over the two input
 grids and the logits above, whose output is added to those logits.  It sees
@@ -59,13 +63,13 @@ def _block(conv: nn.Module, channels: int) -> nn.Sequential:
 
 
 class VoxelRefiner(nn.Module):
-    def __init__(self, resolution: int, nf: int, fc: int, full_nf: int = 0):
+    def __init__(self, resolution: int, nf: int, fc: int, full_nf: int = 0, max_width: int = 0):
         super().__init__()
         levels = int(round(math.log2(resolution))) - 1
         if 2 ** (levels + 1) != resolution or levels < 2:
             raise ValueError(f"refiner resolution must be a power of two ≥ 8, got {resolution}")
         self.resolution = resolution
-        widths = [nf * 2**k for k in range(levels)]
+        widths = [nf * 2**k if not max_width else min(nf * 2**k, max_width) for k in range(levels)]
         self.pre = nn.ModuleList()
         self.down = nn.ModuleList()
         cin = 2

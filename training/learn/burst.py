@@ -29,8 +29,8 @@ weights are written as safetensors shards of at most 16 MiB
 weights; :func:`read_shards` (``genre train burst --join DIR --save FILE``)
 turns them back into a weights file bit for bit.  ``log.csv`` holds the loss
 curve, ``loss.png`` draws it, and the index's ``meta.summary`` the figures
-(steps/s, samples/s, the device): with four shards of the ``wide`` model
-that is 7 files, one fewer than a device call brings back.
+(steps/s, samples/s, the device): with the ``wide`` model's two shards
+that is 5 files of the 8 a device call brings back.
 """
 
 from __future__ import annotations

@@ -283,8 +283,9 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
     ),
     BurstRecipe(
         name="wide",
-        description="the preset 'wide': the refiner twice as wide (nf 16, fc 512) with an 8-channel full-resolution "
-                    "branch, starting afresh; the inpainting net kept from --init",
+        description="the preset 'wide': the refiner twice as wide at the fine levels (base 16, capped at 64) with a "
+                    "16-channel full-resolution branch, 2.4 M parameters as today's, starting afresh; the inpainting "
+                    "net kept from --init",
         preset="wide",
     ),
 )}
