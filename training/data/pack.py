@@ -20,6 +20,12 @@ A pack is a folder::
                        int64: shape i owns vertices[vo[i]:vo[i+1]] and
                        faces[fo[i]:fo[i+1]]
 
+``thin=N`` adds, after the manifest's shapes, N shapes of every kind of
+:mod:`training.data.sources.thin` (procedural plates, cards, books, leaves,
+thin-walled bowls and rods: ``thin-<kind>-<k>``, class ``thin-<kind>``,
+source ``procedural-thin``, CC0).  They are training-only shapes, in no
+corpus split and with no test members; pack.json records ``thin``.
+
 Meshes above ``max_faces`` triangles are decimated (quadric error,
 ``fast_simplification``) to that many.  **A pack never holds a test shape**:
 the builder refuses a split that is not a training split, and every shape
@@ -122,8 +128,11 @@ def _decimate(vertices: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[
 
 def build_pack(manifest_path: str | os.PathLike, out: str | os.PathLike, split: str = "product-train",
                max_faces: int = 2000, limit: int | None = None, max_mib: float | None = None,
-               progress: bool = False) -> dict:
+               progress: bool = False, thin: int = 0) -> dict:
     """Write a pack of the shapes of ``split`` (a training split) of a corpus manifest into ``out``.
+
+    ``thin``: shapes per kind of :func:`training.data.sources.thin.thin_shapes`
+    (seed 0) added after the manifest's shapes (training-only; 0: none).
 
     Returns the pack's metadata (pack.json).  Raises ValueError for a test
     split, a manifest without such shapes, or a pack larger than ``max_mib``.
@@ -138,6 +147,8 @@ def build_pack(manifest_path: str | os.PathLike, out: str | os.PathLike, split: 
         raise ValueError(f"split {split!r}: a pack is cut from a training split ({', '.join(TRAIN_SPLITS)}), never a test split")
     if isinstance(max_faces, bool) or not isinstance(max_faces, int) or not 4 <= max_faces <= 65535:
         raise ValueError(f"max_faces: expected an int in [4, 65535], got {max_faces!r}")
+    if isinstance(thin, bool) or not isinstance(thin, int) or not 0 <= thin <= 1000:
+        raise ValueError(f"thin: expected an int in [0, 1000] (shapes per kind), got {thin!r}")
     manifest_path = Path(manifest_path)
     manifest = read_manifest(manifest_path)
     entries = [e for e in manifest["shapes"] if e.get("split") == split or split in (e.get("groups") or ())]
@@ -148,21 +159,32 @@ def build_pack(manifest_path: str | os.PathLike, out: str | os.PathLike, split: 
         raise ValueError(f"{manifest_path}: no shapes of split {split!r}")
     start = time.time()
     verts, faces, vo, fo, shapes = [], [], [0], [0], []
-    for k, e in enumerate(entries):
-        rel = e.get("mesh")
-        path = (manifest_path.parent / rel) if rel else manifest_path.parent / "shapes" / f"{e['id']}.glb"
-        mesh = trimesh.load(path, force="mesh", process=False)
+
+    def add(entry: dict, mesh) -> None:
         v, f = _decimate(np.asarray(mesh.vertices), np.asarray(mesh.faces), max_faces)
         if len(v) > 65535:
-            raise ValueError(f"{e['id']}: {len(v)} vertices after decimation (uint16 indices hold 65,535)")
+            raise ValueError(f"{entry['id']}: {len(v)} vertices after decimation (uint16 indices hold 65,535)")
         verts.append(quantise(v))
         faces.append(f.astype(np.uint16))
         vo.append(vo[-1] + len(v))
         fo.append(fo[-1] + len(f))
-        shapes.append({"id": e["id"], "class": e.get("class"), "source": e.get("source"), "licence": e.get("licence"),
-                       "faces": int(len(f)), "faces_source": int(len(mesh.faces))})
+        shapes.append({**entry, "faces": int(len(f)), "faces_source": int(len(mesh.faces))})
+
+    for k, e in enumerate(entries):
+        rel = e.get("mesh")
+        path = (manifest_path.parent / rel) if rel else manifest_path.parent / "shapes" / f"{e['id']}.glb"
+        mesh = trimesh.load(path, force="mesh", process=False)
+        add({"id": e["id"], "class": e.get("class"), "source": e.get("source"), "licence": e.get("licence")}, mesh)
         if progress and (k + 1) % 50 == 0:
             print(f"\r  {k + 1}/{len(entries)} shapes ({time.time() - start:.0f} s)", end="", file=sys.stderr, flush=True)
+    if thin:
+        from .sources.thin import thin_shapes
+
+        known = {s["id"] for s in shapes}
+        for sid, cls, mesh in thin_shapes(thin):
+            if sid in known:
+                raise ValueError(f"{sid}: a thin shape's id is already in the manifest")
+            add({"id": sid, "class": cls, "source": "procedural-thin", "licence": "CC0"}, mesh)
     if progress:
         print(file=sys.stderr)
     out = Path(out)
@@ -177,6 +199,7 @@ def build_pack(manifest_path: str | os.PathLike, out: str | os.PathLike, split: 
         "manifest": str(manifest_path),
         "manifest_sha256": hashlib.sha256(manifest_path.read_bytes()).hexdigest(),
         "max_faces": max_faces,
+        "thin": thin,
         "shapes": shapes,
         "classes": dict(sorted(Counter(s["class"] for s in shapes).items())),
         "faces_total": int(fo[-1]),
@@ -229,15 +252,20 @@ def main(argv: list[str] | None = None, prog: str = "genre data pack") -> int:
     parser.add_argument("--limit", type=int, default=None, help="only the first K shapes (tests, smoke runs)")
     parser.add_argument("--max-mib", type=float, default=PACK_BUDGET_MIB,
                         help=f"refuse a pack larger than this (default {PACK_BUDGET_MIB} MiB: what a device call leaves it)")
+    parser.add_argument("--thin", type=int, default=0, metavar="N",
+                        help="add N procedural flat and thin shapes of every kind (plates, cards, books, leaves, "
+                             "thin-walled bowls, rods; training/data/sources/thin.py): training-only shapes, in no "
+                             "corpus split and with no test members (default 0: none)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     try:
         meta = build_pack(args.shapes, args.out, args.split, args.max_faces, args.limit, args.max_mib,
-                          progress=not args.no_progress)
+                          progress=not args.no_progress, thin=args.thin)
     except (ValueError, FileNotFoundError) as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 1
     size = pack_bytes(args.out)
-    print(f"wrote {args.out}: {len(meta['shapes'])} shapes of {args.split} ({len(meta['classes'])} classes), "
+    thin = f", {args.thin} thin shapes per kind" if args.thin else ""
+    print(f"wrote {args.out}: {len(meta['shapes'])} shapes of {args.split}{thin} ({len(meta['classes'])} classes), "
           f"{meta['faces_total']:,} triangles, {size / 2**20:.2f} MiB, {meta['built_s']:.0f} s")
     return 0
