@@ -14,6 +14,18 @@ format   plain                       with ``texture``
                                      PBR base colour
 =======  ==========================  =============================================
 
+Axes.  The mesh lives in the view frame (:mod:`genre_backend.frame`: +x
+right, +y up, +z toward the camera).  ``obj`` and ``glb`` are always written
+in it, +y up: glTF requires +y up with the front toward +z, and Blender's OBJ
+importer (like most tools) reads an OBJ that way; both come into Blender
+upright, front toward −Y.  ``ply`` has no axis convention and Blender's PLY
+importer takes the file's axes as its own (+z up), so a PLY is written +z up
+by default (``up="z"``: (x, y, z) → (x, −z, y), :data:`Y_UP_TO_Z_UP`, a proper
+rotation, so faces keep their winding): it lands in Blender exactly where the
+OBJ and glTF land.  ``up="y"`` writes a PLY in the view frame itself.
+``up="z"`` with ``obj`` or ``glb`` is refused (their importers would lay it
+on its back).
+
 Every file is written atomically (temporary file in the same folder, then
 rename: :func:`genre_backend.io.atomic_write_bytes`), and every path is
 checked first (:func:`check_output_path`): an input is never overwritten,
@@ -33,6 +45,10 @@ from ..io import atomic_write_bytes, tmp_prefix
 
 __all__ = [
     "MESH_FORMATS",
+    "UP_AXES",
+    "Y_UP_TO_Z_UP",
+    "resolve_format",
+    "resolve_up",
     "MAX_ECHO",
     "OutputError",
     "short",
@@ -44,6 +60,10 @@ __all__ = [
 ]
 
 MESH_FORMATS = ("obj", "ply", "glb")
+UP_AXES = ("y", "z")
+# View frame (+y up, +z toward the camera) → +z up with the front toward −y (Blender's world):
+# (x, y, z) → (x, −z, y).  The same map Blender's OBJ and glTF importers apply to a +y-up file.
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 MAX_ECHO = 300  # characters of a user's path quoted back in a message
 
 
@@ -123,19 +143,44 @@ def write_png(path: str | os.PathLike, array: np.ndarray) -> Path:
     return path
 
 
-def _resolve_format(path: Path, fmt: str | None) -> str:
+def resolve_format(path: str | os.PathLike, fmt: str | None) -> str:
+    """The format a mesh is written in: ``fmt``, else the path's extension if it is one of :data:`MESH_FORMATS`, else obj."""
     if fmt is None:
-        ext = path.suffix.lower().lstrip(".")
+        ext = Path(path).suffix.lower().lstrip(".")
         fmt = ext if ext in MESH_FORMATS else "obj"
     if fmt not in MESH_FORMATS:
         raise ValueError(f"format: expected one of {', '.join(MESH_FORMATS)}, got {fmt!r}")
     return fmt
 
 
+
+def resolve_up(fmt: str, up: str | None) -> str:
+    """The up axis a file of format ``fmt`` is written with: ``up``, else z for ply and y for obj and glb.
+
+    ``up="z"`` is for ply only (ValueError otherwise): OBJ and glTF files are +y up by their importers' convention.
+    """
+    if up is None:
+        return "z" if fmt == "ply" else "y"
+    if up not in UP_AXES:
+        raise ValueError(f"up: expected 'y' or 'z', got {short(up, 40)!r}")
+    if up == "z" and fmt != "ply":
+        raise ValueError(f"up: 'z' is for ply only; {fmt} is always written +y up, as its importers expect")
+    return up
+
+
+def _ply_comment(data: bytes, up: str) -> bytes:
+    """Say the axes in the PLY header (a ``comment`` line after ``format``; readers skip comments)."""
+    axes = ("+x right, +z up, front toward -y (Blender's axes; the view frame turned +y up -> +z up)" if up == "z"
+            else "+x right, +y up, +z toward the camera (the view frame)")
+    head, sep, rest = data.partition(b"\n")  # "ply"
+    fmt_line, sep2, rest = rest.partition(b"\n")  # "format ..."
+    return head + sep + fmt_line + sep2 + f"comment GenRe mesh: {axes}\n".encode("ascii") + rest
+
+
 def mesh_files(path: str | os.PathLike, fmt: str | None = None, textured: bool = False) -> list[Path]:
     """Every file :func:`write_mesh` writes for ``path``: the mesh first, then an OBJ's material and texture."""
     path = Path(path)
-    if _resolve_format(path, fmt) == "obj" and textured and path.name:  # (no name, e.g. "/": refused by the checks)
+    if resolve_format(path, fmt) == "obj" and textured and path.name:  # (no name, e.g. "/": refused by the checks)
         return [path, path.with_suffix(".mtl"), path.with_name(path.stem + "_texture.png")]
     return [path]
 
@@ -155,19 +200,23 @@ def _obj_text(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None, mt
 
 
 def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, fmt: str | None = None,
-               texture=None, inputs: Sequence[str | os.PathLike | None] = ()) -> tuple[Path, str, list[Path]]:
+               texture=None, inputs: Sequence[str | os.PathLike | None] = (), up: str | None = None,
+               ) -> tuple[Path, str, list[Path]]:
     """Write a mesh atomically as obj, ply or glb, coloured from the photo when ``texture`` is given.
 
-    vertices: (V, 3) float; faces: (F, 3) int; ``fmt`` None: from the file's
-    extension, else obj; ``texture``: a :class:`~.colour.PhotoTexture` for
-    these vertices, or None; ``inputs``: files never to overwrite.  All paths
+    vertices: (V, 3) float in the view frame; faces: (F, 3) int; ``fmt``
+    None: from the file's extension, else obj; ``texture``: a
+    :class:`~.colour.PhotoTexture` for these vertices, or None; ``inputs``:
+    files never to overwrite; ``up``: the file's up axis (:func:`resolve_up`:
+    default z for ply, y for obj and glb; see the module's "Axes").  All paths
     are checked before the first write.  Returns (mesh path, format, every
     file written).
     """
     import trimesh
 
     path = Path(path)
-    fmt = _resolve_format(path, fmt)
+    fmt = resolve_format(path, fmt)
+    up = resolve_up(fmt, up)
     files = mesh_files(path, fmt, texture is not None)
     for p in files:
         check_output_path(p, inputs)
@@ -189,6 +238,8 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
             for target, payload in data.items():
                 _write(target, payload)
         return path, fmt, files
+    if up == "z":  # (ply only)
+        v = v @ Y_UP_TO_Z_UP.T
     mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
     if texture is not None and fmt == "ply":
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=texture.vertex_colours())
@@ -200,5 +251,8 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
         )
         mesh.visual = trimesh.visual.TextureVisuals(uv=np.asarray(texture.uv, np.float64), material=material)
     data = mesh.export(file_type=fmt)
-    _write(path, data.encode() if isinstance(data, str) else data)
+    data = data.encode() if isinstance(data, str) else data
+    if fmt == "ply":
+        data = _ply_comment(data, up)
+    _write(path, data)
     return path, fmt, files

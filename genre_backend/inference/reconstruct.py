@@ -40,7 +40,7 @@ from ..geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_sur
 from ..geometry.primitives import snap
 from ..geometry.voxels import silhouette_ramp
 from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
-from .mesh_export import MESH_FORMATS, OutputError, check_output_path, short, write_mesh, write_png
+from .mesh_export import MESH_FORMATS, OutputError, check_output_path, resolve_format, resolve_up, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
 from .preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess, uncrop
 from .segment import DEFAULT_SEEDING, doubt
@@ -168,7 +168,8 @@ class Reconstruction:
     (for :meth:`texture`), ``fill``: the colour the framing gave parts of
     the crop outside it.  ``clean``: what the mesh clean-up did (parts
     before/after, watertight), :func:`genre_backend.geometry.cleanup.clean_mesh`.
-    ``files``: every file the last :meth:`save_mesh` wrote.
+    ``files``: every file the last :meth:`save_mesh` wrote; ``up``: the up
+    axis of that mesh file (``y``: the view frame; ``z``: a PLY turned +z up).
     """
 
     image: Path
@@ -187,6 +188,7 @@ class Reconstruction:
     fill: tuple[int, int, int] = (0, 0, 0)
     clean: CleanReport | None = None
     files: list[Path] = field(default_factory=list)
+    up: str = "y"
     photo_mask: np.ndarray | None = field(default=None, repr=False)
     mask_warning: str | None = None
     hole_closing: int = 0
@@ -260,16 +262,22 @@ class Reconstruction:
             self._texture = photo_texture(self.vertices, self.faces, self.config.camera, mask, image, tolerance)
         return self._texture
 
-    def save_mesh(self, path: str | os.PathLike, fmt: str | None = None, texture: bool = False) -> tuple[Path, str]:
+    def save_mesh(self, path: str | os.PathLike, fmt: str | None = None, texture: bool = False,
+                  up: str | None = None) -> tuple[Path, str]:
         """Write the mesh atomically (obj, ply or glb; default from the extension); times the ``write`` stage.
 
         ``texture``: colour it from the photo (:meth:`texture`; an OBJ gets
         its ``.mtl`` and ``_texture.png`` beside it, see
-        :mod:`.mesh_export`).  The files written are in ``files``.
+        :mod:`.mesh_export`).  ``up``: the file's up axis, ``y`` or ``z``
+        (default: z for ply, y for obj and glb; ``z`` is for ply only:
+        :func:`.mesh_export.resolve_up`).  The files written are in
+        ``files``, the axis used in ``up``.
         """
         t0 = time.perf_counter()
+        used_up = resolve_up(resolve_format(path, fmt), up)  # (a wrong axis fails before the texture is made)
         tex = self.texture() if texture else None
-        out, used, self.files = write_mesh(path, self.vertices, self.faces, fmt, texture=tex, inputs=self.inputs)
+        out, used, self.files = write_mesh(path, self.vertices, self.faces, fmt, texture=tex, inputs=self.inputs, up=used_up)
+        self.up = used_up
         self.timings["write"] = time.perf_counter() - t0
         return out, used
 

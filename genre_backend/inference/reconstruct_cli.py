@@ -1,5 +1,5 @@
 """``genre reconstruct IMAGE… [-o OUT] [--mask M] [--threshold T] [--format obj|ply|glb]
-[--texture] [--all-parts] [--no-refine] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
+[--up y|z] [--texture] [--all-parts] [--no-refine] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
 
 One image or many (a progress bar on stderr for many).  Each mesh is written
 atomically; every bad input gets one line on stderr naming the file and the
@@ -8,6 +8,11 @@ exit status is 1 if any image failed (2 for bad arguments).  A doubtful mask
 (one that covers most of the photo or touches most of its border: probably
 the photo's frame, not the object) gets a warning line on stderr; the mesh is
 still written.
+
+Axes: OBJ and glb are written +y up (the view frame), as their importers
+expect; a PLY is written +z up by default (``--up z``: Blender's axes, front
+toward −y), ``--up y`` keeps the view frame.  All three land alike in
+Blender (:mod:`.mesh_export`, "Axes").  ``--up z`` is for PLY only.
 
 Outputs: with one image, ``-o`` is the mesh file (or an existing folder);
 with many, ``-o`` is a folder (created if needed) that receives
@@ -82,6 +87,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                         help="also run the photo's mirror image and average the two (about twice the nets' time; "
                              "default: the weights' config, geometry.test_time_mirror)")
     parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
+    parser.add_argument("--up", choices=["y", "z"],
+                        help="the mesh file's up axis: z (default for ply: Blender's axes, front toward -y) or y (the view "
+                             "frame: +y up, +z toward the camera; always so for obj and glb, whose importers expect it; "
+                             "--up z is for ply only)")
     parser.add_argument("--texture", action="store_true",
                         help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
     parser.add_argument("--all-parts", action="store_true",
@@ -133,6 +142,12 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
         elif ext in MESH_FORMATS and ext != fmt:
             parser.error(f"--format {fmt} does not match the output's extension .{ext}")
     fmt = fmt or "obj"
+    from .mesh_export import resolve_up
+
+    try:
+        up = resolve_up(fmt, args.up)
+    except ValueError as exc:
+        parser.error(f"--{exc}")
     if len(images) > 1 and args.output:
         out_dir = Path(args.output)
         if os.path.exists(out_dir) and not _is_dir(out_dir):
@@ -199,7 +214,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
                              silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
                              primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror,
                              pit_sealing=args.pit_sealing)
-            path, used = result.save_mesh(out, fmt, texture=args.texture)
+            path, used = result.save_mesh(out, fmt, texture=args.texture, up=up)
             if args.save_intermediates:
                 folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
                 result.save_intermediates(folder)
@@ -213,7 +228,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             colour = ", coloured from the photo" if args.texture else ""
             if result.primitive is not None:
                 shape += f"; a fitted {result.primitive}"
-            say(f"{image} -> {path} ({used}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
+            axis = ", +z up" if result.up == "z" else ""
+            say(f"{image} -> {path} ({used}{axis}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
             if result.mask_warning:
                 fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \
                     else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"

@@ -33,7 +33,7 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror", "format", "save_intermediates", "texture", "all_parts")
+_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror", "format", "up", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
 
 
@@ -62,6 +62,7 @@ class Job:
     primitive_snap: float | None = None
     test_time_mirror: bool | None = None
     pit_sealing: int | None = None
+    up: str | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -222,6 +223,15 @@ class Server:
         fmt = options.get("format")
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
             raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {_show(fmt)}", rid)
+        up = options.get("up")
+        if up is not None:
+            from .mesh_export import resolve_format, resolve_up
+
+            if up not in ("y", "z"):
+                raise RequestError("bad_field", f"option 'up' must be 'y' or 'z', got {_show(up)}", rid)
+            written = resolve_format(output, fmt)
+            if up == "z" and written != "ply":
+                raise RequestError("bad_field", f"option 'up' 'z' is for ply only; {written} is always written +y up, as its importers expect", rid)
         inter = self._str(options, "save_intermediates", rid, False, "option")
         flags = {}
         for name in ("texture", "all_parts"):
@@ -233,7 +243,7 @@ class Server:
         return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
                    hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve,
                    visible_fusion=fusion, primitive_snap=None if snap is None else float(snap), test_time_mirror=mirror,
-                   pit_sealing=None if pits is None else int(pits))
+                   pit_sealing=None if pits is None else int(pits), up=up)
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -376,7 +386,7 @@ class Server:
             if job.cancel.is_set():
                 raise Cancelled("cancelled before stage write")
             self.emit({"type": "progress", "id": job.id, "stage": "write", "fraction": STAGE_START["write"]})
-            path, fmt = result.save_mesh(job.output, job.format, texture=job.texture)
+            path, fmt = result.save_mesh(job.output, job.format, texture=job.texture, up=job.up)
             if job.save_intermediates:
                 result.save_intermediates(job.save_intermediates)
         except Cancelled:
@@ -402,6 +412,7 @@ class Server:
                 "id": job.id,
                 "mesh": str(path),
                 "format": fmt,
+                "up": result.up,
                 "vertices": int(len(result.vertices)),
                 "faces": int(len(result.faces)),
                 "parts": result.clean.parts,
