@@ -252,10 +252,10 @@ def main(argv: list[str] | None = None, prog: str = "genre data pack") -> int:
     parser.add_argument("--limit", type=int, default=None, help="only the first K shapes (tests, smoke runs)")
     parser.add_argument("--max-mib", type=float, default=PACK_BUDGET_MIB,
                         help=f"refuse a pack larger than this (default {PACK_BUDGET_MIB} MiB: what a device call leaves it)")
-    parser.add_argument("--thin", type=int, default=0, metavar="N",
+    parser.add_argument("--thin", type=int, default=40, metavar="N",
                         help="add N procedural flat and thin shapes of every kind (plates, cards, books, leaves, "
                              "thin-walled bowls, rods; training/data/sources/thin.py): training-only shapes, in no "
-                             "corpus split and with no test members (default 0: none)")
+                             "corpus split and with no test members (default 40: 240 shapes; 0: none)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     try:
