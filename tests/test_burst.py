@@ -237,3 +237,32 @@ def test_the_repository_travels_with_its_pack():
     files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout.split(b"\0")
     tracked = sum((ROOT / f.decode()).stat().st_size for f in files if f and (ROOT / f.decode()).is_file())
     assert tracked <= TREE_BUDGET_MIB * 2**20, f"the tracked tree is {tracked / 2**20:.1f} MiB"
+
+
+def test_the_devices_bf16_channels_last_step_matches_float32(tiny_pack):
+    """What only the GPU runs (bf16 autocast, channels-last tensors), run on the CPU: the same loss to bf16's precision."""
+    from training.data.pack import read_pack
+    from training.learn.burst import ViewMaker, _step_loss, widen
+    from training.learn.recipe import get_burst_recipe
+
+    torch.manual_seed(0)
+    model, _ = widen(GenRe(TINY), "wide")
+    model.eval()  # batch statistics would differ between the two passes' batches otherwise (the same batch here)
+    maker = ViewMaker(read_pack(tiny_pack[0]), TINY, torch.device("cpu"))
+    sample = maker.make(torch.tensor([0, 1]), torch.tensor([30.0, 200.0]), torch.tensor([20.0, 70.0]), 0.01,
+                        torch.Generator().manual_seed(0))
+    recipe = get_burst_recipe("wide")
+    with torch.no_grad():
+        ref, _ = _step_loss(model, sample, recipe, amp=False, channels_last=False)
+        model.inpaint_net.to(memory_format=torch.channels_last)
+        model.refiner.to(memory_format=torch.channels_last_3d)
+        got, terms = _step_loss(model, sample, recipe, amp=True, channels_last=True)
+    assert math.isfinite(float(got)) and all(math.isfinite(float(v)) for v in terms.values())
+    assert abs(float(got) - float(ref)) <= 0.05 * abs(float(ref))
+    # and its backward pass reaches both trained nets with finite gradients, in training mode
+    model.train()
+    loss, _ = _step_loss(model, sample, recipe, amp=True, channels_last=True)
+    loss.backward()
+    for net in (model.inpaint_net, model.refiner):
+        grads = [p.grad for p in net.parameters() if p.grad is not None]
+        assert grads and all(bool(torch.isfinite(g).all()) for g in grads)

@@ -340,15 +340,20 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool) -> tuple[torch.Tensor, dict]:
+def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool, channels_last: bool | None = None
+               ) -> tuple[torch.Tensor, dict]:
+    """One step's loss: the partial map and depth voxels of ``sample["depth"]`` (no gradient), the inpainting net
+    and the refiner (bf16 autocast when ``amp``; channels-last tensors when ``channels_last``, default: on CUDA),
+    the voxel loss plus ``sph_weight`` × the spherical loss.  Returns (loss, {term: value})."""
     g = model.config.geometry
     dev_type = sample["depth"].device.type
+    channels_last = dev_type == "cuda" if channels_last is None else channels_last
     with torch.no_grad():
         partial = model.partial_sph(sample["depth"])
         vox_depth = model.depth_voxels(sample["depth"])
     with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=amp):
         padded = pad_sph(partial[:, None], g.sph_pad)
-        if dev_type == "cuda":
+        if channels_last:
             padded = padded.contiguous(memory_format=torch.channels_last)
         parts = model.inpaint_net.forward_parts(padded)
     parts = {k: v.float() for k, v in parts.items()}
@@ -356,7 +361,7 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool) -> tu
     vox_sph = model.sph_voxels(full)
     with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=amp):
         x = torch.cat([vox_sph, vox_depth], dim=1)
-        if dev_type == "cuda":
+        if channels_last:
             x = x.contiguous(memory_format=torch.channels_last_3d)
         logits = model.refiner(x)
     l_vox, terms = voxel_loss(logits.float(), sample["voxels"], recipe.surface_weight)
