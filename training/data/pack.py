@@ -126,6 +126,20 @@ def _decimate(vertices: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
 
 
+def _training_entries(manifest_path: Path, split: str, limit: int | None) -> list[dict]:
+    """The manifest's shapes of the training ``split``, less any a test split names; ValueError for a test split or none."""
+    from .views import read_manifest
+
+    if split not in TRAIN_SPLITS:
+        raise ValueError(f"split {split!r}: a pack is cut from a training split ({', '.join(TRAIN_SPLITS)}), never a test split")
+    manifest = read_manifest(manifest_path)
+    entries = [e for e in manifest["shapes"] if e.get("split") == split or split in (e.get("groups") or ())]
+    entries = [e for e in entries if not _is_test(e)][:limit]
+    if not entries:
+        raise ValueError(f"{manifest_path}: no shapes of split {split!r}")
+    return entries
+
+
 def build_pack(manifest_path: str | os.PathLike, out: str | os.PathLike, split: str = "product-train",
                max_faces: int = 2000, limit: int | None = None, max_mib: float | None = None,
                progress: bool = False, thin: int = 0) -> dict:
@@ -141,22 +155,12 @@ def build_pack(manifest_path: str | os.PathLike, out: str | os.PathLike, split: 
 
     from genre_backend.io import atomic_write, atomic_write_json
 
-    from .views import read_manifest
-
-    if split not in TRAIN_SPLITS:
-        raise ValueError(f"split {split!r}: a pack is cut from a training split ({', '.join(TRAIN_SPLITS)}), never a test split")
     if isinstance(max_faces, bool) or not isinstance(max_faces, int) or not 4 <= max_faces <= 65535:
         raise ValueError(f"max_faces: expected an int in [4, 65535], got {max_faces!r}")
     if isinstance(thin, bool) or not isinstance(thin, int) or not 0 <= thin <= 1000:
         raise ValueError(f"thin: expected an int in [0, 1000] (shapes per kind), got {thin!r}")
     manifest_path = Path(manifest_path)
-    manifest = read_manifest(manifest_path)
-    entries = [e for e in manifest["shapes"] if e.get("split") == split or split in (e.get("groups") or ())]
-    entries = [e for e in entries if not _is_test(e)]
-    if limit is not None:
-        entries = entries[:limit]
-    if not entries:
-        raise ValueError(f"{manifest_path}: no shapes of split {split!r}")
+    entries = _training_entries(manifest_path, split, limit)
     start = time.time()
     verts, faces, vo, fo, shapes = [], [], [0], [0], []
 

@@ -47,7 +47,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from genre_backend.config import GenreConfig, get_preset
@@ -237,9 +236,10 @@ def write_shards(model: GenRe, out: str | os.PathLike, meta: dict, shard_bytes: 
     plus ``weights.index.json``.
 
     A tensor larger than a shard is cut along its flattened length into parts
-    (``name::k/n``).  The index (config, ``meta``, each shard's sha256) is
-    written last, each file atomically, so a reader sees the old set or the
-    new one.  Returns the shard paths.
+    (``name::k/n``).  The shards' names carry ``meta["step"]``; the index
+    (config, ``meta``, each shard's sha256) is replaced last and the old set
+    deleted after it, so a call cut off at any moment leaves a complete set
+    that the index names.  Returns the shard paths.
     """
     from safetensors.torch import save_file
 
@@ -269,21 +269,22 @@ def write_shards(model: GenRe, out: str | os.PathLike, meta: dict, shard_bytes: 
         shards[k][name] = t
         used[k] += size
     paths, digests = [], []
+    tag = f"s{int(meta.get('step', 0)):07d}-"  # a new set never overwrites the set the index still names
     for k, tensors in enumerate(shards):
-        path = out / f"weights-{k + 1:05d}-of-{len(shards):05d}.safetensors"
+        path = out / f"weights-{tag}{k + 1:05d}-of-{len(shards):05d}.safetensors"
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
         save_file(tensors, str(tmp))
         os.replace(tmp, path)
         paths.append(path)
         digests.append(hashlib.sha256(path.read_bytes()).hexdigest())
-    for stale in out.glob("weights-*-of-*.safetensors"):
-        if stale not in paths:
-            stale.unlink()
     index = {"format": "genre-burst-shards/1", "config": model.config.to_dict(), "meta": meta,
              "split": per_elem, "shards": [{"file": p.name, "sha256": d} for p, d in zip(paths, digests)]}
     tmp = out / f".{INDEX_FILE}.tmp-{os.getpid()}"
     tmp.write_text(json.dumps(index, indent=1))
     os.replace(tmp, out / INDEX_FILE)
+    for stale in out.glob("weights-*-of-*.safetensors"):  # only once the index names the new set
+        if stale not in paths:
+            stale.unlink()
     return paths
 
 
@@ -372,32 +373,58 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool, chann
     return loss, terms
 
 
-def run_burst(spec: BurstSpec, say=print) -> dict:
-    """Run one burst; returns the summary (also in ``OUT/weights.index.json``'s ``meta``)."""
+def _bring_up(spec: BurstSpec, recipe: BurstRecipe, say) -> tuple[torch.device, GenRe, ViewMaker]:
+    """The device (TF32 on CUDA), the model (widened to the recipe's preset, channels-last on CUDA) and the samples."""
     t0 = time.time()
-    deadline = t0 + spec.minutes * 60.0
-    recipe = get_burst_recipe(spec.recipe)
     device = _device(spec.device)
-    cuda = device.type == "cuda"
-    if cuda:
+    if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
         torch.backends.cudnn.benchmark = True
         say(f"device: {torch.cuda.get_device_name(device)}, torch {torch.__version__}")
     else:
         say(f"device: cpu ({torch.get_num_threads()} threads), torch {torch.__version__}")
-    out = Path(spec.out)
-    out.mkdir(parents=True, exist_ok=True)
     pack = read_pack(spec.pack)
     model, fresh = widen(load_model(spec.init), recipe.preset)
     say(f"model: {sum(p.numel() for p in model.parameters()):,} parameters; "
         f"{len(fresh)} tensors fresh (recipe {recipe.name}), the rest from {spec.init}")
     model = model.to(device)
-    if cuda:
+    if device.type == "cuda":
         model.inpaint_net.to(memory_format=torch.channels_last)
         model.refiner.to(memory_format=torch.channels_last_3d)
     maker = ViewMaker(pack, model.config, device, recipe.grid_factor, spec.shapes, progress=say)
     say(f"pack: {len(maker)} shapes, {maker.triangles.shape[0]:,} triangles; set-up {time.time() - t0:.0f} s")
+    return device, model, maker
+
+
+def _lr(recipe: BurstRecipe, since: float, fraction: float) -> float:
+    """The learning rate ``since`` seconds into training, ``fraction`` of the way through the budget."""
+    warm = min(1.0, since / recipe.warmup_s) if recipe.warmup_s > 0 else 1.0
+    cosine = 0.5 * (1 + math.cos(math.pi * min(fraction, 1.0)))
+    return recipe.lr * warm * (recipe.lr_final + (1 - recipe.lr_final) * cosine)
+
+
+def _write_outputs(out: Path, model: GenRe, rows: list[dict], meta: dict) -> None:
+    """The shards (with ``meta``), log.csv and loss.png."""
+    write_shards(model, out, meta)
+    with open(out / "log.csv", "w", newline="") as fh:
+        if rows:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    if rows:
+        _plot(rows, out / "loss.png")
+
+
+def run_burst(spec: BurstSpec, say=print) -> dict:
+    """Run one burst; returns the summary (also in ``OUT/weights.index.json``'s ``meta``)."""
+    t0 = time.time()
+    deadline = t0 + spec.minutes * 60.0
+    recipe = get_burst_recipe(spec.recipe)
+    out = Path(spec.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device, model, maker = _bring_up(spec, recipe, say)
+    cuda = device.type == "cuda"
     for p in model.depth_net.parameters():
         p.requires_grad_(False)
     params = [p for net in (model.inpaint_net, model.refiner) for p in net.parameters()]
@@ -407,36 +434,20 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
     gen = torch.Generator().manual_seed(spec.seed)
     batch = spec.batch_size or recipe.batch_size
     rows, step, samples = [], 0, 0
-    train_start = time.time()
-    last_ck = train_start
+    train_start = last_ck = time.time()
     budget = max(deadline - train_start, 1e-3)
 
-    def checkpoint(final: bool, summary: dict | None = None) -> None:
-        meta = {"step": step, "samples": samples, "recipe": recipe.name, "init": str(spec.init),
-                "pack_shapes": len(maker), "seconds": round(time.time() - t0, 1), "device": str(device),
-                "final": final, "model": "burst", **({"summary": summary} if summary else {})}
-        write_shards(model, out, meta)
-        with open(out / "log.csv", "w", newline="") as fh:
-            if rows:
-                w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-                w.writeheader()
-                w.writerows(rows)
-        if rows:
-            _plot(rows, out / "loss.png")
+    def meta(final: bool) -> dict:
+        return {"step": step, "samples": samples, "recipe": recipe.name, "init": str(spec.init), "pack_shapes": len(maker),
+                "seconds": round(time.time() - t0, 1), "device": str(device), "final": final, "model": "burst"}
 
-    while True:
-        now = time.time()
-        if now >= deadline or (spec.max_steps is not None and step >= spec.max_steps):
-            break
-        frac = (now - train_start) / budget
-        warm = min(1.0, (now - train_start) / recipe.warmup_s) if recipe.warmup_s > 0 else 1.0
-        lr = recipe.lr * warm * (recipe.lr_final + (1 - recipe.lr_final) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
+    while time.time() < deadline and (spec.max_steps is None or step < spec.max_steps):
+        lr = _lr(recipe, time.time() - train_start, (time.time() - train_start) / budget)
         for group in opt.param_groups:
             group["lr"] = lr
         shape, az, el = maker.draw(gen, batch, recipe)
         try:
-            sample = maker.make(shape, az, el, recipe.depth_noise, gen)
-            loss, terms = _step_loss(model, sample, recipe, amp=cuda)
+            loss, terms = _step_loss(model, maker.make(shape, az, el, recipe.depth_noise, gen), recipe, amp=cuda)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -448,17 +459,15 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
             torch.cuda.empty_cache()
             say(f"out of memory: batch {batch}")
             continue
-        step += 1
-        samples += batch
+        step, samples = step + 1, samples + batch
         if step % spec.log_every == 0 or step == 1:
             elapsed = time.time() - train_start
-            row = {"step": step, "seconds": round(time.time() - t0, 1), "lr": lr, "batch": batch,
-                   "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}}
-            rows.append(row)
-            say(f"step {step:6d}  loss {row['loss']:.4f}  voxel {row['voxel_bce']:.4f}  sph {row['sph']:.4f}  "
+            rows.append({"step": step, "seconds": round(time.time() - t0, 1), "lr": lr, "batch": batch,
+                         "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}})
+            say(f"step {step:6d}  loss {rows[-1]['loss']:.4f}  voxel {rows[-1]['voxel_bce']:.4f}  sph {rows[-1]['sph']:.4f}  "
                 f"{step / elapsed:.2f} steps/s  {samples / elapsed:.0f} samples/s  lr {lr:.2e}")
         if time.time() - last_ck >= spec.checkpoint_minutes * 60.0:
-            checkpoint(False)
+            _write_outputs(out, model, rows, meta(False))
             last_ck = time.time()
             say(f"checkpoint: step {step}, {out}")
     elapsed = time.time() - train_start
@@ -468,7 +477,8 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
                "samples_per_s": samples / max(elapsed, 1e-9), "recipe": recipe.name, "init": str(spec.init),
                "pack": str(spec.pack), "pack_shapes": len(maker), "last_loss": rows[-1]["loss"] if rows else None,
                "parameters": sum(p.numel() for p in model.parameters())}
-    checkpoint(True, summary)  # (the summary travels in the index: a device call brings back 8 files at most)
+    # (the summary travels in the index: a device call brings back 8 files at most)
+    _write_outputs(out, model, rows, {**meta(True), "summary": summary})
     say(f"done: {step} steps in {elapsed:.0f} s ({summary['steps_per_s']:.2f} steps/s, "
         f"{summary['samples_per_s']:.0f} samples/s); weights in {out}")
     return summary
