@@ -29,6 +29,7 @@ __all__ = [
     "resolve_weights",
     "weights_extra",
     "atomic_write",
+    "atomic_write_all",
     "remove_dead_temporaries",
     "tmp_prefix",
     "TMP_MARK",
@@ -133,6 +134,50 @@ def remove_dead_temporaries(path: str | os.PathLike) -> int:
     return removed
 
 
+def _write_temporary(path: Path, writer: Callable[[BinaryIO], Any]) -> Path:
+    """``writer(binary_file)`` on a new temporary file beside ``path`` (flushed, fsynced, the usual permissions).
+
+    Created with ``O_CREAT | O_EXCL`` by ``mkstemp`` (never follows a planted
+    link), named ``tmp_prefix(path)`` + 8 random characters; removed again if
+    anything fails (a signal's exception included).  Returns its path.
+    """
+    remove_dead_temporaries(path)
+    fd, tmp_name = tempfile.mkstemp(prefix=tmp_prefix(path), dir=path.parent if str(path.parent) else ".")
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            writer(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def atomic_write_all(items) -> list[Path]:
+    """Write several files as one unit: every ``(path, writer)`` to its temporary first, then rename them all, in order.
+
+    If any writer fails (or a signal interrupts), every temporary is removed
+    and no target is touched; the renames come only once all are written
+    (microseconds apart: a textured OBJ's texture, .mtl and .obj appear
+    together).  Returns the paths.
+    """
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for path, writer in items:
+            path = Path(path)
+            staged.append((_write_temporary(path, writer), path))
+        for tmp, path in staged:
+            os.replace(tmp, path)
+    finally:
+        for tmp, _ in staged:
+            if os.path.lexists(tmp):
+                os.unlink(tmp)
+    return [path for _, path in staged]
+
+
 def atomic_write(path: str | os.PathLike, writer: Callable[[BinaryIO], Any]) -> Path:
     """Call ``writer(binary_file)`` on a new temporary file beside ``path``, then rename it to ``path``.
 
@@ -142,21 +187,7 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[BinaryIO], Any]) -> 
     Temporary files of ``path`` left by dead processes are removed first.
     Returns ``path`` as a :class:`~pathlib.Path`.
     """
-    path = Path(path)
-    remove_dead_temporaries(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=tmp_prefix(path), dir=path.parent)
-    tmp = Path(tmp_name)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            writer(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return atomic_write_all([(path, writer)])[0]
 
 
 def _read_umask() -> int:

@@ -27,11 +27,11 @@ from test_server import ServerProcess
 REPO = Path(__file__).resolve().parents[1]
 
 # The CLI with every atomic write slowed: the bytes are written and flushed into the temporary, the target is
-# appended to $GENRE_TEST_MARK, then it sleeps $GENRE_TEST_SLEEP seconds before the rename.
+# appended to $GENRE_TEST_MARK, then it sleeps $GENRE_TEST_SLEEP seconds (before the file is closed and renamed).
 _SLOW_WRITES = """
 import os, sys, time
 import genre_backend.io as gio
-_orig = gio.atomic_write
+_orig = gio._write_temporary
 def _slow(path, writer):
     def w(fh):
         writer(fh)
@@ -40,7 +40,7 @@ def _slow(path, writer):
             m.write(os.fspath(path) + "\\n")
         time.sleep(float(os.environ.get("GENRE_TEST_SLEEP", "3")))
     return _orig(path, w)
-gio.atomic_write = _slow
+gio._write_temporary = _slow
 from genre_backend.cli import main
 sys.exit(main(sys.argv[1:]))
 """
@@ -213,31 +213,53 @@ def test_serve_writes_names_at_the_limit_and_no_matplotlib_config(trained, photo
 
 
 # ---- part 4: a clean stop ------------------------------------------------------------------------
-def _wait_for_mark(mark: Path, proc, timeout: float = 300.0) -> list[str]:
+def _wait_for_mark(mark: Path, proc, timeout: float = 300.0, writes: int = 1) -> list[str]:
+    """Wait until the ``writes``-th temporary of the run holds its bytes (the slowed writer sleeps in it)."""
     deadline = time.time() + timeout
     while time.time() < deadline:
-        if mark.exists() and mark.read_text().strip():
-            return mark.read_text().split()
+        if mark.exists() and len(mark.read_text().splitlines()) >= writes:
+            return mark.read_text().splitlines()
         assert proc.poll() is None, proc.stderr.read()
         time.sleep(0.05)
     raise AssertionError("no write began")
 
 
-def test_cli_sigint_during_a_write_prints_one_line_and_exits_130(trained, photo, tmp_path):
+def _slow_cli(trained, photo, tmp_path, out: Path, *extra: str) -> tuple[subprocess.Popen, Path]:
+    mark = tmp_path / "mark"
+    mark.unlink(missing_ok=True)
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_WRITES, "reconstruct", str(photo), "-o", str(out / "m.obj"),
+                             "--weights", str(trained[0]), *extra], cwd=tmp_path, env=_env(GENRE_TEST_MARK=str(mark)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return proc, mark
+
+
+@pytest.mark.parametrize("texture, at", [(False, 1), (True, 1), (True, 2), (True, 3)])
+def test_cli_sigint_during_a_write_prints_one_line_and_exits_130(trained, photo, tmp_path, texture, at):
     out = tmp_path / "out"
     out.mkdir()
-    mark = tmp_path / "mark"
-    proc = subprocess.Popen([sys.executable, "-c", _SLOW_WRITES, "reconstruct", str(photo), "-o", str(out / "m.obj"),
-                             "--weights", str(trained[0])], cwd=tmp_path, env=_env(GENRE_TEST_MARK=str(mark)),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    _wait_for_mark(mark, proc)
+    proc, mark = _slow_cli(trained, photo, tmp_path, out, *(["--texture"] if texture else []))
+    _wait_for_mark(mark, proc, writes=at)
     during = temporaries(out)
-    assert len(during) == 1 and TMP_MARK in during[0], listing(out)  # the temporary exists as the signal goes
+    assert len(during) == at and all(TMP_MARK in t for t in during), listing(out)  # the temporaries exist as the signal goes
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert err.strip().splitlines() == ["genre reconstruct: interrupted"], err
-    assert listing(out) == set()  # no mesh, no temporary
+    assert listing(out) == set()  # no mesh, no .mtl, no texture (a textured OBJ is one unit), no temporary
+
+
+def test_cli_sigkill_during_a_textured_write_leaves_no_final_file_and_the_next_run_cleans_up(trained, photo, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    proc, mark = _slow_cli(trained, photo, tmp_path, out, "--texture")
+    _wait_for_mark(mark, proc, writes=2)
+    proc.kill()
+    proc.communicate(timeout=60)
+    left = temporaries(out)
+    assert len(left) == 2 and listing(out) == set(left)  # the texture's and the .mtl's temporaries; no final file
+    proc = reconstruct(str(photo), "-o", str(out / "m.obj"), "--texture", "--weights", str(trained[0]), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert listing(out) == {"m.obj", "m.mtl", "m_texture.png"}  # the dead run's temporaries removed
 
 
 @pytest.mark.parametrize("sig, status, texture", [(signal.SIGTERM, 143, False), (signal.SIGINT, 130, True)])
@@ -270,3 +292,24 @@ def test_serve_sigterm_when_idle(trained, tmp_path):
     assert s.proc.wait(timeout=60) == 143
     assert _all_lines(s)[-1] == {"type": "bye", "id": None, "reason": "SIGTERM"}
     assert listing(tmp_path) == before
+
+
+def test_serve_sigkill_during_a_write_then_the_next_job_cleans_up(trained, photo, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    mark = tmp_path / "mark"
+    s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=_SLOW_WRITES)
+    assert s.next(timeout=300)["type"] == "ready"
+    s.send(_job("j", photo, str(out / "m.ply")))
+    _wait_for_mark(mark, s.proc)
+    s.proc.kill()
+    s.proc.wait(timeout=60)
+    assert len(temporaries(out)) == 1 and len(listing(out)) == 1
+    s = _server_with_env(trained, tmp_path, _env())
+    assert s.next(timeout=300)["type"] == "ready"
+    s.send(_job("again", photo, str(out / "m.ply")))
+    assert s.until(lambda e: e["type"] in ("error", "result"))[-1]["type"] == "result"
+    s.send({"type": "shutdown", "id": "end"})
+    s.until(lambda e: e["type"] == "bye")
+    assert s.close() == 0
+    assert listing(out) == {"m.ply"}

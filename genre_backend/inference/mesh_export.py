@@ -41,7 +41,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..io import atomic_write_bytes, tmp_prefix
+from ..io import atomic_write_all, atomic_write_bytes, tmp_prefix
 
 __all__ = [
     "MESH_FORMATS",
@@ -294,8 +294,10 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
                 mtl: f"newmtl photo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png.name}\n".encode("utf-8", "surrogateescape"),
                 path: _obj_text(v, f, texture.uv, mtl.name).encode("utf-8", "surrogateescape"),
             }
-            for target, payload in data.items():
-                _write(target, payload)
+            try:  # one unit: all three written to temporaries, then renamed together (never an .mtl without its .obj)
+                atomic_write_all([(target, (lambda fh, payload=payload: fh.write(payload))) for target, payload in data.items()])
+            except OSError as exc:
+                raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
         return path, fmt, files
     if up == "z":  # (ply only)
         v = v @ Y_UP_TO_Z_UP.T
