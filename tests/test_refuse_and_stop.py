@@ -233,18 +233,20 @@ def _slow_cli(trained, photo, tmp_path, out: Path, *extra: str) -> tuple[subproc
     return proc, mark
 
 
-@pytest.mark.parametrize("texture, at", [(False, 1), (True, 1), (True, 2), (True, 3)])
-def test_cli_sigint_during_a_write_prints_one_line_and_exits_130(trained, photo, tmp_path, texture, at):
+@pytest.mark.parametrize("texture, at, sig", [(False, 1, signal.SIGINT), (True, 1, signal.SIGINT), (True, 2, signal.SIGINT),
+                                              (True, 3, signal.SIGINT), (True, 2, signal.SIGTERM)])
+def test_cli_signal_during_a_write_prints_one_line_and_exits(trained, photo, tmp_path, texture, at, sig):
     out = tmp_path / "out"
     out.mkdir()
     proc, mark = _slow_cli(trained, photo, tmp_path, out, *(["--texture"] if texture else []))
     _wait_for_mark(mark, proc, writes=at)
     during = temporaries(out)
     assert len(during) == at and all(TMP_MARK in t for t in during), listing(out)  # the temporaries exist as the signal goes
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert err.strip().splitlines() == ["genre reconstruct: interrupted"], err
+    status, word = (130, "interrupted") if sig == signal.SIGINT else (143, "terminated")
+    assert proc.returncode == status, err
+    assert err.strip().splitlines() == [f"genre reconstruct: {word}"], err
     assert listing(out) == set()  # no mesh, no .mtl, no texture (a textured OBJ is one unit), no temporary
 
 

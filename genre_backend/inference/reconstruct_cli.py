@@ -58,7 +58,36 @@ def _one_line(exc: BaseException, limit: int = 2000) -> str:
     return line if len(line) <= limit else f"{line[:limit]}… ({len(line):,} characters)"
 
 
+class _Terminated(BaseException):
+    """SIGTERM arrived (raised in the main thread, like KeyboardInterrupt for SIGINT)."""
+
+
 def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
+    """Run ``genre reconstruct``; SIGINT prints ``PROG: interrupted`` and returns 130, SIGTERM ``PROG: terminated``
+    and 143 (no traceback; the file being written is dropped with its temporaries)."""
+    import signal
+    import threading
+
+    def on_term(signum, frame):  # noqa: ARG001
+        raise _Terminated()
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        return _main(argv, prog)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr, flush=True)
+        return 130
+    except _Terminated:
+        print(f"{prog}: terminated", file=sys.stderr, flush=True)
+        return 143
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str] | None, prog: str) -> int:
     from .reconstruct import MESH_FORMATS
 
     parser = argparse.ArgumentParser(prog=prog, description="Turn photos of objects into meshes (posed as seen, in the view frame).")
