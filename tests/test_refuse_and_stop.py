@@ -264,8 +264,9 @@ def test_cli_sigkill_during_a_textured_write_leaves_no_final_file_and_the_next_r
     assert listing(out) == {"m.obj", "m.mtl", "m_texture.png"}  # the dead run's temporaries removed
 
 
-@pytest.mark.parametrize("sig, status, texture", [(signal.SIGTERM, 143, False), (signal.SIGINT, 130, True)])
-def test_serve_signal_during_a_write_finishes_it_says_bye_and_exits(trained, photo, tmp_path, sig, status, texture):
+@pytest.mark.parametrize("sig, status, texture, at", [(signal.SIGTERM, 143, False, 1), (signal.SIGINT, 130, True, 1),
+                                                      (signal.SIGTERM, 143, True, 2), (signal.SIGINT, 130, True, 3)])
+def test_serve_signal_during_a_write_finishes_it_says_bye_and_exits(trained, photo, tmp_path, sig, status, texture, at):
     out = tmp_path / "out"
     out.mkdir()
     mark = tmp_path / "mark"
@@ -273,8 +274,8 @@ def test_serve_signal_during_a_write_finishes_it_says_bye_and_exits(trained, pho
     assert s.next(timeout=300)["type"] == "ready"
     s.send(_job("j", photo, str(out / "m.obj"), texture=texture))
     s.send(_job("queued", photo, str(out / "q.obj")))
-    _wait_for_mark(mark, s.proc)
-    assert len(temporaries(out)) == 1
+    _wait_for_mark(mark, s.proc, writes=at)
+    assert len(temporaries(out)) == at and listing(out) == set(temporaries(out))
     s.proc.send_signal(sig)
     assert s.proc.wait(timeout=120) == status, s.proc.stderr.read()
     events = _all_lines(s)
@@ -302,16 +303,16 @@ def test_serve_sigkill_during_a_write_then_the_next_job_cleans_up(trained, photo
     mark = tmp_path / "mark"
     s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=_SLOW_WRITES)
     assert s.next(timeout=300)["type"] == "ready"
-    s.send(_job("j", photo, str(out / "m.ply")))
-    _wait_for_mark(mark, s.proc)
+    s.send(_job("j", photo, str(out / "m.obj"), texture=True))
+    _wait_for_mark(mark, s.proc, writes=2)
     s.proc.kill()
     s.proc.wait(timeout=60)
-    assert len(temporaries(out)) == 1 and len(listing(out)) == 1
+    assert len(temporaries(out)) == 2 and listing(out) == set(temporaries(out))  # no final file of the unit
     s = _server_with_env(trained, tmp_path, _env())
     assert s.next(timeout=300)["type"] == "ready"
-    s.send(_job("again", photo, str(out / "m.ply")))
+    s.send(_job("again", photo, str(out / "m.obj"), texture=True))
     assert s.until(lambda e: e["type"] in ("error", "result"))[-1]["type"] == "result"
     s.send({"type": "shutdown", "id": "end"})
     s.until(lambda e: e["type"] == "bye")
     assert s.close() == 0
-    assert listing(out) == {"m.ply"}
+    assert listing(out) == {"m.obj", "m.mtl", "m_texture.png"}  # the dead server's temporaries removed
