@@ -316,3 +316,31 @@ def test_serve_sigkill_during_a_write_then_the_next_job_cleans_up(trained, photo
     s.until(lambda e: e["type"] == "bye")
     assert s.close() == 0
     assert listing(out) == {"m.obj", "m.mtl", "m_texture.png"}  # the dead server's temporaries removed
+
+
+# serve whose weights take long to load: $GENRE_TEST_MARK is written as the load begins
+_SLOW_LOAD = """
+import os, sys, time
+import genre_backend.inference.reconstruct as rec
+_orig = rec.Reconstructor.__init__
+def _slow(self, *args, **kwargs):
+    open(os.environ["GENRE_TEST_MARK"], "w").write("loading\\n")
+    time.sleep(30)
+    _orig(self, *args, **kwargs)
+rec.Reconstructor.__init__ = _slow
+from genre_backend.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_serve_signal_while_the_weights_load_says_bye_only(trained, tmp_path, sig, status):
+    mark = tmp_path / "mark"
+    before = listing(tmp_path)
+    s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=_SLOW_LOAD)
+    _wait_for_mark(mark, s.proc)
+    s.proc.send_signal(sig)
+    assert s.proc.wait(timeout=60) == status, s.proc.stderr.read()
+    assert _all_lines(s) == [{"type": "bye", "id": None, "reason": signal.Signals(sig).name}]
+    assert "Traceback" not in s.proc.stderr.read()
+    assert listing(tmp_path) == before | {"mark"}

@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     import signal
     import threading
 
-    def on_term(signum, frame):  # noqa: ARG001
+    def on_term(signum, frame):
         raise _Terminated()
 
     previous = None

@@ -54,7 +54,7 @@ def _install_stop_handlers() -> None:
     (the first is already stopping the server, and it finishes the write in progress before it exits)."""
     fired: list[int] = []
 
-    def on_signal(signum, frame):  # noqa: ARG001
+    def on_signal(signum, frame):
         if fired:
             log.warning("%s: already stopping (on %s); finishing the write in progress", signal.Signals(signum).name,
                         signal.Signals(fired[0]).name)
@@ -487,8 +487,6 @@ class Server:
 
 
 def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
-    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
-
     parser = argparse.ArgumentParser(prog=prog, description="JSON-lines reconstruction server on stdin/stdout (protocol: docs/protocol.md).")
     parser.add_argument("--weights", metavar="W",
                         help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
