@@ -111,7 +111,11 @@ def main(argv: list[str] | None = None) -> int:
             hint = " (the training commands come with the 'training' package: install the project with 'pip install -e .')"
         print(f"genre: unknown command {name!r}{hint}\n\n{_usage(available)}", file=sys.stderr)
         return 2
-    return int(available[name].load()(argv[1:], prog=f"genre {name}") or 0)
+    try:
+        return int(available[name].load()(argv[1:], prog=f"genre {name}") or 0)
+    except KeyboardInterrupt:  # Ctrl-C: one line, no traceback, the shell's 128 + SIGINT (each write is atomic: no half file)
+        print(f"genre {name}: interrupted", file=sys.stderr, flush=True)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

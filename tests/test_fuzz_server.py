@@ -44,6 +44,7 @@ import pytest
 from hypothesis import HealthCheck, assume, example, given, note, settings
 from hypothesis import strategies as st
 
+from genre_backend.io import is_temporary_name
 from test_server import ServerProcess
 
 EXAMPLES = int(os.environ.get("GENRE_FUZZ_EXAMPLES", "800"))
@@ -53,7 +54,11 @@ ERROR_CODES = {"bad_json", "unknown_type", "missing_field", "bad_field", "bad_im
 JOB_CODES = {"bad_image", "bad_mask", "no_object", "output_unwritable"}  # how an accepted job may fail
 DIRECT_CODES = {"bad_json", "unknown_type", "missing_field", "bad_field", "unknown_job", "internal"}  # answers to the line itself
 STAGES = ["load", "preprocess", "depth", "partial_sph", "inpaint", "voxels", "refine", "mesh", "write"]
-OPTION_KEYS = ("threshold", "format", "save_intermediates", "texture", "all_parts", "silhouette_carve")
+# every option the server accepts (genre_backend/inference/server.py, _OPTION_KEYS), each drawn below
+OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror",
+               "format", "up", "save_intermediates", "texture", "all_parts")
+FLAGS = ("texture", "all_parts", "silhouette_carve", "visible_fusion", "test_time_mirror")  # the boolean options
+WIDTHS = ("hole_closing", "pit_sealing")  # the voxel-width options
 MAX_MESSAGE = 2100  # the server's 2,000-character cap plus its "… (N characters)" tail
 
 
@@ -109,7 +114,7 @@ VALID_ID = st.one_of(TEXT, st.integers(), st.floats(allow_nan=False, allow_infin
 INVALID_ID = st.one_of(st.sampled_from([True, False, None, [], {}, Raw("NaN"), Raw("Infinity"), Raw("1e400")]),
                        JSON.filter(lambda v: isinstance(v, (bool, list, dict)) or v is None))
 ANY = st.one_of(JSON, HUGE, TEXT, LONG, st.just(OMIT))
-PARTS = ["id", "image", "output", "mask", "options", "threshold", "format", "save_intermediates", "texture", "all_parts", "silhouette_carve", "unknown_option", "extra"]
+PARTS = ["id", "image", "output", "mask", "options", *OPTION_KEYS, "unknown_option", "extra"]
 
 
 @dataclass(frozen=True)
@@ -173,9 +178,16 @@ def _example_strategy():
             opts["format"] = draw(st.sampled_from(["obj", "ply", "glb", None]))
         if draw(st.integers(0, 3)) == 0:
             opts["save_intermediates"] = draw(folder_field)
-        for flag in ("texture", "all_parts", "silhouette_carve"):
+        for flag in FLAGS:
             if draw(st.integers(0, 2)) == 0:
                 opts[flag] = draw(st.sampled_from([True, False, None]))
+        for width in WIDTHS:
+            if draw(st.integers(0, 3)) == 0:
+                opts[width] = draw(st.sampled_from([0, 1, 2, 8, None]))
+        if draw(st.integers(0, 3)) == 0:
+            opts["primitive_snap"] = draw(st.sampled_from([0, 0.0, 0.05, 0.5, 0.999, None]))
+        if draw(st.integers(0, 3)) == 0:
+            opts["up"] = draw(st.sampled_from(["y", "z", None]))
         if "id" in broken:
             msg["id"] = draw(st.one_of(VALID_ID, INVALID_ID, st.just(OMIT)))
         if "output" in broken:
@@ -188,9 +200,16 @@ def _example_strategy():
             opts["format"] = draw(st.one_of(JSON, st.sampled_from(["OBJ", "stl", "", "obj ", "obj\x00"])))
         if "save_intermediates" in broken:
             opts["save_intermediates"] = draw(st.one_of(folder_field, ANY))
-        for flag in ("texture", "all_parts", "silhouette_carve"):
+        for flag in FLAGS:
             if flag in broken:
                 opts[flag] = draw(st.one_of(JSON, st.sampled_from([0, 1, "true", [], {}])))
+        for width in WIDTHS:
+            if width in broken:
+                opts[width] = draw(st.one_of(JSON, HUGE, st.sampled_from([-1, 9, 1.0, 2.5, True, "1", Raw("1e400"), Raw("NaN")])))
+        if "primitive_snap" in broken:
+            opts["primitive_snap"] = draw(st.one_of(JSON, HUGE, st.sampled_from([1, 1.0, -0.0001, -0.0, True, "0.1", Raw("NaN"), Raw("1e400")])))
+        if "up" in broken:
+            opts["up"] = draw(st.one_of(JSON, st.sampled_from(["Z", "x", "", "y ", "z", "z\x00"])))
         if "unknown_option" in broken:
             opts[draw(TEXT)] = draw(JSON)
         msg["options"] = {k: v for k, v in opts.items() if v is not OMIT}
@@ -320,16 +339,30 @@ def refusals(msg: dict) -> set[str]:
     if opts is not None:
         if not isinstance(opts, dict):
             return codes | {"bad_field"}
-        t, f, s, texture, all_parts, carve = (opts.get(k) for k in OPTION_KEYS)
+        t, f, s, up, snap = (opts.get(k) for k in ("threshold", "format", "save_intermediates", "up", "primitive_snap"))
         if set(opts) - set(OPTION_KEYS):
             codes.add("bad_field")
         if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < 1):
             codes.add("bad_field")
         if f is not None and f not in ("obj", "ply", "glb"):
             codes.add("bad_field")
+        output = msg.get("output")
+        ext = PurePosixPath(output).suffix.lower().lstrip(".") if usable_path(output) else None
+        if f in ("obj", "ply", "glb") and ext in ("obj", "ply", "glb") and ext != f:  # format and extension must agree
+            codes.add("bad_field")
+        if up is not None:
+            written = f if f in ("obj", "ply", "glb") else (ext if ext in ("obj", "ply", "glb") else "obj")
+            if up not in ("y", "z") or (up == "z" and written != "ply"):  # up z is for ply only
+                codes.add("bad_field")
         if s is not None and not usable_path(s):
             codes.add("bad_field")
-        if any(v is not None and not isinstance(v, bool) for v in (texture, all_parts, carve)):
+        if any(opts.get(k) is not None and not isinstance(opts.get(k), bool) for k in FLAGS):
+            codes.add("bad_field")
+        for width in WIDTHS:
+            v = opts.get(width)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 8):
+                codes.add("bad_field")
+        if snap is not None and (isinstance(snap, bool) or not isinstance(snap, (int, float)) or not 0.0 <= snap < 1.0):
             codes.add("bad_field")
     return codes
 
@@ -343,6 +376,16 @@ def written_files(output: str, fmt, texture) -> list[str]:
         p = PurePosixPath(output)
         return [output, str(p.with_suffix(".mtl")), str(p.with_name(p.stem + "_texture.png"))]
     return [output]
+
+
+def job_failure(ev: dict, job: dict) -> bool:
+    """Whether ``ev`` is the error an accepted job ends with: a JOB_CODES error, or (the tiny weights predict the shell
+    target) the job's own bad_field for visible_fusion or pit sealing, told from a refusal by its message."""
+    if ev["type"] != "error":
+        return False
+    if ev["code"] in JOB_CODES:
+        return True
+    return job["shell_only"] and ev["code"] == "bad_field" and ev["message"].startswith(("visible_fusion:", "pit_sealing:"))
 
 
 @dataclass
@@ -378,7 +421,10 @@ def expect(msg) -> Expected:
         if codes:
             return Expected(("error", codes, rid))
         opts = msg.get("options") or {}
+        # the tiny weights predict the shell target: visible_fusion and pit sealing are the job's bad_field error
+        shell_only = opts.get("visible_fusion") is True or bool(opts.get("pit_sealing"))
         return Expected(job={"key": key(rid), "id": rid, "image": msg["image"], "output": msg["output"],
+                             "shell_only": shell_only,
                              "files": written_files(msg["output"], opts.get("format"), opts.get("texture")),
                              "intermediates": opts.get("save_intermediates")}, answers=(0, 0))  # (0 to 1 if its id may be taken)
     if kind == "cancel":
@@ -539,6 +585,12 @@ def resolve(work: Path, path: str) -> str:
     return os.path.normpath(os.path.join(work, path))  # (no links on the way: the tree's links are file names)
 
 
+def test_the_fuzzer_draws_every_option_the_server_accepts():
+    from genre_backend.inference.server import _OPTION_KEYS
+
+    assert set(OPTION_KEYS) == set(_OPTION_KEYS) and set(OPTION_KEYS) <= set(PARTS)
+
+
 @pytest.fixture(scope="module")
 def fuzz(trained, tmp_path_factory):
     import numpy as np
@@ -563,7 +615,7 @@ def fuzz(trained, tmp_path_factory):
         assert bye["id"] == odd
         assert f.server.close() == 0
         f.check_lines()
-    leftovers = [p for p in snapshot(tree.root) if ".tmp-" in os.path.basename(p)]
+    leftovers = [p for p in snapshot(tree.root) if is_temporary_name(os.path.basename(p))]
     assert not leftovers, leftovers
     assert f.starts == 1, f"the server had to be started {f.starts} times: an example stopped it (see the failure above)"
 
@@ -638,10 +690,10 @@ def test_fuzzed_lines_never_break_the_server_or_write_elsewhere(fuzz, lines):
     other_keys = {key(p.answer[2]) for p in plans if p.answer and p.answer[0] == "error"}
     for job in jobs:
         mine = [ev for ev in events if key(ev["id"]) == job["key"]]
-        ends = [ev for ev in mine if ev["type"] in ("result", "cancelled") or (ev["type"] == "error" and ev["code"] in JOB_CODES)]
+        ends = [ev for ev in mine if ev["type"] in ("result", "cancelled") or job_failure(ev, job)]
         if keys[job["key"]] == 1:
             assert len(ends) == 1, (job, mine)
-            assert not [ev for ev in mine if ev["type"] == "error" and ev["code"] not in JOB_CODES and ev["code"] != "unknown_job"] \
+            assert not [ev for ev in mine if ev["type"] == "error" and not job_failure(ev, job) and ev["code"] != "unknown_job"] \
                 or job["key"] in other_keys or any(p.unsure for p in plans), (job, mine)  # (refused: another line with its id)
             fuzz.jobs[ends[0]["type"] if ends[0]["type"] != "error" else ends[0]["code"]] += 1
         fractions = [ev["fraction"] for ev in mine if ev["type"] == "progress"]

@@ -15,7 +15,7 @@ import torch
 from genre_backend.config import GenreConfig
 from genre_backend.inference import reconstruct_cli
 from genre_backend.inference.reconstruct import OutputError, check_output_path
-from genre_backend.io import WeightsError, atomic_write_bytes, remove_dead_temporaries, tmp_prefix
+from genre_backend.io import TMP_MARK, WeightsError, atomic_write_bytes, remove_dead_temporaries, tmp_prefix
 from genre_backend.nets.model import WEIGHTS_FORMAT, load_model
 from test_server import ServerProcess
 
@@ -160,15 +160,33 @@ def test_temporaries_of_dead_processes_are_removed_on_the_next_write(tmp_path):
     target = tmp_path / "big.obj"
     proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True)
     dead = int(proc.stdout)
-    stale = tmp_path / f".big.obj.tmp-{dead}-abcd1234"
+    stale = tmp_path / f".big.obj{TMP_MARK}{dead}-abcd1234"
     stale.write_bytes(b"half a mesh")
-    live = tmp_path / f".big.obj.tmp-{os.getppid()}-abcd1234"  # a process that is running
+    live = tmp_path / f".big.obj{TMP_MARK}{os.getppid()}-abcd1234"  # a process that is running
     live.write_bytes(b"being written")
-    other = tmp_path / f".other.obj.tmp-{dead}-abcd1234"  # another target's: left for its own next write
+    other = tmp_path / f".other.obj{TMP_MARK}{dead}-abcd1234"  # another target's: left for its own next write
     other.write_bytes(b"x")
+    users = [tmp_path / f".big.obj.tmp-{dead}-abcd1234", tmp_path / f".big.obj{TMP_MARK}{dead}-mine"]  # a user's own files
+    for u in users:
+        u.write_bytes(b"the user's")
     atomic_write_bytes(target, b"mesh")
     assert not stale.exists() and live.exists() and other.exists() and target.read_bytes() == b"mesh"
+    assert all(u.read_bytes() == b"the user's" for u in users)
     assert remove_dead_temporaries(tmp_path / "other.obj") == 1 and not other.exists()
+
+
+def test_temporary_names_fit_the_name_limit(tmp_path):
+    for n in (200, 233, 240, 250, 255):
+        for ch in ("a", "é", "\u6f22"):  # 1, 2 and 3 bytes a character
+            name = (ch * n)
+            while len(os.fsencode(name + ".obj")) > 255:
+                name = name[:-1]
+            target = tmp_path / (name + ".obj")
+            assert len(os.fsencode(tmp_prefix(target))) + 8 <= 255
+            atomic_write_bytes(target, b"mesh")
+            assert target.read_bytes() == b"mesh"
+            target.unlink()
+    assert os.listdir(tmp_path) == []
 
 
 # ---- bad weights files ------------------------------------------------------------------------------

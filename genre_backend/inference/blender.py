@@ -81,6 +81,22 @@ def own_private_folder(path: Path) -> Path | None:
     return path
 
 
+def private_matplotlib_config() -> None:
+    """Point ``MPLCONFIGDIR`` at a private folder of this process (``tempfile.mkdtemp``, removed at exit) unless the
+    user set one, so that matplotlib never creates ``$HOME/.config/matplotlib`` or ``~/.cache/matplotlib``.
+
+    Call before the first ``import matplotlib``.
+    """
+    if os.environ.get("MPLCONFIGDIR") or "matplotlib" in sys.modules:
+        return
+    import atexit
+    import shutil
+
+    folder = tempfile.mkdtemp(prefix="genre-matplotlib-")
+    os.environ["MPLCONFIGDIR"] = folder
+    atexit.register(shutil.rmtree, folder, True)
+
+
 @contextlib.contextmanager
 def private_scratch(prefix: str = "genre-"):
     """A fresh folder from :func:`tempfile.mkdtemp` (mode 0700, unpredictable name), removed on exit.

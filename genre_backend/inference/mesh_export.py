@@ -41,7 +41,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..io import atomic_write_bytes, tmp_prefix
+from ..io import atomic_write_all, atomic_write_bytes, tmp_prefix
 
 __all__ = [
     "MESH_FORMATS",
@@ -53,6 +53,9 @@ __all__ = [
     "OutputError",
     "short",
     "check_output_path",
+    "check_outputs",
+    "check_folder_fillable",
+    "INTERMEDIATE_NAMES",
     "mesh_files",
     "write_mesh",
     "write_png",
@@ -117,6 +120,62 @@ def check_output_path(path: str | os.PathLike, inputs: Sequence[str | os.PathLik
     except OSError as exc:
         raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
     return path
+
+
+INTERMEDIATE_NAMES = ("input", "mask", "silhouette", "depth", "partial_sph", "full_sph", "vox_sph", "vox_depth",
+                      "probability", "mask_in_photo")  # the PNGs ``save_intermediates`` writes (NAME.png)
+
+
+def check_folder_fillable(folder: str | os.PathLike, names: Sequence[str] = (), inputs: Sequence[str | os.PathLike | None] = (),
+                          what: str = "intermediates folder") -> Path:
+    """Fail early (``OutputError``) if ``folder`` cannot be made (when missing) and filled with files called ``names``.
+
+    An existing ``folder`` must be a writable folder, and every ``names``
+    entry in it must pass :func:`check_output_path`; a missing one needs its
+    nearest existing ancestor to be a writable folder (nothing is created here).
+    """
+    folder = Path(folder)
+    try:
+        if folder.exists() or folder.is_symlink():
+            if not folder.is_dir():
+                raise OutputError(f"{short(folder)}: {what} is a file, not a folder")
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise OutputError(f"{short(folder)}: {what} is not writable")
+            for name in names:
+                check_output_path(folder / name, inputs)
+            return folder
+        for part in folder.parts:  # a component too long for the file system fails here
+            if len(os.fsencode(part)) > 255:
+                raise OutputError(f"{short(folder)}: cannot create the {what}: File name too long")
+        ancestor = folder.parent
+        while not (ancestor.exists() or ancestor.is_symlink()) and ancestor != ancestor.parent:
+            ancestor = ancestor.parent
+        if not ancestor.is_dir():
+            raise OutputError(f"{short(folder)}: cannot create the {what}: {short(ancestor)} is not a folder")
+        if not os.access(ancestor, os.W_OK | os.X_OK):
+            raise OutputError(f"{short(folder)}: cannot create the {what}: folder {short(ancestor)} is not writable")
+    except OSError as exc:
+        raise OutputError(f"{short(folder)}: {what}: {exc.strerror or exc}") from None
+    return folder
+
+
+def check_outputs(mesh: str | os.PathLike, fmt: str | None = None, textured: bool = False,
+                  inputs: Sequence[str | os.PathLike | None] = (), intermediates: str | os.PathLike | None = None,
+                  preview: str | os.PathLike | None = None) -> list[Path]:
+    """Every output of one job checked before any network runs: the mesh files, the preview, the intermediates folder.
+
+    Returns the mesh files (:func:`mesh_files`); raises ``OutputError`` for the first one that cannot be written.
+    """
+    files = mesh_files(mesh, fmt, textured)
+    for p in files:
+        check_output_path(p, inputs)
+    if preview is not None:
+        if any(Path(preview) == p for p in files):
+            raise OutputError(f"{short(preview)}: the preview would overwrite the mesh")
+        check_output_path(preview, inputs)
+    if intermediates is not None:
+        check_folder_fillable(intermediates, [f"{n}.png" for n in INTERMEDIATE_NAMES], inputs)
+    return files
 
 
 def _write(path: Path, data: bytes) -> None:
@@ -235,8 +294,10 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
                 mtl: f"newmtl photo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png.name}\n".encode("utf-8", "surrogateescape"),
                 path: _obj_text(v, f, texture.uv, mtl.name).encode("utf-8", "surrogateescape"),
             }
-            for target, payload in data.items():
-                _write(target, payload)
+            try:  # one unit: all three written to temporaries, then renamed together (never an .mtl without its .obj)
+                atomic_write_all([(target, (lambda fh, payload=payload: fh.write(payload))) for target, payload in data.items()])
+            except OSError as exc:
+                raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
         return path, fmt, files
     if up == "z":  # (ply only)
         v = v @ Y_UP_TO_Z_UP.T

@@ -22,6 +22,9 @@ def preview_image(result, samples: int = 16, size: int | None = None) -> np.ndar
     ``size``: side of each panel in pixels (default: twice the preset's image
     size, at least 256).  ``samples``: Cycles samples of the two mesh renders.
     """
+    from .blender import private_matplotlib_config
+
+    private_matplotlib_config()  # (never $HOME/.config/matplotlib)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -127,6 +127,9 @@ def resolve_device(device: str | torch.device) -> torch.device:
 
 def _colour(values: np.ndarray, valid: np.ndarray, lo: float, hi: float, cmap: str) -> np.ndarray:
     """(H, W) floats → (H, W, 3) uint8 colour map; invalid pixels black."""
+    from .blender import private_matplotlib_config
+
+    private_matplotlib_config()  # (never $HOME/.config/matplotlib)
     import matplotlib
 
     t = np.clip((values - lo) / max(hi - lo, 1e-9), 0.0, 1.0)

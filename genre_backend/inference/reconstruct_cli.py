@@ -58,7 +58,36 @@ def _one_line(exc: BaseException, limit: int = 2000) -> str:
     return line if len(line) <= limit else f"{line[:limit]}… ({len(line):,} characters)"
 
 
+class _Terminated(BaseException):
+    """SIGTERM arrived (raised in the main thread, like KeyboardInterrupt for SIGINT)."""
+
+
 def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
+    """Run ``genre reconstruct``; SIGINT prints ``PROG: interrupted`` and returns 130, SIGTERM ``PROG: terminated``
+    and 143 (no traceback; the file being written is dropped with its temporaries)."""
+    import signal
+    import threading
+
+    def on_term(signum, frame):
+        raise _Terminated()
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        return _main(argv, prog)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr, flush=True)
+        return 130
+    except _Terminated:
+        print(f"{prog}: terminated", file=sys.stderr, flush=True)
+        return 143
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str] | None, prog: str) -> int:
     from .reconstruct import MESH_FORMATS
 
     parser = argparse.ArgumentParser(prog=prog, description="Turn photos of objects into meshes (posed as seen, in the view frame).")
@@ -176,8 +205,8 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
         return 1
 
     from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
-    from .mesh_export import mesh_files
-    from .reconstruct import Reconstructor, check_output_path, error_code
+    from .mesh_export import check_outputs
+    from .reconstruct import Reconstructor, error_code
 
     try:
         rec = Reconstructor(weights, args.device)
@@ -207,19 +236,21 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     failed = 0
     for image, out in zip(images, outputs):
         try:
-            for p in mesh_files(out, fmt, args.texture):
-                check_output_path(p, (image, args.mask))
+            intermediates = None
+            if args.save_intermediates:
+                intermediates = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
+            preview = out.with_name(out.stem + "_preview.png") if args.preview else None
+            check_outputs(out, fmt, args.texture, (image, args.mask), intermediates, preview)  # every output, before any work
             result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
                              refine=not args.no_refine, hole_closing=args.hole_closing,
                              silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
                              primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror,
                              pit_sealing=args.pit_sealing)
             path, used = result.save_mesh(out, fmt, texture=args.texture, up=up)
-            if args.save_intermediates:
-                folder = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
-                result.save_intermediates(folder)
-            if args.preview:
-                result.save_preview(path.with_name(path.stem + "_preview.png"))
+            if intermediates is not None:
+                result.save_intermediates(intermediates)
+            if preview is not None:
+                result.save_preview(preview)
             total = sum(result.timings.values())
             clean = result.clean
             shape = f"{clean.parts} part{'s' if clean.parts != 1 else ''}{', watertight' if clean.watertight else ', not watertight'}"

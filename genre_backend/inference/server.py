@@ -21,7 +21,7 @@ import logging
 import math
 import os
 import queue
-import stat
+import signal
 import sys
 import threading
 from dataclasses import dataclass, field
@@ -35,6 +35,35 @@ __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 PROTOCOL_VERSION = 1
 _OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror", "format", "up", "save_intermediates", "texture", "all_parts")
 log = logging.getLogger("genre.serve")
+
+
+class Stop(BaseException):
+    """SIGINT or SIGTERM arrived (raised in the main thread by the handler :func:`main` installs)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def reason(self) -> str:
+        return signal.Signals(self.signum).name
+
+
+def _install_stop_handlers() -> None:
+    """SIGINT and SIGTERM raise :class:`Stop` in the main thread, once; a later one is logged and otherwise ignored
+    (the first is already stopping the server, and it finishes the write in progress before it exits)."""
+    fired: list[int] = []
+
+    def on_signal(signum, frame):
+        if fired:
+            log.warning("%s: already stopping (on %s); finishing the write in progress", signal.Signals(signum).name,
+                        signal.Signals(fired[0]).name)
+            return
+        fired.append(signum)
+        raise Stop(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
 
 
 class RequestError(ValueError):
@@ -119,6 +148,7 @@ class Server:
         self.pending_lock = threading.Lock()
         self.running: Job | None = None
         self.broken = threading.Event()  # stdout closed: nobody listens any more
+        self.said_bye = False
         self.worker = threading.Thread(target=self._work, name="genre-serve-worker", daemon=True)
 
     # ---- output -------------------------------------------------------------------------
@@ -223,6 +253,10 @@ class Server:
         fmt = options.get("format")
         if fmt is not None and fmt not in ("obj", "ply", "glb"):
             raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {_show(fmt)}", rid)
+        if fmt is not None:
+            ext = Path(output).suffix.lower().lstrip(".")
+            if ext in ("obj", "ply", "glb") and ext != fmt:  # as the CLI: format and extension agree
+                raise RequestError("bad_field", f"option 'format' {fmt} does not match the output's extension .{ext}", rid)
         up = options.get("up")
         if up is not None:
             from .mesh_export import resolve_format, resolve_up
@@ -304,16 +338,18 @@ class Server:
             self.pending.pop(_key(job.id), None)
             self.emit({"type": "cancelled", "id": job.id})
 
-    def shutdown(self, rid: Any, cancel: bool) -> None:
-        """Stop the worker (cancelling everything when ``cancel``), then say ``bye``."""
+    def shutdown(self, rid: Any, cancel: bool, reason: str | None = None) -> None:
+        """Stop the worker (cancelling everything when ``cancel``), then say ``bye`` (with ``reason`` after a signal)."""
         if cancel:
             with self.pending_lock:
                 for job in list(self.pending.values()):
                     self._cancel_locked(job)
         self.jobs.put(None)
         if self.worker.is_alive():
-            self.worker.join()
-        self.emit({"type": "bye", "id": rid})
+            self.worker.join()  # (the running job stops at its next stage boundary; a write in progress is finished)
+        if not self.said_bye:
+            self.said_bye = True
+            self.emit({"type": "bye", "id": rid} if reason is None else {"type": "bye", "id": rid, "reason": reason})
 
     # ---- the worker ---------------------------------------------------------------------
     def _work(self) -> None:
@@ -341,34 +377,18 @@ class Server:
             log.info("error %s %s: %s", _cap(_key(job.id), 300), event["code"], _cap(event["message"], 300))
         self.emit(event)
 
-    @staticmethod
-    def _check_intermediates(job: Job) -> None:
-        """Refuse, before any work, an intermediates folder that is a file or cannot be looked at (a missing one is made later)."""
-        from .mesh_export import short
-
-        try:
-            mode = os.stat(job.save_intermediates).st_mode
-        except FileNotFoundError:
-            return
-        except OSError as exc:  # a name too long, a file on the way
-            raise RequestError("output_unwritable", f"{short(job.save_intermediates)}: intermediates folder: {exc.strerror or exc}", job.id) from None
-        if not stat.S_ISDIR(mode):
-            raise RequestError("output_unwritable", f"{short(job.save_intermediates)}: intermediates path is a file, not a folder", job.id)
-
     def _run(self, job: Job) -> None:
         from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
-        from .mesh_export import mesh_files
-        from .reconstruct import STAGE_START, Cancelled, check_output_path, error_code
+        from .mesh_export import check_outputs
+        from .reconstruct import STAGE_START, Cancelled, error_code
 
         if job.cancel.is_set():
             self._end(job, {"type": "cancelled", "id": job.id})
             return
         log.info("job %s: %s -> %s", _cap(_key(job.id), 300), _cap(job.image, 300), _cap(job.output, 300))
         try:
-            for path in mesh_files(job.output, job.format, job.texture):
-                check_output_path(path, (job.image, job.mask))
-            if job.save_intermediates:
-                self._check_intermediates(job)
+            # every output (mesh, .mtl, texture, intermediates folder) before any network runs
+            check_outputs(job.output, job.format, job.texture, (job.image, job.mask), job.save_intermediates)
             result = self.rec.run(
                 job.image,
                 mask_path=job.mask,
@@ -437,24 +457,36 @@ class Server:
 
     # ---- the loop -----------------------------------------------------------------------
     def serve(self, stdin: TextIO) -> int:
-        self.emit({"type": "ready", **self.info()})
-        self.worker.start()
-        for raw in stdin:
-            line = raw.strip()
-            if not line:
-                continue
-            if not self.handle(line):
-                return 0
-            if self.broken.is_set():
-                break
-        log.info("end of input: finishing queued jobs")
-        self.shutdown(None, cancel=self.broken.is_set())
-        return 0
+        """Answer ``stdin`` until ``shutdown`` or its end (exit status 0), or until SIGINT/SIGTERM (:class:`Stop`).
+
+        A signal cancels the queued jobs and the running one (at its next
+        stage boundary; a mesh being written is finished, so no temporary file
+        is left), says ``bye`` with ``reason`` ``SIGINT``/``SIGTERM``, and
+        returns 128 + the signal's number (130, 143).
+        """
+        try:
+            self.emit({"type": "ready", **self.info()})
+            self.worker.start()
+            for raw in stdin:
+                line = raw.strip()
+                if not line:
+                    continue
+                if not self.handle(line):
+                    return 0
+                if self.broken.is_set():
+                    break
+            log.info("end of input: finishing queued jobs")
+            self.shutdown(None, cancel=self.broken.is_set())
+            return 0
+        except Stop as stop:
+            log.info("%s: cancelling the jobs; a write in progress is finished first", stop.reason)
+            if not self.worker.is_alive() and self.worker.ident is None:
+                self.worker.start()  # (so that shutdown's join has a thread to join)
+            self.shutdown(None, cancel=True, reason=stop.reason)
+            return 128 + stop.signum
 
 
 def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
-    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
-
     parser = argparse.ArgumentParser(prog=prog, description="JSON-lines reconstruction server on stdin/stdout (protocol: docs/protocol.md).")
     parser.add_argument("--weights", metavar="W",
                         help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
@@ -463,6 +495,8 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = parser.parse_args(argv)
     logging.basicConfig(stream=sys.stderr, level=args.log_level, format="genre serve: %(levelname)s %(message)s")
+    if threading.current_thread() is threading.main_thread():
+        _install_stop_handlers()
     out = sys.stdout
     sys.stdout = sys.stderr  # nothing but protocol lines reaches the real stdout
     stdin = sys.stdin
@@ -482,6 +516,23 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
         return 1
 
     try:
+        return _load_and_serve(args, out, stdin, fatal)
+    except Stop as stop:  # while the weights load: nothing is written yet
+        log.info("%s while loading: stopping", stop.reason)
+        try:
+            out.write(json.dumps({"type": "bye", "id": None, "reason": stop.reason}) + "\n")
+            out.flush()
+        except (OSError, ValueError):
+            pass
+        return 128 + stop.signum
+    finally:
+        sys.stdout = out
+
+
+def _load_and_serve(args, out: TextIO, stdin: TextIO, fatal) -> int:
+    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
+
+    try:
         weights = resolve_weights(args.weights)
     except WeightsError as exc:
         return fatal("bad_weights", f"--weights: {exc}")
@@ -499,12 +550,7 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
     except Exception as exc:  # noqa: BLE001  (load_model turns a bad file into WeightsError; anything else is one line too)
         return fatal("internal", f"internal error while loading {weights}: {exc.__class__.__name__}: {_one_line(exc)}")
     log.info("loaded %s (preset %s) on %s", weights, rec.preset, rec.device)
-    try:
-        return Server(rec, out, str(rec.device)).serve(stdin)
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        sys.stdout = out
+    return Server(rec, out, str(rec.device)).serve(stdin)
 
 
 if __name__ == "__main__":  # pragma: no cover
