@@ -259,7 +259,7 @@ class Server:
                 raise RequestError("bad_field", f"option 'format' {fmt} does not match the output's extension .{ext}", rid)
         up = options.get("up")
         if up is not None:
-            from .mesh_export import resolve_format, resolve_up
+            from .mesh_export import resolve_format
 
             if up not in ("y", "z"):
                 raise RequestError("bad_field", f"option 'up' must be 'y' or 'z', got {_show(up)}", rid)
