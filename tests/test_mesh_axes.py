@@ -171,7 +171,7 @@ def test_serve_up_option(tmp_path):
     requests = [
         {"type": "reconstruct", "id": "bad-axis", "image": str(DEMO), "output": str(tmp_path / "x.ply"), "options": {"up": "x"}},
         {"type": "reconstruct", "id": "z-obj", "image": str(DEMO), "output": str(tmp_path / "x.obj"), "options": {"up": "z"}},
-        {"type": "reconstruct", "id": "z-glb", "image": str(DEMO), "output": str(tmp_path / "x.obj"), "options": {"up": "z", "format": "glb"}},
+        {"type": "reconstruct", "id": "z-glb", "image": str(DEMO), "output": str(tmp_path / "x.glb"), "options": {"up": "z", "format": "glb"}},
         {"type": "reconstruct", "id": "y-ply", "image": str(DEMO), "output": str(tmp_path / "y.ply"), "options": {"up": "y"}},
     ]
     out = io.StringIO()
@@ -184,4 +184,4 @@ def test_serve_up_option(tmp_path):
     res = events["y-ply"]
     assert res["type"] == "result" and res["format"] == "ply" and res["up"] == "y", res
     assert b"+y up, +z toward the camera" in (tmp_path / "y.ply").read_bytes().split(b"end_header")[0]
-    assert not (tmp_path / "x.obj").exists() and not (tmp_path / "x.ply").exists()
+    assert not any((tmp_path / f"x.{e}").exists() for e in ("obj", "ply", "glb"))
