@@ -21,7 +21,7 @@ import numpy as np
 
 from ..config import CameraConfig
 
-__all__ = ["prepare_blender_environment", "own_private_folder", "private_scratch", "quiet_stdout", "import_bpy", "render_meshes", "render_textured", "photo_colour_error"]
+__all__ = ["prepare_blender_environment", "own_private_folder", "private_scratch", "quiet_stdout", "import_bpy", "render_meshes", "render_views", "PREVIEW_VIEWS", "render_textured", "photo_colour_error"]
 
 
 def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> Path:
@@ -117,19 +117,27 @@ def quiet_stdout(enabled: bool = True):
     if not enabled:
         yield
         return
-    sys.stdout.flush()
+    with _quiet_fd(1):
+        yield
+
+
+@contextlib.contextmanager
+def _quiet_fd(fd: int):
+    """Send file descriptor ``fd`` (1: stdout, 2: stderr) to the null device for the block (C-level prints too)."""
+    stream = sys.stdout if fd == 1 else sys.stderr
+    stream.flush()
     try:
-        saved = os.dup(1)
-    except OSError:  # no real stdout (embedded interpreter): nothing to silence
+        saved = os.dup(fd)
+    except OSError:  # no real descriptor (embedded interpreter): nothing to silence
         yield
         return
     devnull = os.open(os.devnull, os.O_WRONLY)
     try:
-        os.dup2(devnull, 1)
+        os.dup2(devnull, fd)
         yield
     finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
+        stream.flush()
+        os.dup2(saved, fd)
         os.close(saved)
         os.close(devnull)
 
@@ -220,6 +228,126 @@ def render_meshes(meshes: list[tuple[np.ndarray, np.ndarray]], size: int = 160, 
             bpy.data.objects.remove(obj)
             bpy.data.meshes.remove(me)
             out.append(images)
+    return out
+
+
+# The preview's views: name → (camera location in units of the camera distance, Euler rotation).
+# The view frame's camera looks along −z from +z; "side" is that camera turned 90° about the view
+# frame's y axis to the object's right (+x), "back" turned 180° (behind the object, looking along +z).
+PREVIEW_VIEWS = {
+    "front": ((0.0, 0.0, 1.0), (0.0, 0.0, 0.0)),
+    "side": ((1.0, 0.0, 0.0), (0.0, math.pi / 2, 0.0)),
+    "back": ((0.0, 0.0, -1.0), (0.0, math.pi, 0.0)),
+}
+
+
+def _framing(vertices: np.ndarray, cam_cfg: CameraConfig, views: tuple[str, ...], margin: float) -> tuple[float, dict]:
+    """(zoom, {view: (shift_x, shift_y)}): one lens zoom for all views and each view's lens shift so the mesh fills the frame.
+
+    The cameras stay where :data:`PREVIEW_VIEWS` puts them (so the front view
+    is the photo's own perspective, only cropped); the lens is lengthened by
+    ``zoom`` and shifted so that the largest of the views' projected extents
+    spans ``1 − 2·margin`` of the frame, centred.
+    """
+    v = np.asarray(vertices, np.float64)
+    d = cam_cfg.distance
+    scale = cam_cfg.lens_mm / (cam_cfg.sensor_mm / 2.0)  # tan → normalised frame coordinates (−1 … 1)
+    extents, centres = [], {}
+    for name in views:
+        (lx, ly, lz), (_, ry, _) = PREVIEW_VIEWS[name]
+        # camera axes (right, up, backward) in the view frame for the rotations used (about y only)
+        right = np.array([math.cos(ry), 0.0, -math.sin(ry)])
+        up = np.array([0.0, 1.0, 0.0])
+        back = np.array([math.sin(ry), 0.0, math.cos(ry)])
+        rel = v - np.array([lx, ly, lz]) * d
+        depth = np.maximum(-(rel @ back), 1e-6)
+        x, y = rel @ right / depth * scale, rel @ up / depth * scale
+        extents.append(max(x.max() - x.min(), y.max() - y.min()))
+        centres[name] = ((x.max() + x.min()) / 2.0, (y.max() + y.min()) / 2.0)
+    zoom = 2.0 * (1.0 - 2.0 * margin) / max(max(extents), 1e-6)
+    return zoom, {name: (zoom * cx / 2.0, zoom * cy / 2.0) for name, (cx, cy) in centres.items()}
+
+
+def render_views(vertices: np.ndarray, faces: np.ndarray, size: int, camera: CameraConfig | None = None,
+                 uv: np.ndarray | None = None, texture: np.ndarray | None = None,
+                 views: tuple[str, ...] = ("front", "side", "back"), margin: float = 0.04) -> list[np.ndarray]:
+    """The preview's mesh views: RGB (size, size, 3) uint8 on white, one per name in ``views`` (:data:`PREVIEW_VIEWS`).
+
+    Workbench (studio light, flat shading, anti-aliased): about a tenth of
+    a second a view on a CPU.  With ``uv`` (V, 2) and ``texture`` (T, T, 3)
+    uint8 (a :class:`~.colour.PhotoTexture`'s) the mesh shows the photo's
+    colour; otherwise a single clay colour.  Every view keeps the camera's
+    position and lens axis (``camera``'s distance; the front view is the
+    photo's perspective) but one common zoom and a lens shift per view
+    frame the mesh (:func:`_framing`), so it fills the panel and the views
+    share one scale.  Resets Blender to an empty factory scene first.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if size < 1 or len(f) == 0:
+        raise ValueError(f"render_views: expected size ≥ 1 and a non-empty mesh, got {size}, {len(f)} faces")
+    if (uv is None) != (texture is None):
+        raise ValueError("render_views: give both uv and texture, or neither")
+    cam_cfg = camera or CameraConfig()
+    zoom, shifts = _framing(v, cam_cfg, tuple(views), margin)
+    bpy, scene = _empty_scene(size)
+    scene.render.engine = "BLENDER_WORKBENCH"
+    shading = scene.display.shading
+    shading.light = "STUDIO"
+    shading.color_type = "TEXTURE" if texture is not None else "SINGLE"
+    shading.single_color = (0.75, 0.75, 0.75)  # neutral clay: any colour in a view is the photo's
+    shading.show_specular_highlight = texture is None
+    scene.view_settings.view_transform = "Standard"  # the photo's colours as they are
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    cam.data.lens, cam.data.sensor_width, cam.data.sensor_fit = cam_cfg.lens_mm * zoom, cam_cfg.sensor_mm, "HORIZONTAL"
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    from PIL import Image
+
+    out = []
+    with private_scratch("genre-views-") as scratch:
+        me = bpy.data.meshes.new("m")
+        me.from_pydata(v.tolist(), [], f.tolist())
+        # flat shading: Blender's smooth normals put dark specks on the marching-cubes mesh's small facets
+        if texture is not None:
+            tex = np.asarray(texture)
+            uvs = np.asarray(uv, np.float64)
+            if uvs.shape != (len(v), 2) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8:
+                raise ValueError(f"render_views: expected uv (V, 2), texture (T, T, 3) uint8; got {uvs.shape}, {tex.shape} {tex.dtype}")
+            tex_path = scratch / "texture.png"
+            Image.fromarray(tex).save(tex_path)
+            mat = bpy.data.materials.new("photo")
+            if mat.node_tree is None:
+                mat.use_nodes = True
+            node = mat.node_tree.nodes.new("ShaderNodeTexImage")
+            node.image = bpy.data.images.load(str(tex_path))
+            node.interpolation = "Linear"
+            node.extension = "EXTEND"
+            mat.node_tree.nodes.active = node
+            mat.node_tree.links.new(node.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+            layer = me.uv_layers.new(name="photo")
+            loops = np.zeros(len(me.loops), np.int64)
+            me.loops.foreach_get("vertex_index", loops)
+            layer.data.foreach_set("uv", uvs[loops].astype(np.float32).ravel())
+            me.materials.append(mat)
+        me.update()
+        obj = bpy.data.objects.new("m", me)
+        scene.collection.objects.link(obj)
+        tmp = scratch / "render.png"
+        for name in views:
+            loc, rot = PREVIEW_VIEWS[name]
+            cam.location = tuple(c * cam_cfg.distance for c in loc)
+            cam.rotation_euler = rot
+            cam.data.shift_x, cam.data.shift_y = shifts[name]
+            scene.render.filepath = str(tmp)
+            with quiet_stdout(True), _quiet_fd(2):  # headless EGL says "EGL_BAD_MATCH" on stderr and renders anyway
+                bpy.ops.render.render(write_still=True)
+            with Image.open(tmp) as im:
+                rgba = np.asarray(im.convert("RGBA"), np.float32) / 255.0
+            out.append(np.rint((rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:])) * 255).astype(np.uint8))
     return out
 
 

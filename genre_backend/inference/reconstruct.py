@@ -315,14 +315,17 @@ class Reconstruction:
             paths.append(p)
         return paths
 
-    def save_preview(self, path: str | os.PathLike, samples: int = 16) -> Path:
-        """Write one PNG a person can judge the result by (:func:`genre_backend.inference.preview.preview_image`)."""
+    def save_preview(self, path: str | os.PathLike, samples: int = 16, texture: bool = False) -> Path:
+        """Write one PNG a person can judge the result by (:func:`genre_backend.inference.preview.preview_image`).
+
+        ``texture``: the mesh views show the photo's colour (:meth:`texture`).
+        """
         from .preview import preview_image
 
         path = Path(path)
         check_output_path(path, self.inputs)
         t0 = time.perf_counter()
-        write_png(path, preview_image(self, samples=samples))
+        write_png(path, preview_image(self, samples=samples, textured=texture))
         self.timings["preview"] = time.perf_counter() - t0
         return path
 

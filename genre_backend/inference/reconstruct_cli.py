@@ -129,7 +129,7 @@ def _main(argv: list[str] | None, prog: str) -> int:
     parser.add_argument("--save-intermediates", metavar="DIR",
                         help="write PNGs of depth, mask, spherical maps and voxels here, and mask_in_photo.png: the mask at the photo's size, to correct and give back with --mask")
     parser.add_argument("--preview", action="store_true",
-                        help="also write MESH_preview.png beside each mesh: the photo, depth, spherical maps and the mesh rendered from the photo's viewpoint and the side (Blender)")
+                        help="also write MESH_preview.png beside each mesh: small panels of the photo, mask, depth and spherical maps above three large Blender views of the mesh (photo viewpoint, right side, back), in the photo's colour with --texture")
     parser.add_argument("--weights", metavar="W",
                         help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
                              "model, seen classes only), or a .safetensors file")
@@ -250,7 +250,7 @@ def _main(argv: list[str] | None, prog: str) -> int:
             if intermediates is not None:
                 result.save_intermediates(intermediates)
             if preview is not None:
-                result.save_preview(preview)
+                result.save_preview(preview, texture=args.texture)
             total = sum(result.timings.values())
             clean = result.clean
             shape = f"{clean.parts} part{'s' if clean.parts != 1 else ''}{', watertight' if clean.watertight else ', not watertight'}"
