@@ -18,7 +18,7 @@ from genre_backend.geometry.mesh_voxels import mesh_to_distance, point_mesh_dist
 from genre_backend.geometry.raster import mesh_depth, mesh_depth_reference
 from genre_backend.geometry.spherical import mesh_to_sph
 from genre_backend.nets.model import GenRe, load_model, save_model
-from tiny_data import TINY
+from tiny_data import TINY, write_manifest
 
 ROOT = Path(__file__).resolve().parents[1]
 # the device tests run on a lent GPU too (scripts/gpu_burst.sh runs every "cuda" case)
@@ -77,25 +77,13 @@ def test_near_surface_distance_is_exact_within_its_reach(device):
     assert bool((near[~inside] >= full[~inside]).all())
 
 
-def _manifest(tmp: Path, meshes: dict[str, tuple[trimesh.Trimesh, str]]) -> Path:
-    (tmp / "shapes").mkdir(parents=True, exist_ok=True)
-    shapes = []
-    for sid, (mesh, group) in meshes.items():
-        mesh.export(tmp / "shapes" / f"{sid}.glb")
-        shapes.append({"id": sid, "class": "primitive", "split": "unassigned", "groups": [group], "source": "test",
-                       "licence": "CC0"})
-    path = tmp / "manifest.json"
-    path.write_text(json.dumps({"shapes": shapes}))
-    return path
-
-
 def test_pack_holds_the_training_split_only_and_reads_back(tmp_path):
     from training.data.pack import build_pack, read_pack
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)  # 1,280 faces
     box = trimesh.creation.box(extents=(0.6, 0.3, 0.4))
     held_out = trimesh.creation.cylinder(0.3, 0.5)
-    manifest = _manifest(tmp_path, {"sphere": (sphere, "product-train"), "box": (box, "product-train"),
+    manifest = write_manifest(tmp_path, {"sphere": (sphere, "product-train"), "box": (box, "product-train"),
                                     "cyl": (held_out, "product-test")})
     meta = build_pack(manifest, tmp_path / "pack", max_faces=200)
     pack = read_pack(tmp_path / "pack")
@@ -129,7 +117,7 @@ def tiny_pack(tiny_views, tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("pack")
     meshes = tiny_views.parent / "meshes"
-    manifest = _manifest(tmp, {name: (trimesh.load(meshes / f"{name}.ply", process=False), "product-train")
+    manifest = write_manifest(tmp, {name: (trimesh.load(meshes / f"{name}.ply", process=False), "product-train")
                                for name in ("box", "table")})
     build_pack(manifest, tmp / "pack", max_faces=65535)
     return tmp / "pack", tiny_views

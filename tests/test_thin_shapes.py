@@ -3,14 +3,13 @@ deterministic, normalised, thin, small, and never a test shape."""
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
 from training.data.sources.thin import KINDS, MAX_FACES, thin_shapes
+from tiny_data import write_manifest
 
 COUNT = 6  # per kind: every sub-kind at least once (the most sub-kinds of a kind is 4)
 
@@ -57,24 +56,12 @@ def test_thin_shapes_are_normalised_small_and_thin(shapes):
     assert np.median(flat) < 0.1
 
 
-def _manifest(tmp: Path, meshes: dict[str, tuple[trimesh.Trimesh, str]]) -> Path:
-    (tmp / "shapes").mkdir(parents=True, exist_ok=True)
-    shapes = []
-    for sid, (mesh, group) in meshes.items():
-        mesh.export(tmp / "shapes" / f"{sid}.glb")
-        shapes.append({"id": sid, "class": "primitive", "split": "unassigned", "groups": [group], "source": "test",
-                       "licence": "CC0"})
-    path = tmp / "manifest.json"
-    path.write_text(json.dumps({"shapes": shapes}))
-    return path
-
-
 def test_pack_adds_thin_shapes_and_still_holds_no_test_shape(tmp_path):
     from training.data.pack import build_pack, read_pack
 
     box = trimesh.creation.box(extents=(0.6, 0.3, 0.4))
     held_out = trimesh.creation.cylinder(0.3, 0.5)
-    manifest = _manifest(tmp_path, {"box": (box, "product-train"), "cyl": (held_out, "product-test")})
+    manifest = write_manifest(tmp_path, {"box": (box, "product-train"), "cyl": (held_out, "product-test")})
     meta = build_pack(manifest, tmp_path / "pack", thin=2)
     pack = read_pack(tmp_path / "pack")
     assert len(pack) == 1 + 2 * len(KINDS) and meta["thin"] == 2

@@ -75,3 +75,19 @@ def two_colour_backgrounds(folder: Path) -> Path:
                      "width": 64, "height": 48})
     (folder / "index.json").write_text(json.dumps({"format": "genre-backgrounds/1", "images": rows}))
     return folder
+
+
+def write_manifest(tmp: Path, meshes: dict) -> Path:
+    """A corpus manifest in ``tmp`` of ``meshes`` (id → (trimesh, group), written as ``shapes/<id>.glb``), class
+    ``primitive``, split ``unassigned``, the group given (``product-train`` / ``product-test``)."""
+    import json
+
+    (tmp / "shapes").mkdir(parents=True, exist_ok=True)
+    shapes = []
+    for sid, (mesh, group) in meshes.items():
+        mesh.export(tmp / "shapes" / f"{sid}.glb")
+        shapes.append({"id": sid, "class": "primitive", "split": "unassigned", "groups": [group], "source": "test",
+                       "licence": "CC0"})
+    path = tmp / "manifest.json"
+    path.write_text(json.dumps({"shapes": shapes}))
+    return path
