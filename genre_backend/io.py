@@ -291,6 +291,11 @@ def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weigh
     path = Path(path)
     if not path.is_file():
         raise WeightsError(f"{what} file not found: {path}")
+    try:  # (safetensors reports an unreadable file as "No such file or directory")
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        raise WeightsError(f"{path}: {what} file not readable ({exc.strerror or exc})") from None
     try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             meta = f.metadata() or {}

@@ -143,13 +143,13 @@ def _all_lines(s: ServerProcess) -> list[dict]:
     return [json.loads(line) for line in s.raw]
 
 
-def _server_with_env(trained, cwd, env, script: str | None = None) -> ServerProcess:
+def _server_with_env(trained, cwd, env, script: str | None = None, prefix: list[str] | None = None) -> ServerProcess:
     s = ServerProcess.__new__(ServerProcess)
     import queue
     import threading
 
     cmd = [sys.executable, "-c", script, "serve"] if script else [sys.executable, "-m", "genre_backend.cli", "serve"]
-    s.proc = subprocess.Popen([*cmd, "--weights", str(trained[0])], cwd=cwd, env=env, text=True, encoding="utf-8",
+    s.proc = subprocess.Popen([*(prefix or []), *cmd, "--weights", str(trained[0])], cwd=cwd, env=env, text=True, encoding="utf-8",
                               errors="replace", stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=1,
                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # (see _slow_cli)
     s.events = queue.Queue()
@@ -351,3 +351,176 @@ def test_serve_signal_while_the_weights_load_says_bye_only(trained, tmp_path, si
     assert _all_lines(s) == [{"type": "bye", "id": None, "reason": signal.Signals(sig).name}]
     assert "Traceback" not in s.proc.stderr.read()
     assert listing(tmp_path) == before | {"mark"}
+
+
+# ---- part 4: a signal during a network stage ------------------------------------------------------
+# The depth network slowed: on its first call it appends "network" to $GENRE_TEST_MARK, then sleeps
+# $GENRE_TEST_SLEEP seconds (0: only marks, so a refusal test can tell that no network ran).
+_SLOW_NET = """
+import os, sys, time
+import genre_backend.inference.reconstruct as rec
+_orig = rec.Reconstructor._depth_net
+def _slow(self, *args, **kwargs):
+    with open(os.environ["GENRE_TEST_MARK"], "a") as m:
+        m.write("network\\n")
+    time.sleep(float(os.environ.get("GENRE_TEST_SLEEP", "30")))
+    return _orig(self, *args, **kwargs)
+rec.Reconstructor._depth_net = _slow
+from genre_backend.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("sig, status, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
+def test_cli_signal_during_a_network_stage_prints_one_line_and_writes_nothing(trained, photo, tmp_path, sig, status, word):
+    out = tmp_path / "out"
+    out.mkdir()
+    mark = tmp_path / "mark"
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_NET, "reconstruct", str(photo), "-o", str(out / "m.obj"), "--texture",
+                             "--preview", "--save-intermediates", str(out / "inter"), "--weights", str(trained[0])],
+                            cwd=tmp_path, env=_env(GENRE_TEST_MARK=str(mark)), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    _wait_for_mark(mark, proc)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == status, err
+    assert err.strip().splitlines() == [f"genre reconstruct: {word}"], err
+    assert listing(out) == set()
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_serve_signal_during_a_network_stage_cancels_the_job_and_says_bye(trained, photo, tmp_path, sig, status):
+    out = tmp_path / "out"
+    out.mkdir()
+    mark = tmp_path / "mark"
+    s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark), GENRE_TEST_SLEEP="5"), script=_SLOW_NET)
+    assert s.next(timeout=300)["type"] == "ready"
+    s.send(_job("j", photo, str(out / "m.obj"), texture=True, save_intermediates=str(out / "inter")))
+    s.send(_job("queued", photo, str(out / "q.obj")))
+    _wait_for_mark(mark, s.proc)
+    s.proc.send_signal(sig)
+    assert s.proc.wait(timeout=120) == status, s.proc.stderr.read()
+    assert "Traceback" not in s.proc.stderr.read()
+    events = _all_lines(s)
+    kinds = sorted((e["type"], e.get("id")) for e in events if e["type"] not in ("progress", "ready", "bye"))
+    assert kinds == [("cancelled", "j"), ("cancelled", "queued")], events  # the running job stops at its next stage
+    assert events[-1] == {"type": "bye", "id": None, "reason": signal.Signals(sig).name}
+    assert listing(out) == set()
+
+
+# ---- part 4: a batch of textured photos -------------------------------------------------------------
+def _batch(trained, tmp_path) -> tuple[list[str], Path]:
+    """Two photos for one ``genre reconstruct`` call writing into ``out/``: a.obj, then b.obj (three files each)."""
+    src = trained[1] / "box"
+    for name, view in (("a.png", "view_000.png"), ("b.png", "view_001.png")):
+        shutil.copy(src / view if (src / view).exists() else src / "view_000.png", tmp_path / name)
+    out = tmp_path / "out"
+    out.mkdir()
+    return [str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-o", str(out), "--texture", "--weights", str(trained[0])], out
+
+
+_UNIT_A = {"a.obj", "a.mtl", "a_texture.png"}
+
+
+@pytest.mark.parametrize("at", range(1, 7))
+@pytest.mark.parametrize("sig, status, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated"),
+                                               (signal.SIGKILL, -9, None)])
+def test_signal_at_each_temporary_of_a_textured_batch(trained, tmp_path, at, sig, status, word):
+    """A batch is written photo by photo, each textured OBJ as a unit: a signal at the ``at``-th temporary (1-3 the first
+    photo's, 4-6 the second's) leaves the photos already written whole, and nothing of the one being written (after
+    SIGKILL, only its temporaries, which the next run removes)."""
+    args, out = _batch(trained, tmp_path)
+    mark = tmp_path / "mark"
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_WRITES, "reconstruct", *args], cwd=tmp_path,
+                            env=_env(GENRE_TEST_MARK=str(mark), GENRE_TEST_SLEEP="1"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    _wait_for_mark(mark, proc, writes=at)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == status, err
+    done = _UNIT_A if at > 3 else set()
+    if word is not None:
+        assert err.strip().splitlines()[-1] == f"genre reconstruct: {word}", err
+        assert "Traceback" not in err
+        assert listing(out) == done
+        return
+    in_flight = (at - 1) % 3 + 1
+    assert listing(out) - done == set(temporaries(out)) and len(temporaries(out)) == in_flight, listing(out)
+    again = reconstruct(*args, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert listing(out) == _UNIT_A | {"b.obj", "b.mtl", "b_texture.png"}  # the dead run's temporaries removed
+
+
+# ---- part 3: refusals when the file system says no (permission bits) --------------------------------
+def _without_override() -> list[str]:
+    """A command prefix under which permission bits bind: as root, ``setpriv`` drops the capabilities that let root
+    write anywhere (CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH); as anyone else, none is needed."""
+    if os.geteuid() != 0:
+        return []
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        pytest.skip("running as root without util-linux's setpriv: permission bits cannot bind")
+    caps = "-dac_override,-dac_read_search"
+    return [setpriv, f"--bounding-set={caps}", f"--inh-caps={caps}"]
+
+
+@pytest.fixture()
+def locked(trained, photo, tmp_path):
+    """A read-only folder ``ro/`` (with ``ro/inside/``), an unreadable photo and unreadable weights."""
+    ro = tmp_path / "ro"
+    (ro / "inside").mkdir(parents=True)
+    paths = {"ro": ro, "secret": tmp_path / "secret.png", "weights": tmp_path / "secret.safetensors"}
+    shutil.copy(photo, paths["secret"])
+    shutil.copy(trained[0], paths["weights"])
+    for p, mode in ((ro / "inside", 0o555), (ro, 0o555), (paths["secret"], 0), (paths["weights"], 0)):
+        p.chmod(mode)
+    yield paths
+    for p in (ro, ro / "inside"):  # (so that pytest can remove them)
+        p.chmod(0o755)
+
+
+@pytest.mark.parametrize("case", ["output folder", "intermediates", "intermediates inside", "photo", "weights", "mask"])
+def test_cli_refuses_what_permission_bits_forbid_before_any_network(trained, photo, locked, tmp_path, case):
+    mark = tmp_path / "mark"
+    weights = str(trained[0])
+    args = {
+        "output folder": [str(photo), "-o", "ro/m.obj", "--texture"],
+        "intermediates": [str(photo), "-o", "m.obj", "--save-intermediates", "ro/inter"],
+        "intermediates inside": [str(photo), "-o", "m.obj", "--save-intermediates", "ro/inside"],
+        "photo": ["secret.png", "-o", "m.obj"],
+        "weights": [str(photo), "-o", "m.obj"],
+        "mask": [str(photo), "--mask", "secret.png", "-o", "m.obj"],
+    }[case]
+    if case == "weights":
+        weights = str(locked["weights"])
+    code = {"photo": "bad_image", "weights": "bad_weights", "mask": "bad_mask"}.get(case, "output_unwritable")
+    before = listing(tmp_path)
+    proc = subprocess.run([*_without_override(), sys.executable, "-c", _SLOW_NET, "reconstruct", *args, "--weights", weights],
+                          cwd=tmp_path, env=_env(GENRE_TEST_MARK=str(mark), GENRE_TEST_SLEEP="0"), capture_output=True,
+                          text=True, timeout=600)
+    line = _refused(proc, code)
+    assert "denied" in line or "not writable" in line or "not readable" in line, line
+    assert not mark.exists(), "a network ran before the refusal"
+    assert listing(tmp_path) == before
+
+
+def test_serve_refuses_what_permission_bits_forbid_before_any_network(trained, photo, locked, tmp_path):
+    mark = tmp_path / "mark"
+    env = _env(GENRE_TEST_MARK=str(mark), GENRE_TEST_SLEEP="0")
+    s = _server_with_env(trained, tmp_path, env, script=_SLOW_NET, prefix=_without_override())
+    assert s.next(timeout=300)["type"] == "ready"
+    before = listing(tmp_path)
+    cases = [("out", _job("out", photo, "ro/m.obj", texture=True), "output_unwritable"),
+             ("inter", _job("inter", photo, "m.obj", save_intermediates="ro/inside"), "output_unwritable"),
+             ("photo", _job("photo", locked["secret"], "m.obj"), "bad_image"),
+             ("mask", {**_job("mask", photo, "m.obj"), "mask": str(locked["secret"])}, "bad_mask")]
+    for rid, job, code in cases:
+        s.send(job)
+        ev = s.until(lambda e: e["type"] in ("error", "result"))[-1]
+        assert ev["type"] == "error" and ev["id"] == rid and ev["code"] == code, ev
+        assert "denied" in ev["message"] or "not writable" in ev["message"] or "not readable" in ev["message"], ev
+    assert not mark.exists(), "a network ran before a refusal"
+    assert listing(tmp_path) == before
+    s.send({"type": "shutdown", "id": "end"})
+    s.until(lambda e: e["type"] == "bye")
+    assert s.close() == 0

@@ -234,48 +234,50 @@ def _main(argv: list[str] | None, prog: str) -> int:
             print(text, file=stream, flush=True)
 
     failed = 0
-    for image, out in zip(images, outputs):
-        try:
-            intermediates = None
-            if args.save_intermediates:
-                intermediates = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
-            preview = out.with_name(out.stem + "_preview.png") if args.preview else None
-            check_outputs(out, fmt, args.texture, (image, args.mask), intermediates, preview)  # every output, before any work
-            result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
-                             refine=not args.no_refine, hole_closing=args.hole_closing,
-                             silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
-                             primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror,
-                             pit_sealing=args.pit_sealing)
-            path, used = result.save_mesh(out, fmt, texture=args.texture, up=up)
-            if intermediates is not None:
-                result.save_intermediates(intermediates)
-            if preview is not None:
-                result.save_preview(preview, texture=args.texture)
-            total = sum(result.timings.values())
-            clean = result.clean
-            shape = f"{clean.parts} part{'s' if clean.parts != 1 else ''}{', watertight' if clean.watertight else ', not watertight'}"
-            if clean.parts_before != clean.parts:
-                shape += f"; {clean.parts_before - clean.parts} small or inner parts dropped"
-            colour = ", coloured from the photo" if args.texture else ""
-            if result.primitive is not None:
-                shape += f"; a fitted {result.primitive}"
-            axis = ", +z up" if result.up == "z" else ""
-            say(f"{image} -> {path} ({used}{axis}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
-            if result.mask_warning:
-                fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \
-                    else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"
-                say(f"{prog}: warning: {image}: doubtful mask: {result.mask_warning}; {fix}", err=True)
-        except Exception as exc:  # one bad input must not stop the others
-            failed += 1
-            code = error_code(exc)
-            msg = _one_line(exc) if code != "internal" else f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
-            if str(image) not in msg:
-                msg = f"{image}: {msg}"
-            say(f"{prog}: error: {msg} [{code}]", err=True)
+    try:  # (on Ctrl-C or SIGTERM the bar is closed first: the one-line message comes on a line of its own)
+        for image, out in zip(images, outputs):
+            try:
+                intermediates = None
+                if args.save_intermediates:
+                    intermediates = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
+                preview = out.with_name(out.stem + "_preview.png") if args.preview else None
+                check_outputs(out, fmt, args.texture, (image, args.mask), intermediates, preview)  # every output, before any work
+                result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
+                                 refine=not args.no_refine, hole_closing=args.hole_closing,
+                                 silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
+                                 primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror,
+                                 pit_sealing=args.pit_sealing)
+                path, used = result.save_mesh(out, fmt, texture=args.texture, up=up)
+                if intermediates is not None:
+                    result.save_intermediates(intermediates)
+                if preview is not None:
+                    result.save_preview(preview, texture=args.texture)
+                total = sum(result.timings.values())
+                clean = result.clean
+                shape = f"{clean.parts} part{'s' if clean.parts != 1 else ''}{', watertight' if clean.watertight else ', not watertight'}"
+                if clean.parts_before != clean.parts:
+                    shape += f"; {clean.parts_before - clean.parts} small or inner parts dropped"
+                colour = ", coloured from the photo" if args.texture else ""
+                if result.primitive is not None:
+                    shape += f"; a fitted {result.primitive}"
+                axis = ", +z up" if result.up == "z" else ""
+                say(f"{image} -> {path} ({used}{axis}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
+                if result.mask_warning:
+                    fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \
+                        else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"
+                    say(f"{prog}: warning: {image}: doubtful mask: {result.mask_warning}; {fix}", err=True)
+            except Exception as exc:  # one bad input must not stop the others
+                failed += 1
+                code = error_code(exc)
+                msg = _one_line(exc) if code != "internal" else f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
+                if str(image) not in msg:
+                    msg = f"{image}: {msg}"
+                say(f"{prog}: error: {msg} [{code}]", err=True)
+            if bar is not None:
+                bar.update(1)
+    finally:
         if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.close()
     if failed and many:
         print(f"{prog}: {failed} of {len(images)} images failed", file=sys.stderr)
     return 1 if failed else 0
