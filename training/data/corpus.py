@@ -307,8 +307,8 @@ def data_dir(explicit: str | Path | None = None) -> Path:
     The first of: ``explicit`` (e.g. ``genre data --data-dir``);
     ``$GENRE_HOME``; ``$GENRE_DATA_DIR`` (the old name, still honoured);
     ``$XDG_CACHE_HOME/genre``; ``~/.cache/genre``.  Outside the checkout, so
-    GPL data never sits in a git work tree; the shell scripts ask this
-    function too (``scripts/train_default.sh``).  Empty variables count as
+    GPL data never sits in a git work tree; ``genre chain`` asks this
+    function too (:mod:`training.chain`).  Empty variables count as
     unset; the path is made absolute (``~`` expanded), never created here.
     """
     if explicit:
