@@ -70,7 +70,7 @@ class StageRecipe:
     sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
     depth_weight: float = 0.0  # the joint stage: the depth net's own loss (depth + silhouette) added with this weight
     # the depth net's loss (depth stage, and joint's depth term): this weight times the multi-scale gradient
-    # matching term (training.learn.train.depth_gradient_loss) added to the depth's MSE; 0 = the MSE alone
+    # matching term (training.learn.losses.depth_gradient_loss) added to the depth's MSE; 0 = the MSE alone
     depth_gradient_weight: float = 0.0
     lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
     sph_teacher: float = 0.0
