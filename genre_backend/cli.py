@@ -6,7 +6,7 @@ loader that imports the command's module only when it runs, so that
 when a command needs them).  The backend registers its own commands here
 (``reconstruct``, ``serve``, ``bench``); other packages add theirs through the
 ``genre.commands`` entry-point group (the training side registers ``data``,
-``train`` and ``eval`` in ``training/commands.py``, named in pyproject.toml).
+``train``, ``eval`` and ``chain`` in ``training/commands.py``, named in pyproject.toml).
 The backend never imports the training side.
 """
 
@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     name = argv[0]
     if name not in available:
         hint = ""
-        if name in ("data", "train", "eval"):
+        if name in ("data", "train", "eval", "chain"):
             hint = " (the training commands come with the 'training' package: install the project with 'pip install -e .')"
         print(f"genre: unknown command {name!r}{hint}\n\n{_usage(available)}", file=sys.stderr)
         return 2
@@ -119,4 +119,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # `python -m genre_backend.cli` (genre chain runs its steps so): run the imported module's main, whose Command
+    # class is the one the registered commands were made with (this file's __main__ copy would not match them)
+    from genre_backend.cli import main as _main
+
+    sys.exit(_main())

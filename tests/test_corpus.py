@@ -349,16 +349,23 @@ def test_data_dir_resolution_order(monkeypatch, tmp_path):
     assert corpus.REPO_ROOT not in corpus.data_dir().parents and not (tmp_path / "xdg").exists()
 
 
-def test_scripts_resolve_the_home_as_python_does(monkeypatch, tmp_path):
-    """scripts/train_default.sh asks data_dir() (DRY_RUN: nothing written): its paths lie under the same home."""
-    env = {k: v for k, v in os.environ.items() if k not in ("GENRE_HOME", "GENRE_DATA_DIR", "VIEWS", "RUN", "EVAL_VIEWS")}
-    env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), DRY_RUN="1", SKIP_TO="eval")
-    proc = subprocess.run(["bash", "scripts/train_default.sh"], cwd=corpus.REPO_ROOT, env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
+def test_the_chains_resolve_the_home_as_python_does(monkeypatch, tmp_path, capsys):
+    """genre chain asks data_dir() (--dry-run: nothing written): its paths lie under the same home."""
+    from training.chain import main
+
+    for name in ("GENRE_HOME", "GENRE_DATA_DIR"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert main(["protocol", "--dry-run"]) == 0
+    eval_line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("eval:"))
+    assert "--data $GENRE_HOME/views/eval " in eval_line and "--run $GENRE_HOME/runs/default " in eval_line
+    assert "--manifest $GENRE_HOME/corpus/manifest.json " in eval_line and "--out results/default " in eval_line
+    from training.chain import CHAINS
+
     home = (tmp_path / "xdg" / "genre").resolve()
-    eval_line = next(line for line in proc.stdout.splitlines() if line.startswith("step eval:"))
-    assert f"--data {home}/views/eval " in eval_line and f"--run {home}/runs/default " in eval_line
-    assert f"--manifest {home}/corpus/manifest.json " in eval_line and "--out results/default " in eval_line
+    chain = CHAINS["protocol"].build("protocol", corpus.data_dir())
+    step = next(s for s in chain.steps if s.name == "eval")
+    assert home / "views" / "eval" in step.reads and step.action.args[:3] == ("eval", "--data", str(home / "views" / "eval"))
     assert not (tmp_path / "xdg").exists()
 
 

@@ -2,7 +2,7 @@
 
 Layers (a module may import only its own layer and those before it):
   genre_backend: config, validation, io → frame → geometry → nets → inference (cli on top)
-  training: data → render → learn → eval (any of them may import the backend)
+  training: data → render → learn → eval → chain (any of them may import the backend)
 The add-on (blender_addon) imports neither package: it talks to the backend over a pipe.
 """
 
@@ -24,7 +24,7 @@ BACKEND_LAYERS = {
     "genre_backend.frame": 1, "genre_backend.geometry": 2, "genre_backend.nets": 3,
     "genre_backend.inference": 4, "genre_backend.cli": 5,
 }
-TRAINING_LAYERS = {"training.data": 0, "training.render": 1, "training.learn": 2, "training.eval": 3}
+TRAINING_LAYERS = {"training.data": 0, "training.render": 1, "training.learn": 2, "training.eval": 3, "training.chain": 4}
 
 
 def _modules(package: str) -> list[str]:
@@ -123,12 +123,12 @@ def test_cli_lists_the_training_commands_without_importing_them():
         "import sys\n"
         "from genre_backend.cli import commands\n"
         "names = list(commands())\n"
-        "heavy = [m for m in ('torch', 'bpy', 'training.data.cli', 'training.learn.train', 'training.eval.cli') if m in sys.modules]\n"
+        "heavy = [m for m in ('torch', 'bpy', 'training.data.cli', 'training.learn.train', 'training.eval.cli', 'training.chain') if m in sys.modules]\n"
         "print(names, heavy)\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == "['data', 'train', 'eval', 'reconstruct', 'serve', 'bench'] []"
+    assert proc.stdout.strip() == "['data', 'train', 'eval', 'chain', 'reconstruct', 'serve', 'bench'] []"
 
 
 def test_addon_stage_labels_cover_the_backend_stages():

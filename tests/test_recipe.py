@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -19,7 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 # batch 4, Adam betas (0.5, 0.9), surface weight 10) ...
 HISTORIC_DEFAULTS = {"steps": 1000, "batch_size": 4, "beta1": 0.5, "beta2": 0.9, "surface_weight": 10.0}
 HISTORIC_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5, "completion": 1e-4, "onestep": 1e-3}
-# ... and scripts/train_default.sh passed these flags to each stage (as of commit e91e108).
+# ... and the research chain (then scripts/train_default.sh) passed these flags to each stage (as of commit e91e108).
 HISTORIC_SCRIPT_FLAGS = {
     "depth": ["--steps", "6000"],
     "inpaint": ["--steps", "3000"],
@@ -56,74 +54,105 @@ def test_explicit_options_override_the_recipe(capsys):
     assert (got["lr"], got["steps"], got["surface_weight"]) == (5e-4, 7, 0.1)
 
 
-def test_script_names_the_recipe_and_resolves_to_the_historic_settings(tmp_path):
-    env = {**os.environ, "DRY_RUN": "1", "GENRE_HOME": str(tmp_path / "home")}
-    proc = subprocess.run(["bash", "scripts/train_default.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    resolved = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+def _resolved_training_steps(chain) -> list[dict]:
+    """The settings each training step of ``chain`` resolves to (``genre train``'s own argument parsing)."""
+    from training.chain import Train
+    from training.learn.train import parse_args
+
+    out = []
+    for step in chain.steps:
+        if isinstance(step.action, Train):
+            command = step.action.command()
+            assert command[:2] == ("genre_backend.cli", "train")
+            out.append(dataclasses.asdict(parse_args([*command[2:], "--dry-run"]).config))
+    return out
+
+
+def test_protocol_chain_names_the_recipe_and_resolves_to_the_historic_settings(tmp_path):
+    from training.chain import CHAINS
+
+    home = tmp_path / "home"
+    chain = CHAINS["protocol"].build("protocol", home)
+    resolved = _resolved_training_steps(chain)
     assert [r["stage"] for r in resolved] == ["depth", "inpaint", "refine", "joint", "completion", "onestep"]
-    train_lines = [line for line in proc.stdout.splitlines() if line.startswith("step ") and "genre train" in line]
-    assert len(train_lines) == 6
-    assert all("--recipe shipped" in line and "--lr" not in line and "--surface-weight" not in line for line in train_lines)
+    for step in chain.steps:
+        line = step.action.describe(home)
+        assert not line.startswith("genre train") or ("--recipe shipped" in line and "--lr" not in line
+                                                       and "--surface-weight" not in line and "--steps" not in line)
     for r in resolved:
         historic = dataclasses.asdict(TrainConfig(stage=r["stage"], data=r["data"], out=r["out"], init=r["init"], progress=False,
                                                   **_flags_as_fields(HISTORIC_SCRIPT_FLAGS[r["stage"]])))
         historic.pop("recipe"), r.pop("recipe")
         assert r == historic
-    home = str((tmp_path / "home").resolve())
-    assert all(d.startswith(home) for r in resolved for d in r["data"])  # the views lie in the GenRe home
-    assert not (tmp_path / "home").exists()  # a dry run writes nothing, not even the log folder
+    assert all(d.startswith(str(home)) for r in resolved for d in r["data"])  # the views lie in the GenRe home
+    assert not home.exists()  # building a plan writes nothing
 
 
-def test_product_script_starts_from_the_shipped_default_weights_under_the_home(tmp_path):
-    env = {**os.environ, "DRY_RUN": "1", "GENRE_HOME": str(tmp_path / "home"), "ROUNDS": "2"}
-    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
+def test_protocol_variants_start_from_the_protocol_weights(tmp_path):
+    from training.chain import CHAINS
+
+    weights = str(REPO / "genre_backend" / "weights" / "protocol.safetensors")
+    photo = {r["stage"]: r for r in _resolved_training_steps(CHAINS["protocol-photo"].build("protocol-photo", tmp_path))}
+    assert photo["depth"]["init"] == weights and photo["depth"]["photo_fraction"] == 0.8
+    assert photo["depth"]["backgrounds"] == str(tmp_path / "backgrounds") and photo["depth"]["recipe"] == "photo"
+    sharp = {r["stage"]: r for r in _resolved_training_steps(CHAINS["protocol-sharp"].build("protocol-sharp", tmp_path))}
+    assert "depth" not in sharp and sharp["inpaint"]["init"] == weights and sharp["completion"]["init"] == weights
+    assert sharp["refine"]["target"] == "distance" and sharp["onestep"]["init"] is None
+
+
+def test_product_chain_starts_from_the_shipped_default_weights_under_the_home(tmp_path):
+    from training.chain import CHAINS
+
     home = tmp_path / "home"
+    default = str(REPO / "genre_backend" / "weights" / "default.safetensors")
+
+    def plan(name, rounds=None):
+        named = CHAINS[name]
+        chain = named.build(name, home, rounds)
+        return {s.name: s.action.describe(home) for s in chain.steps}, _resolved_training_steps(chain)
+
+    steps, resolved = plan("product", 2)
     assert "--split product-train" in steps["render"] and "--split product-test" in steps["render_eval"]
-    assert "--init genre_backend/weights/default.safetensors" in steps["depth"]  # no run yet: the shipped product weights
-    assert f"--init {home}/runs/product/depth/best.safetensors" in steps["inpaint"]
-    train = [line for line in proc.stdout.splitlines() if line.startswith("step ") and "genre train" in line]
-    assert len(train) == 3 + 2 and all("--recipe product" in line and f"--data {home}/views/product " in line for line in train)
-    assert "--steps 600" in steps["joint_600"]  # (a dry run sees no checkpoint: both rounds name the first target)
-    assert steps["keep_600"].endswith(f"cp {home}/runs/product/joint/final.safetensors {home}/runs/product/joint/round_600.safetensors")
+    by_stage = {r["stage"]: r for r in resolved}
+    assert by_stage["depth"]["init"] == default  # a run with no checkpoint starts from the shipped product weights
+    assert by_stage["inpaint"]["init"] == f"{home}/runs/product/depth/best.safetensors"
+    assert len(resolved) == 3 + 2 and all(r["recipe"] == "product" for r in resolved)
+    assert all(r["data"] == [f"{home}/views/product", f"{home}/views/product_primitives"] for r in resolved)
+    assert all(r["backgrounds"] == f"{home}/backgrounds" for r in resolved)
+    assert [r["steps"] for r in resolved if r["stage"] == "joint"] == [600, 1200]  # rounds of the recipe's joint budget
+    assert steps["keep_600"] == "copy $GENRE_HOME/runs/product/joint/final.safetensors $GENRE_HOME/runs/product/joint/round_600.safetensors"
     assert "--groups product-test" in steps["eval_joint_600"] and "learning_curve.csv" in steps["curve_joint_600"]
-    # more views of the training primitives, trained on beside the rest; 8 views of each test primitive scored
     assert "--classes primitive" in steps["render_primitives"] and "--split product-train" in steps["render_primitives"]
     assert "--classes primitive" in steps["render_primitives_eval"] and "--views 8" in steps["render_primitives_eval"]
-    assert all(f"--data {home}/views/product {home}/views/product_primitives " in line for line in train)
-    assert f"{home}/views/primitives_eval" in steps["eval_primitives_joint_600"]
-    assert not home.exists()
+    assert "$GENRE_HOME/views/primitives_eval" in steps["eval_primitives_joint_600"]
+    # every score at the level of the weights the run starts from
+    assert all("--threshold 0.45" in line for name, line in steps.items() if name.startswith(("curve_", "compare")))
+    assert steps["curve_start"].endswith("--installed") and "--run" not in steps["curve_start"]
+    assert "--installed" not in steps["curve_joint_600"]
     # continuing the shipped product model on a fresh machine: joint only, cumulative hours, prefixed labels
-    env.update(FIRST_CHAIN="0", BASE_HOURS="2.44", CURVE_PREFIX="s2_")
-    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
-    assert not {"depth", "inpaint", "refine"} & set(steps)
-    assert "joint --init genre_backend/weights/default.safetensors" in steps["joint_600"]
+    steps, resolved = plan("product-continue")
+    assert not {"depth", "inpaint", "refine"} & set(steps) and resolved[0]["init"] == default
     assert "--label s2_joint_600" in steps["curve_joint_600"] and "--base-hours 2.44" in steps["curve_joint_600"]
-    assert not home.exists()
-    # a curve without its first point: the shipped default weights the run starts from are marked installed,
-    # the rounds are not (they are installed by hand, under the ship rule)
-    env["RESULTS"] = str(tmp_path / "results")
-    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
-    assert "--label s2_start" in steps["curve_start"] and steps["curve_start"].rstrip().endswith("--installed")
-    assert "--run" not in steps["curve_start"] and "--installed" not in steps["curve_joint_600"]
-    del env["RESULTS"]
     # the refiner grown: the refine stage of product_full from the shipped weights, scored, then no joint round
-    env.update(FIRST_CHAIN="refine", RECIPE="product_full", ROUNDS="0", RUN=str(home / "runs" / "product_full"))
-    proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    steps = {line.split(":", 1)[0][5:]: line for line in proc.stdout.splitlines() if line.startswith("step ")}
-    assert not {"depth", "inpaint"} & set(steps) and not any(k.startswith("joint_") for k in steps)
-    assert "--recipe product_full" in steps["refine"] and "refine --init genre_backend/weights/default.safetensors" in steps["refine"]
-    assert f"--weights {home}/runs/product_full/refine/best.safetensors" in steps["eval_refine"]
-    assert "--label s2_refine" in steps["curve_refine"] and f"--run {home}/runs/product_full" in steps["curve_refine"]
+    steps, resolved = plan("product-full")
+    assert [(r["stage"], r["recipe"], r["init"]) for r in resolved] == [("refine", "product_full", default)]
+    assert f"--weights $GENRE_HOME/runs/product_full/refine/best.safetensors" in steps["eval_refine"]
+    assert "--label refine" in steps["curve_refine"] and "--run $GENRE_HOME/runs/product_full" in steps["curve_refine"]
     assert "results/product/refine " in steps["compare"] and "primitives/refine " in steps["compare_primitives"]
     assert not home.exists()
+
+
+def test_train_arguments_become_a_frozen_spec(tmp_path):
+    from training.learn.train import TrainSpec, parse_args
+
+    spec = parse_args(["refine", "--data", "d", "--out", "o", "--recipe", "shipped", "--steps", "7", "--dry-run"])
+    assert isinstance(spec, TrainSpec) and spec.dry_run and spec.config.steps == 7 and spec.config.lr == 1e-3
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        spec.dry_run = False
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"geometry": {"image_size": -1}}))
+    with pytest.raises(SystemExit):  # a model config that is not one: the usage error, before anything trains
+        parse_args(["depth", "--data", "d", "--out", "o", "--model-config", str(bad)])
 
 
 def _flags_as_fields(flags: list[str]) -> dict:

@@ -292,18 +292,18 @@ def test_kill_between_checkpoints_and_resume_gives_identical_weights_and_log(tin
 
 
 def test_trim_log_keeps_the_rows_up_to_the_checkpoint(tmp_path):
-    from training.learn.train import LOG_FIELDS, _trim_log
+    from training.learn.logs import LOG_FIELDS, trim_log
 
     log = tmp_path / "log.csv"
     head = ",".join(LOG_FIELDS) + "\r\n"
     rows = [f'{k},train,0.5,"{{""a"": 1, ""b"": 2}}",0.001,0.1,20.0\r\n' for k in range(1, 8)]
     log.write_text(head + "".join(rows) + "8,train,0.4", newline="")  # the last row cut off by a kill
-    assert _trim_log(log, 5)
+    assert trim_log(log, 5)
     assert log.read_bytes().decode() == head + "".join(rows[:5])
-    assert _trim_log(log, 5) and log.read_bytes().decode() == head + "".join(rows[:5])  # nothing to drop: unchanged
-    assert not _trim_log(tmp_path / "none.csv", 3)
+    assert trim_log(log, 5) and log.read_bytes().decode() == head + "".join(rows[:5])  # nothing to drop: unchanged
+    assert not trim_log(tmp_path / "none.csv", 3)
     log.write_text("other,columns\n1,2\n")
-    assert not _trim_log(log, 3) and log.read_text() == "other,columns\n1,2\n"  # not ours: left alone, a new log begins
+    assert not trim_log(log, 3) and log.read_text() == "other,columns\n1,2\n"  # not ours: left alone, a new log begins
 
 
 def test_resuming_with_another_architecture_says_which_checkpoint(tiny_views, tmp_path, capsys):

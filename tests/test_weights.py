@@ -2,7 +2,7 @@
 
 README, "Which weights": `protocol` is trained on the seen classes only and behind every Table-1 number;
 `default` is what users get (make demo, the add-on), the product model trained on every class
-(scripts/train_product.sh), at the level of the weights it started from (results/decisions.md).
+(genre chain product), at the level of the weights it started from (results/decisions.md).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The training side's ``genre`` subcommands, registered with the backend's CLI.
 
 Named in pyproject.toml under the ``genre.commands`` entry-point group, so
-``genre data|train|eval`` exist while the backend never imports ``training``.
+``genre data|train|eval|chain`` exist while the backend never imports ``training``.
 Importing this module is cheap: each loader imports its command on demand.
 """
 
@@ -33,6 +33,12 @@ def _train():
     return train.main
 
 
+def _chain():
+    from . import chain
+
+    return chain.main
+
+
 def _eval():
     from .eval import cli
 
@@ -43,4 +49,5 @@ COMMANDS = [
     Command("data", "fetch, build, render and inspect the training corpus", _data),
     Command("train", "train the networks stage by stage", _train),
     Command("eval", "evaluate a trained model over a split", _eval),
+    Command("chain", "run a named training chain: data, stages, scores (training/chain.py)", _chain),
 ]

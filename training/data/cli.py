@@ -188,6 +188,96 @@ def _pack_main():
     return pack.main
 
 
+def _fetch(args: argparse.Namespace, prog: str) -> int:
+    """``genre data fetch``: the Debian model packages into the GenRe home; 1 when one failed."""
+    from . import corpus
+
+    root = corpus.data_dir(args.data_dir)
+    print(f"data folder: {root}")
+    status = corpus.fetch(args.packages, root)
+    for pkg, st in status.items():
+        print(f"  {pkg:<24} {st}")
+    return 0 if all(not s.startswith("failed") for s in status.values()) else 1
+
+
+def _backgrounds(args: argparse.Namespace, prog: str) -> int:
+    """``genre data backgrounds``: photographs behind the objects, with their licences; 1 when none."""
+    from . import corpus
+    from .photo_backgrounds import prepare_backgrounds
+
+    root = corpus.data_dir(args.data_dir)
+    start = time.time()
+    index = prepare_backgrounds(root, args.packages)
+    counts = Counter((b.package, b.licence) for b in index)
+    for (pkg, licence), n in sorted(counts.items()):
+        print(f"  {pkg:<28} {n:4d}  {licence}")
+    print(f"wrote {root / 'backgrounds' / 'index.json'}: {len(index)} photos from {len({b.package for b in index})} packages, {time.time() - start:.0f} s")
+    return 0 if index else 1
+
+
+def _build(args: argparse.Namespace, prog: str) -> int:
+    """``genre data build``: ``corpus/manifest.json`` and the normalised meshes; 1 when nothing was found."""
+    from . import corpus
+
+    if args.jobs < 1:
+        print(f"{prog} build: --jobs must be >= 1", file=sys.stderr)
+        return 2
+    extra = []
+    if args.shapenet:
+        extra.append(("shapenet", args.shapenet, {"front": args.shapenet_front}))
+    for folder in args.folder:
+        extra.append(("folder", folder, {"up": args.folder_up, "front": args.folder_front}))
+    sources = [] if args.no_debian else args.sources
+    root = corpus.data_dir(args.data_dir)
+    start = time.time()
+
+    def progress(done: int, total: int) -> None:
+        if done == total or done % 25 == 0:
+            rate = done / max(time.time() - start, 1e-9)
+            eta = (total - done) / max(rate, 1e-9)
+            print(f"\r  {done}/{total} models  ({rate:.1f}/s, ETA {eta:4.0f} s)", end="", file=sys.stderr, flush=True)
+
+    try:
+        manifest = corpus.build(root, sources=sources, extra_specs=extra, jobs=args.jobs, progress=progress)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"\n{prog} build: {exc}", file=sys.stderr)
+        return 1
+    print(file=sys.stderr)
+    print(f"wrote {root / 'corpus' / 'manifest.json'}: {len(manifest['shapes'])} shapes kept, "
+          f"{len(manifest['skipped'])} skipped, {time.time() - start:.0f} s")
+    return 0
+
+
+def _from_manifest(args: argparse.Namespace, prog: str) -> int:
+    """``genre data stats`` and ``genre data credits``: read the manifest, print (or write) its summary."""
+    from . import corpus
+
+    try:  # stats and credits read the manifest
+        manifest = corpus.load_manifest(args.data_dir)
+    except FileNotFoundError as exc:
+        print(f"{prog} {args.command}: {exc}", file=sys.stderr)
+        return 1
+    if args.command == "stats":
+        print(format_stats(manifest))
+        return 0
+    try:
+        text = format_credits(manifest, args.split)
+    except ValueError as exc:
+        print(f"{prog} credits: {exc}", file=sys.stderr)
+        return 1
+    if args.out:
+        from pathlib import Path
+
+        Path(args.out).write_text(text)
+    else:
+        print(text, end="")
+    return 0
+
+
+_COMMANDS = {"fetch": _fetch, "backgrounds": _backgrounds, "build": _build, "stats": _from_manifest,
+             "credits": _from_manifest}
+
+
 def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dict | None = None) -> int:
     """Entry point of ``genre data``; returns a process exit code.
 
@@ -203,79 +293,4 @@ def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dic
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("trimesh").setLevel(logging.ERROR)
-    from . import corpus
-
-    if args.command == "fetch":
-        root = corpus.data_dir(args.data_dir)
-        print(f"data folder: {root}")
-        status = corpus.fetch(args.packages, root)
-        for pkg, st in status.items():
-            print(f"  {pkg:<24} {st}")
-        return 0 if all(not s.startswith("failed") for s in status.values()) else 1
-
-    if args.command == "backgrounds":
-        from collections import Counter
-
-        from .photo_backgrounds import prepare_backgrounds
-
-        root = corpus.data_dir(args.data_dir)
-        start = time.time()
-        index = prepare_backgrounds(root, args.packages)
-        counts = Counter((b.package, b.licence) for b in index)
-        for (pkg, licence), n in sorted(counts.items()):
-            print(f"  {pkg:<28} {n:4d}  {licence}")
-        print(f"wrote {root / 'backgrounds' / 'index.json'}: {len(index)} photos from {len({b.package for b in index})} packages, {time.time() - start:.0f} s")
-        return 0 if index else 1
-
-    if args.command == "build":
-        if args.jobs < 1:
-            print(f"{prog} build: --jobs must be >= 1", file=sys.stderr)
-            return 2
-        extra = []
-        if args.shapenet:
-            extra.append(("shapenet", args.shapenet, {"front": args.shapenet_front}))
-        for folder in args.folder:
-            extra.append(("folder", folder, {"up": args.folder_up, "front": args.folder_front}))
-        sources = [] if args.no_debian else args.sources
-        root = corpus.data_dir(args.data_dir)
-        start = time.time()
-
-        def progress(done: int, total: int) -> None:
-            if done == total or done % 25 == 0:
-                rate = done / max(time.time() - start, 1e-9)
-                eta = (total - done) / max(rate, 1e-9)
-                print(f"\r  {done}/{total} models  ({rate:.1f}/s, ETA {eta:4.0f} s)", end="", file=sys.stderr, flush=True)
-
-        try:
-            manifest = corpus.build(root, sources=sources, extra_specs=extra, jobs=args.jobs, progress=progress)
-        except (ValueError, FileNotFoundError) as exc:
-            print(f"\n{prog} build: {exc}", file=sys.stderr)
-            return 1
-        print(file=sys.stderr)
-        print(f"wrote {root / 'corpus' / 'manifest.json'}: {len(manifest['shapes'])} shapes kept, "
-              f"{len(manifest['skipped'])} skipped, {time.time() - start:.0f} s")
-        return 0
-
-    try:  # stats and credits read the manifest
-        manifest = corpus.load_manifest(args.data_dir)
-    except FileNotFoundError as exc:
-        print(f"{prog} {args.command}: {exc}", file=sys.stderr)
-        return 1
-    if args.command == "stats":
-        print(format_stats(manifest))
-        return 0
-
-    if args.command == "credits":
-        try:
-            text = format_credits(manifest, args.split)
-        except ValueError as exc:
-            print(f"{prog} credits: {exc}", file=sys.stderr)
-            return 1
-        if args.out:
-            from pathlib import Path
-
-            Path(args.out).write_text(text)
-        else:
-            print(text, end="")
-        return 0
-    return 2  # pragma: no cover  (argparse rejects unknown commands)
+    return _COMMANDS[args.command](args, prog)

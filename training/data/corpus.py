@@ -307,8 +307,8 @@ def data_dir(explicit: str | Path | None = None) -> Path:
     The first of: ``explicit`` (e.g. ``genre data --data-dir``);
     ``$GENRE_HOME``; ``$GENRE_DATA_DIR`` (the old name, still honoured);
     ``$XDG_CACHE_HOME/genre``; ``~/.cache/genre``.  Outside the checkout, so
-    GPL data never sits in a git work tree; the shell scripts ask this
-    function too (``scripts/train_default.sh``).  Empty variables count as
+    GPL data never sits in a git work tree; ``genre chain`` asks this
+    function too (:mod:`training.chain`).  Empty variables count as
     unset; the path is made absolute (``~`` expanded), never created here.
     """
     if explicit:
@@ -708,6 +708,28 @@ def _worker_run(shape_id: str) -> dict:
     return process_record(record, _WORKER["root"], _WORKER["shapes_dir"])
 
 
+def _process_records(records: list, root: Path, shapes_dir: Path, sources: list[str] | None, extra_specs: list[tuple],
+                     jobs: int, progress: Callable[[int, int], None] | None) -> list[dict]:
+    """:func:`process_record` of every record, in order (``jobs`` > 1: in worker processes); ``progress(done, total)``."""
+    results: list[dict] = []
+    ids = [r.shape_id for r in records]
+    if jobs <= 1:
+        for k, record in enumerate(records):
+            results.append(process_record(record, root, shapes_dir))
+            if progress:
+                progress(k + 1, len(records))
+        return results
+    with ProcessPoolExecutor(
+        max_workers=jobs, initializer=_worker_init,
+        initargs=(str(root), sources, extra_specs, str(shapes_dir)),
+    ) as pool:
+        for k, result in enumerate(pool.map(_worker_run, ids, chunksize=2)):
+            results.append(result)
+            if progress:
+                progress(k + 1, len(records))
+    return results
+
+
 def build(
     root: Path | None = None,
     *,
@@ -736,22 +758,7 @@ def build(
     records = _records_from_specs(root, sources, extra_specs)
     if not records:
         raise ValueError(f"no models found under {root / 'cache' / 'unpacked'}: run 'genre data fetch' first")
-    results: list[dict] = []
-    ids = [r.shape_id for r in records]
-    if jobs <= 1:
-        for k, record in enumerate(records):
-            results.append(process_record(record, root, shapes_dir))
-            if progress:
-                progress(k + 1, len(records))
-    else:
-        with ProcessPoolExecutor(
-            max_workers=jobs, initializer=_worker_init,
-            initargs=(str(root), sources, extra_specs, str(shapes_dir)),
-        ) as pool:
-            for k, result in enumerate(pool.map(_worker_run, ids, chunksize=2)):
-                results.append(result)
-                if progress:
-                    progress(k + 1, len(records))
+    results = _process_records(records, root, shapes_dir, sources, extra_specs, jobs, progress)
     entries = [r["entry"] for r in results if "entry" in r]
     skips = [r["skip"] for r in results if "skip" in r]
     dropped = find_near_duplicates(entries)

@@ -104,34 +104,42 @@ def _closed_at(records: list[dict], t: float) -> float:
     return sum(vals) / len(vals) if vals else float("nan")
 
 
-def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
-    args = _parser(prog).parse_args(argv)
-    t_start = time.perf_counter()
+class _Refused(Exception):
+    """A reason ``genre eval`` stops before scoring (one line, exit status 2)."""
+
+
+def _rows_and_groups(args: argparse.Namespace) -> tuple[list[str], tuple[str, ...]]:
+    """The rows and view groups asked for, checked; the GenRe weights resolved (``--weights protocol`` → a file)."""
     rows_wanted = [r.strip() for r in args.rows.split(",")] if args.rows else list(ROWS)
     unknown = [r for r in rows_wanted if r not in ROWS]
     if unknown:
-        return _fail(prog, f"--rows: unknown {unknown}; choose from {list(ROWS)}")
+        raise _Refused(f"--rows: unknown {unknown}; choose from {list(ROWS)}")
     groups = tuple(g.strip() for g in args.groups.split(","))
     if any(g not in GROUPS for g in groups):
-        return _fail(prog, f"--groups: choose from {list(GROUPS)}")
+        raise _Refused(f"--groups: choose from {list(GROUPS)}")
     if not args.run and not args.weights:
-        return _fail(prog, "give the training run (--run RUN) or the GenRe weights (--weights FILE, or --weights protocol)")
+        raise _Refused("give the training run (--run RUN) or the GenRe weights (--weights FILE, or --weights protocol)")
     if args.weights:
         try:
             args.weights = str(resolve_weights(args.weights))
         except WeightsError as exc:
-            return _fail(prog, f"--weights: {exc}")
-    paths = _weights_paths(args)
-    shipped_as = weights_extra(paths["genre"]).get("model") if paths["genre"] is not None else None
-    if shipped_as == DEFAULT_WEIGHTS_NAME:
-        print(f"{prog}: warning: {paths['genre']} are the product weights ('default', meant to be trained on every class); "
-              "research numbers come from 'protocol' (--weights protocol)", file=sys.stderr)
+            raise _Refused(f"--weights: {exc}") from None
+    return rows_wanted, groups
+
+
+def _needed_weights(args: argparse.Namespace, paths: dict[str, Path | None], rows_wanted: list[str]) -> dict[str, bool]:
+    """Which of the three weights the rows need (each present, or :class:`_Refused` with every one missing)."""
     need = {"genre": True, "completion": bool({"3D Completion", "3D Completion-Oracle"} & set(rows_wanted)), "onestep": "GenRe-1step" in rows_wanted}
     missing = [f"{k} weights not found: {paths[k]} ({HINTS[k]})" for k, needed in need.items() if needed and (paths[k] is None or not paths[k].is_file())]
     if "Nearest training shape" in rows_wanted and not args.train_views:
         missing.append("the nearest-training-shape row needs the training views: pass --train-views DIR (or leave the row out with --rows)")
     if missing:
-        return _fail(prog, "; ".join(missing))
+        raise _Refused("; ".join(missing))
+    return need
+
+
+def _views(args: argparse.Namespace, groups: tuple[str, ...]) -> list:
+    """The complete evaluation views of ``groups`` under ``--data`` (the manifest names each shape's groups)."""
     manifest = None
     if args.manifest:
         from ..data.views import read_manifest
@@ -139,7 +147,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
         try:
             manifest = read_manifest(args.manifest)
         except (FileNotFoundError, ValueError) as exc:
-            return _fail(prog, f"--manifest: {exc}")
+            raise _Refused(f"--manifest: {exc}") from None
     else:
         try:
             from training.data.corpus import load_manifest
@@ -150,20 +158,32 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     try:
         views = find_eval_views([Path(d) for d in args.data], manifest, groups, args.max_views)
     except FileNotFoundError as exc:
-        return _fail(prog, str(exc))
+        raise _Refused(str(exc)) from None
     if not views:
-        return _fail(prog, f"no complete eval views (render + targets + surface_points.npz) of groups {list(groups)} under {args.data}; "
-                     "render them with 'genre data render --shapes $GENRE_HOME/corpus/manifest.json --split test|unseen --views 4 --out DIR' and 'genre data targets --views DIR'")
+        raise _Refused(f"no complete eval views (render + targets + surface_points.npz) of groups {list(groups)} under {args.data}; "
+                       "render them with 'genre data render --shapes $GENRE_HOME/corpus/manifest.json --split test|unseen --views 4 --out DIR' and 'genre data targets --views DIR'")
+    return views
+
+
+def _models(args: argparse.Namespace, paths: dict[str, Path | None], need: dict[str, bool], rows_wanted: list[str]) -> Models:
+    """GenRe and the baselines the rows need, loaded and checked."""
     try:
         genre = load_model(paths["genre"], args.device)
-        from ..learn.baselines import NearestIndex, build_nearest_index, load_baseline
+        from ..learn.baselines import load_baseline
 
         completion = load_baseline(paths["completion"], "completion", args.device) if need["completion"] else None
         onestep = load_baseline(paths["onestep"], "onestep", args.device) if need["onestep"] else None
         models = Models(genre, completion, onestep, wanted=tuple(rows_wanted))
         models.check()
     except WeightsError as exc:
-        return _fail(prog, str(exc))
+        raise _Refused(str(exc)) from None
+    return models
+
+
+def _out_folder(args: argparse.Namespace, paths: dict[str, Path | None], need: dict[str, bool], models: Models,
+                rows_wanted: list[str]) -> Path:
+    """``--out`` (default: the GenRe home's results/RUN), made, with the run's identity in ``eval_config.json``:
+    the same weights and views, or :class:`_Refused` instead of mixed results."""
     if args.out:
         out = Path(args.out)
     else:
@@ -171,31 +191,37 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
 
         out = data_dir() / "results" / (Path(args.run).name if args.run else Path(args.weights).stem)
     out.mkdir(parents=True, exist_ok=True)
-    train_ids = None
-    if args.train_shapes:
-        train_ids = {line.strip() for line in Path(args.train_shapes).read_text().splitlines() if line.strip()}
-    # the run's identity: the same weights and views, or a clear error instead of mixed results
     ident = {"weights": {k: (str(v), _digest(v)) for k, v in paths.items() if need[k] and v is not None},
-             "preset": genre.config.preset, "rows": rows_wanted, "train_views": [str(p) for p in args.train_views]}
+             "preset": models.genre.config.preset, "rows": rows_wanted, "train_views": [str(p) for p in args.train_views]}
     ident = json.loads(json.dumps(ident))  # as it reads back (lists, not tuples)
     ident_path = out / "eval_config.json"
     if ident_path.is_file() and json.loads(ident_path.read_text()) != ident:
         if (out / "per_view.csv").is_file():
-            return _fail(prog, f"{out} holds results of other weights or rows ({ident_path}); use another --out or delete it")
+            raise _Refused(f"{out} holds results of other weights or rows ({ident_path}); use another --out or delete it")
     ident_path.write_text(json.dumps(ident, indent=2))
-    if "Nearest training shape" in rows_wanted:
-        index_path = out / "nearest_index.safetensors"
-        try:
-            if index_path.is_file():
-                models.nearest = NearestIndex.load(index_path)
-            else:
-                parts = [build_nearest_index(d, genre.config, train_ids, progress=not args.no_progress) for d in args.train_views]
-                models.nearest = NearestIndex(torch.cat([p.thumbs for p in parts]), torch.cat([p.rotations for p in parts]),
-                                              sum((p.shape_dirs for p in parts), []), sum((p.views for p in parts), []))
-                models.nearest.save(index_path, genre.config)
-        except (FileNotFoundError, WeightsError) as exc:
-            return _fail(prog, str(exc))
-    # the gallery's views: the first view of the first shapes of each group
+    return out
+
+
+def _nearest_index(args: argparse.Namespace, models: Models, out: Path, train_ids: set[str] | None) -> None:
+    """The nearest-training-shape row's index of the training views: read from ``out`` or built and saved there."""
+    from ..learn.baselines import NearestIndex, build_nearest_index
+
+    genre = models.genre
+    index_path = out / "nearest_index.safetensors"
+    try:
+        if index_path.is_file():
+            models.nearest = NearestIndex.load(index_path)
+        else:
+            parts = [build_nearest_index(d, genre.config, train_ids, progress=not args.no_progress) for d in args.train_views]
+            models.nearest = NearestIndex(torch.cat([p.thumbs for p in parts]), torch.cat([p.rotations for p in parts]),
+                                          sum((p.shape_dirs for p in parts), []), sum((p.views for p in parts), []))
+            models.nearest.save(index_path, genre.config)
+    except (FileNotFoundError, WeightsError) as exc:
+        raise _Refused(str(exc)) from None
+
+
+def _gallery_keys(args: argparse.Namespace, groups: tuple[str, ...], views: list) -> list[str]:
+    """The gallery's views: the first view of the first ``--gallery`` shapes of each group."""
     gallery_keys: list[str] = []
     if args.gallery > 0 and not args.no_figures:
         for g in groups:
@@ -204,8 +230,72 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
                 if g in v.groups and v.shape_dir.name not in firsts:
                     firsts[v.shape_dir.name] = v.key
             gallery_keys += [k for k in list(firsts.values())[: args.gallery] if k not in gallery_keys]
-    if args.jobs < 1:
-        return _fail(prog, f"--jobs: expected a positive number of processes, got {args.jobs}")
+    return gallery_keys
+
+
+def _shipped_threshold_note(records: list[dict], choice: dict) -> str:
+    """The table's section on the threshold installed for users (empty without product-split thresholds)."""
+    if "GenRe" not in choice.get("product", {}):
+        return ""
+    tp, share = choice["product"]["GenRe"]
+    _, _, at_product = aggregate(records, dict(choice, seen=dict(choice["seen"], GenRe=tp)))
+    cds = ", ".join(f"{g} {v['GenRe']:.3f}" for g, v in at_product["seen"].items() if "GenRe" in v)
+    return (f"\n## The shipped threshold\n\nThe threshold installed for users (`python -m training.eval.install`) is chosen on "
+            f"seen-test views too, as the lowest mean CD among thresholds whose GenRe meshes are closed (no holes, no tunnels) "
+            f"in at least {100 * CLOSED_SHARE:.0f} % of the views"
+            + ("" if share >= CLOSED_SHARE else " (none is here, so: the threshold whose meshes are most often closed)")
+            + f": t = {tp:.2f}, closed in {100 * share:.0f} % of the "
+            f"seen-test views (at the CD-optimal {choice['seen']['GenRe']:.2f}: "
+            f"{100 * _closed_at(records, choice['seen']['GenRe']):.0f} %). GenRe's CD at t = {tp:.2f}: {cds}.\n")
+
+
+def _figures(args: argparse.Namespace, out: Path, per_class, models: Models, views: list, choice: dict,
+             train_ids: set[str] | None, gallery_keys: list[str]) -> str:
+    """The figures (unless ``--no-figures``) and the table's section that lists them (empty without any)."""
+    if args.no_figures:
+        return ""
+    from . import figures
+    from .heatmap import HeatmapSpec
+
+    heatmap = HeatmapSpec(args.heatmap_class, args.heatmap_shapes, tuple(float(e) for e in args.heatmap_elevations.split(",")),
+                          args.heatmap_azimuths, args.render_samples)
+    notes = figures.make_all(out, per_class, models, views, choice, train_views=[Path(p) for p in args.train_views or []],
+                             train_ids=train_ids, gallery_keys=gallery_keys, render_samples=args.render_samples,
+                             heatmap=heatmap, device=args.device, progress=not args.no_progress)
+    return "\n## Figures\n\n" + "\n".join(notes) + "\n" if notes else ""
+
+
+def _prepare(args: argparse.Namespace, prog: str) -> tuple:
+    """Everything before the scoring: (rows, groups, weights' paths, needed, the shipped name, views, models, out)."""
+    rows_wanted, groups = _rows_and_groups(args)
+    paths = _weights_paths(args)
+    shipped_as = weights_extra(paths["genre"]).get("model") if paths["genre"] is not None else None
+    if shipped_as == DEFAULT_WEIGHTS_NAME:
+        print(f"{prog}: warning: {paths['genre']} are the product weights ('default', meant to be trained on every class); "
+              "research numbers come from 'protocol' (--weights protocol)", file=sys.stderr)
+    need = _needed_weights(args, paths, rows_wanted)
+    views = _views(args, groups)
+    models = _models(args, paths, need, rows_wanted)
+    out = _out_folder(args, paths, need, models, rows_wanted)
+    return rows_wanted, groups, paths, need, shipped_as, views, models, out
+
+
+def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
+    args = _parser(prog).parse_args(argv)
+    t_start = time.perf_counter()
+    try:
+        rows_wanted, groups, paths, need, shipped_as, views, models, out = _prepare(args, prog)
+        train_ids = None
+        if args.train_shapes:
+            train_ids = {line.strip() for line in Path(args.train_shapes).read_text().splitlines() if line.strip()}
+        if "Nearest training shape" in rows_wanted:
+            _nearest_index(args, models, out, train_ids)
+        gallery_keys = _gallery_keys(args, groups, views)
+        if args.jobs < 1:
+            raise _Refused(f"--jobs: expected a positive number of processes, got {args.jobs}")
+    except _Refused as exc:
+        return _fail(prog, str(exc))
+    genre = models.genre
     spec = ModelSpec(str(paths["genre"]), str(paths["completion"]) if need["completion"] else None,
                      str(paths["onestep"]) if need["onestep"] else None,
                      str(out / "nearest_index.safetensors") if models.nearest is not None else None, tuple(rows_wanted), args.device)
@@ -213,11 +303,8 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     records = evaluate_views(models, views, out, device=args.device, progress=not args.no_progress, save_grids=set(gallery_keys),
                              jobs=args.jobs, spec=spec)
     t_views = time.perf_counter() - t_views
-    thresholds = genre.config.geometry.thresholds()
-    fixed = None
-    if args.thresholds_from:
-        fixed = json.loads(Path(args.thresholds_from).read_text())["seen"]
-    choice = choose_thresholds(records, thresholds, genre.config.geometry.default_threshold, fixed)
+    fixed = json.loads(Path(args.thresholds_from).read_text())["seen"] if args.thresholds_from else None
+    choice = choose_thresholds(records, genre.config.geometry.thresholds(), genre.config.geometry.default_threshold, fixed)
     per_shape, per_class, group_means = aggregate(records, choice)
     (out / "thresholds.json").write_text(json.dumps(choice, indent=2))
     write_csv(out / "per_shape.csv", per_shape)
@@ -229,30 +316,8 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
               f"Command: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n\n"
               f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
               "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")
-    table = format_table(per_class, group_means, choice, models.rows(), header)
-    if "GenRe" in choice.get("product", {}):
-        tp, share = choice["product"]["GenRe"]
-        _, _, at_product = aggregate(records, dict(choice, seen=dict(choice["seen"], GenRe=tp)))
-        cds = ", ".join(f"{g} {v['GenRe']:.3f}" for g, v in at_product["seen"].items() if "GenRe" in v)
-        table += (f"\n## The shipped threshold\n\nThe threshold installed for users (`python -m training.eval.install`) is chosen on "
-                  f"seen-test views too, as the lowest mean CD among thresholds whose GenRe meshes are closed (no holes, no tunnels) "
-                  f"in at least {100 * CLOSED_SHARE:.0f} % of the views"
-                  + ("" if share >= CLOSED_SHARE else " (none is here, so: the threshold whose meshes are most often closed)")
-                  + f": t = {tp:.2f}, closed in {100 * share:.0f} % of the "
-                  f"seen-test views (at the CD-optimal {choice['seen']['GenRe']:.2f}: "
-                  f"{100 * _closed_at(records, choice['seen']['GenRe']):.0f} %). GenRe's CD at t = {tp:.2f}: {cds}.\n")
-    notes = []
-    if not args.no_figures:
-        from . import figures
-        from .heatmap import HeatmapSpec
-
-        heatmap = HeatmapSpec(args.heatmap_class, args.heatmap_shapes, tuple(float(e) for e in args.heatmap_elevations.split(",")),
-                              args.heatmap_azimuths, args.render_samples)
-        notes += figures.make_all(out, per_class, models, views, choice, train_views=[Path(p) for p in args.train_views or []],
-                                  train_ids=train_ids, gallery_keys=gallery_keys, render_samples=args.render_samples,
-                                  heatmap=heatmap, device=args.device, progress=not args.no_progress)
-    if notes:
-        table += "\n## Figures\n\n" + "\n".join(notes) + "\n"
+    table = format_table(per_class, group_means, choice, models.rows(), header) + _shipped_threshold_note(records, choice)
+    table += _figures(args, out, per_class, models, views, choice, train_ids, gallery_keys)
     atomic_write_text(out / "table.md", table)
     print(table)
     print(f"wrote {out}/ in {time.perf_counter() - t_start:.1f} s")

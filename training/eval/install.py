@@ -47,6 +47,33 @@ def _is_interim_copy_of_protocol(path: Path) -> bool:
     return extra.get("copy_of") == PROTOCOL_WEIGHTS_NAME
 
 
+# where each mesh setting install stores was chosen (the weights' extra.SETTING_from)
+_SETTING_FROM = {
+    "hole_closing": "scripts/hole_closing.py on seen-test views",
+    "silhouette_carve": "chosen on seen-test views (results/decisions.md)",
+    "visible_fusion": "scripts/visible_fusion.py on seen-test views",
+    "primitive_snap": "scripts/primitive_snap.py on training-split views (results/decisions.md)",
+    "test_time_mirror": "results/decisions.md",
+    "pit_sealing": "scripts/visible_fusion.py --pit-sealing (results/decisions.md)",
+    "sph_hit_probability": "scripts/stage_errors.py --hit-levels on seen-test views",
+}
+
+
+def _threshold(thresholds: Path | float) -> float:
+    """GenRe's level: the number itself, or from a ``thresholds.json`` (the product split's first, else seen-test's)."""
+    if isinstance(thresholds, (int, float)):
+        chosen = {"seen": {"GenRe": float(thresholds)}}
+    else:
+        chosen = json.loads(Path(thresholds).read_text())
+    try:
+        t = float(chosen["product"]["GenRe"][0]) if "GenRe" in chosen.get("product", {}) else float(chosen["seen"]["GenRe"])
+    except (KeyError, TypeError, ValueError, IndexError):
+        raise ValueError(f"{thresholds}: no seen-test threshold for GenRe (run 'genre eval' with seen-test views)") from None
+    if not 0.0 < t < 1.0:
+        raise ValueError(f"{thresholds}: GenRe's threshold {t} is not in (0, 1)")
+    return t
+
+
 def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
             hole_closing: int | None = None, sph_hit_probability: float | None = None,
             silhouette_carve: bool | None = None, visible_fusion: bool | None = None,
@@ -77,16 +104,7 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
-    if isinstance(thresholds, (int, float)):
-        chosen = {"seen": {"GenRe": float(thresholds)}}
-    else:
-        chosen = json.loads(Path(thresholds).read_text())
-    try:
-        t = float(chosen["product"]["GenRe"][0]) if "GenRe" in chosen.get("product", {}) else float(chosen["seen"]["GenRe"])
-    except (KeyError, TypeError, ValueError, IndexError):
-        raise ValueError(f"{thresholds}: no seen-test threshold for GenRe (run 'genre eval' with seen-test views)") from None
-    if not 0.0 < t < 1.0:
-        raise ValueError(f"{thresholds}: GenRe's threshold {t} is not in (0, 1)")
+    t = _threshold(thresholds)
     model = load_model(weights)
     config = model.config
     geometry = dataclasses.replace(config.geometry, default_threshold=t)
@@ -113,21 +131,11 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     shipped = named_weights(name)
     out = Path(out) if out is not None else shipped
     out.parent.mkdir(parents=True, exist_ok=True)
-    extra = {"source": str(weights), "threshold_from": str(thresholds), "model": name}
-    if hole_closing is not None:
-        extra["hole_closing_from"] = "scripts/hole_closing.py on seen-test views"
-    if silhouette_carve is not None:
-        extra["silhouette_carve_from"] = "chosen on seen-test views (results/decisions.md)"
-    if visible_fusion is not None:
-        extra["visible_fusion_from"] = "scripts/visible_fusion.py on seen-test views"
-    if primitive_snap is not None:
-        extra["primitive_snap_from"] = "scripts/primitive_snap.py on training-split views (results/decisions.md)"
-    if test_time_mirror is not None:
-        extra["test_time_mirror_from"] = "results/decisions.md"
-    if pit_sealing is not None:
-        extra["pit_sealing_from"] = "scripts/visible_fusion.py --pit-sealing (results/decisions.md)"
-    if sph_hit_probability is not None:
-        extra["sph_hit_probability_from"] = "scripts/stage_errors.py --hit-levels on seen-test views"
+    given = {"hole_closing": hole_closing, "silhouette_carve": silhouette_carve, "visible_fusion": visible_fusion,
+             "primitive_snap": primitive_snap, "test_time_mirror": test_time_mirror, "pit_sealing": pit_sealing,
+             "sph_hit_probability": sph_hit_probability}
+    extra = {"source": str(weights), "threshold_from": str(thresholds), "model": name,
+             **{f"{k}_from": _SETTING_FROM[k] for k, v in given.items() if v is not None}}
     save_model(model, out, extra, half=half)
     if name == PROTOCOL_WEIGHTS_NAME and out.resolve() == shipped.resolve():
         interim = named_weights(DEFAULT_WEIGHTS_NAME)

@@ -1,4 +1,4 @@
-"""The training losses, shared by ``genre train`` (:mod:`training.learn.train`) and the GPU burst
+"""The training losses, shared by ``genre train`` (:mod:`training.learn.stage`) and the GPU burst
 (:mod:`training.learn.burst`).  Each takes tensors and the config it needs, nothing else.
 """
 

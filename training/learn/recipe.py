@@ -10,14 +10,14 @@ its value.  The named recipes:
 * ``paper``: the paper's optimiser numbers (lr 1e-3 for the depth net and the
   one-step baseline, 1e-4 for the inpainting net, refiner and 3D Completion,
   1e-5 for the joint stage; surface weight 10); ``genre train``'s default.
-* ``shipped``: what made the shipped default weights (``scripts/train_default.sh``):
+* ``shipped``: what made the shipped default weights (``genre chain protocol``, :mod:`training.chain`):
   the voxel stages with surface weight 0.1 and (refiner, 3D Completion) lr
   1e-3, and the step budgets of the 2-core CPU chain.  Why they depart from
   the paper: ARCHITECTURE.md.
 * ``sharp``: ``shipped`` with the voxel stages on the truncated-distance
   target (``GeometryConfig.target = "distance"``), continued from the shipped
   weights.
-* ``product``: the weights users get (``scripts/train_product.sh``), on
+* ``product``: the weights users get (``genre chain product``), on
   every class of the corpus and the procedural shapes: every stage continues
   from the shipped weights on photo-composited renders; after the first
   chain, training accumulates in the joint stage, which then trains all three
@@ -70,7 +70,7 @@ class StageRecipe:
     sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
     depth_weight: float = 0.0  # the joint stage: the depth net's own loss (depth + silhouette) added with this weight
     # the depth net's loss (depth stage, and joint's depth term): this weight times the multi-scale gradient
-    # matching term (training.learn.train.depth_gradient_loss) added to the depth's MSE; 0 = the MSE alone
+    # matching term (training.learn.losses.depth_gradient_loss) added to the depth's MSE; 0 = the MSE alone
     depth_gradient_weight: float = 0.0
     lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
     sph_teacher: float = 0.0
@@ -152,7 +152,7 @@ _VOXEL = {"surface_weight": 0.1}  # (the voxel stages: refine, joint, completion
 _SHIPPED = Recipe(
     name="shipped",
     preset="default",
-    description="the shipped default weights' chain on a 2-core CPU (scripts/train_default.sh)",
+    description="the shipped default weights' chain on a 2-core CPU (genre chain protocol)",
     stages={
         "depth": replace(_PAPER.stages["depth"], steps=6000),
         "inpaint": replace(_PAPER.stages["inpaint"], steps=3000),
@@ -187,7 +187,7 @@ _PRODUCT = Recipe(
     name="product",
     preset="default",
     target="distance",
-    description="the product model on every class and the procedural shapes (scripts/train_product.sh): the depth net "
+    description="the product model on every class and the procedural shapes (genre chain product): the depth net "
                 "2,000 steps on photo-composited renders (80 %), the inpainting net 2,000, the refiner 3,000, all from "
                 "the shipped weights; then the joint stage trains every net end to end (lr 1e-4, the depth loss added, "
                 "photo compositing on; the rate halves every 1,200 steps), its budget raised round after round",

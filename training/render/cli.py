@@ -34,6 +34,7 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -150,32 +151,228 @@ def _settings_difference(previous: dict, wanted: dict) -> str:
     return ", ".join(f"{k}={previous.get(k)!r} (asked: {wanted.get(k)!r})" for k in keys if previous.get(k) != wanted.get(k))
 
 
-def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> int:
-    """``genre data render``: render every shape's views; returns the exit code (see the module's docstring)."""
-    args = _build_parser(prog).parse_args(list(sys.argv[1:] if argv is None else argv))
+class _Refused(Exception):
+    """A reason ``genre data render`` stops before rendering anything (one line, exit status 2)."""
+
+
+def _shapes_to_render(args: argparse.Namespace):
+    """(the preset's config, the shapes of ``--shapes`` this invocation renders: split, classes, shard, limit)."""
     from genre_backend.config import get_preset  # noqa: PLC0415
 
     try:
         config = get_preset(args.preset)
         shapes = read_shapes(args.shapes)
     except ValueError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
+        raise _Refused(str(exc)) from None
     problem = engine_problem(args.engine)
     if problem:
-        print(f"{prog}: error: {problem}", file=sys.stderr)
-        return 2
+        raise _Refused(problem)
     if args.split is not None:
         shapes = [s for s in shapes if s.split == args.split or args.split in s.groups]
     if args.classes is not None:
         wanted = set(args.classes)
         shapes = [s for s in shapes if s.cls in wanted]
         if not shapes:
-            print(f"{prog}: error: no shape of the classes {sorted(wanted)} to render", file=sys.stderr)
-            return 2
+            raise _Refused(f"no shape of the classes {sorted(wanted)} to render")
     shapes = shapes[args.shard[0]::args.shard[1]]
     if args.limit is not None:
         shapes = shapes[: args.limit]
+    return config, shapes
+
+
+@dataclass
+class _RenderRun:
+    """One invocation's rendering in progress: its settings, the shard's failures and attempts, the counters."""
+
+    prog: str
+    args: argparse.Namespace
+    config: object  # GenreConfig
+    out: Path
+    settings: RenderSettings
+    run_settings: dict
+    previous: dict | None  # the settings the folder was rendered with (None: nothing rendered yet)
+    failures: dict[str, str] = field(default_factory=dict)
+    attempts: object = None  # data.views.RenderAttempts of this shard
+    bar: object = None
+    renderer: BlenderRenderer | None = None
+    stop: _StopOnSigint | None = None
+    rendered: int = 0
+
+    @property
+    def failures_file(self) -> Path:
+        return render_failures_path(self.out, self.args.shard)
+
+    @property
+    def crash_log(self) -> Path:
+        return crash_log_path(self.out, self.args.shard)
+
+    def note(self, text: str) -> None:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        tqdm.write(f"{self.prog}: {text}", file=sys.stderr)
+
+    def save_attempts(self) -> None:
+        write_render_attempts(self.out, self.args.shard, self.attempts)
+
+    def fail(self, shape_id: str, why: str) -> None:
+        """Record a shape as failed (later runs skip it) and say so."""
+        self.failures[shape_id] = why
+        atomic_write_json(self.failures_file, self.failures)
+        self.note(f"skipped {shape_id}: {why}")
+
+
+def _load_attempts(run: _RenderRun) -> None:
+    """The shard's failures and attempts (all cleared by ``--retry-failed``); the shape an earlier run died on is
+    counted as a crash when it left a crash log, else as an interruption."""
+    for path in sorted(run.out.glob(FAILURES_GLOB)):
+        run.failures.update(_read_json(path, {}))
+    run.attempts = attempts = read_render_attempts(run.out, run.args.shard)
+    if run.args.retry_failed:
+        for path in run.out.glob(FAILURES_GLOB):
+            path.unlink(missing_ok=True)
+        run.failures = {}
+        attempts.crashes = {}
+    # The previous run of this shard died while rendering attempts.in_flight: a crash if it left a crash log.
+    if attempts.in_flight is not None:
+        sid = attempts.in_flight
+        try:
+            crash_text = run.crash_log.read_text(encoding="utf-8", errors="replace").strip()
+        except OSError:
+            crash_text = ""
+        counts = attempts.crashes if crash_text else attempts.interruptions
+        counts[sid] = counts.get(sid, 0) + 1
+        if crash_text:
+            first = crash_text.splitlines()[0]
+            run.note(f"Blender crashed on {sid} in an earlier run ({first}); crash {counts[sid]} of at most {MAX_CRASHES}")
+        attempts.in_flight = None
+    run.save_attempts()
+
+
+def _start_renderer(run: _RenderRun) -> int | None:
+    """Blender, started when there is work (a failure here is fatal, not the shape's: returns 2); the folder's
+    settings written with the first render."""
+    try:
+        run.renderer = BlenderRenderer(run.config, run.settings)
+    except ValueError as exc:
+        run.note(f"error: {exc}")
+        return 2
+    except Exception as exc:  # noqa: BLE001
+        run.note(f"error: could not set up Blender: {type(exc).__name__}: {exc}")
+        return 2
+    for line in run.renderer.notes:
+        run.note(line)
+    if run.previous is None:
+        write_render_settings(run.out, run.run_settings)
+        run.previous = run.run_settings
+    run.stop.check()
+    return None
+
+
+def _render_one(run: _RenderRun, shape) -> int | None:
+    """Render the missing views of ``shape`` (skipped when failed, complete or crashed too often); a shape that
+    raises is recorded as failed.  Returns 2 when Blender cannot start, else None."""
+    args, attempts = run.args, run.attempts
+    views = sample_views(shape.id, args.views, args.seed, run.config.camera)
+    shape_dir = run.out / shape.id
+    if shape.id in run.failures or all(view_is_complete(shape_dir, k) for k in range(args.views)):
+        run.bar.update(args.views)
+        return None
+    crashes = attempts.crashes.get(shape.id, 0)
+    if crashes >= MAX_CRASHES:
+        run.fail(shape.id, f"Blender crashed {crashes} times while rendering it")
+        run.bar.update(args.views)
+        return None
+    interruptions = attempts.interruptions.get(shape.id, 0)
+    if interruptions >= WARN_INTERRUPTIONS:
+        run.note(f"warning: rendering {shape.id} was interrupted {interruptions} times before "
+                 f"(killed, perhaps for lack of memory?); trying again")
+    if run.renderer is None and _start_renderer(run) is not None:
+        return 2
+    attempts.in_flight = shape.id
+    run.save_attempts()
+    todo = {k for k in range(args.views) if not view_is_complete(shape_dir, k)}
+    reported = [0]
+
+    def on_view(k, reported=reported, todo=todo):
+        reported[0] += 1
+        run.rendered += k in todo
+        run.bar.update(1)
+        run.stop.check()
+
+    try:
+        render_shape(run.renderer, shape, views, run.out, args.seed, on_view=on_view)
+    except Exception as exc:  # noqa: BLE001  (one bad shape must not stop the corpus)
+        run.fail(shape.id, f"{type(exc).__name__}: {exc}")
+        run.bar.update(args.views - reported[0])
+    attempts.in_flight = None
+    attempts.crashes.pop(shape.id, None)
+    attempts.interruptions.pop(shape.id, None)
+    run.save_attempts()
+    return None
+
+
+def _render_all(run: _RenderRun, shapes: list) -> tuple[int | None, bool]:
+    """Every shape in turn, with a crash log for faulthandler and Ctrl-C turned into a clean stop.
+    Returns (2 when Blender could not start else None, whether it was interrupted)."""
+    from tqdm import tqdm  # noqa: PLC0415
+
+    run.bar = tqdm(total=len(shapes) * run.args.views, unit="view", desc="render", disable=run.args.no_progress,
+                   dynamic_ncols=True)
+    crash_fh = open(run.crash_log, "w", encoding="utf-8")  # noqa: SIM115  (open while faulthandler may write to it)
+    faulthandler_was_enabled = faulthandler.is_enabled()
+    faulthandler.enable(file=crash_fh, all_threads=True)
+    run.stop = _StopOnSigint(run.prog)
+    try:
+        with run.stop:
+            for shape in shapes:
+                run.stop.check()
+                if _render_one(run, shape) is not None:
+                    return 2, False
+    except KeyboardInterrupt:  # asked for by _StopOnSigint (or SIGINT outside the main thread's handler)
+        if run.attempts.in_flight is not None:
+            sid = run.attempts.in_flight
+            run.attempts.interruptions[sid] = run.attempts.interruptions.get(sid, 0) + 1
+            run.attempts.in_flight = None
+            run.save_attempts()
+        return None, True
+    finally:
+        run.bar.close()
+        if run.renderer is not None:
+            run.renderer.close()
+        faulthandler.disable()
+        if faulthandler_was_enabled:
+            faulthandler.enable(file=sys.__stderr__, all_threads=True)
+        crash_fh.close()
+    return None, False
+
+
+def _outcome(run: _RenderRun, shapes: list, seconds: float, interrupted: bool) -> int:
+    """Print what was rendered and what is missing; the exit status (0, 1 with views missing, 130 interrupted)."""
+    rate = f", {seconds / run.rendered:.3f} s/view including start-up" if run.rendered else ""
+    print(f"rendered {run.rendered} views of {len(shapes)} shapes in {seconds:.1f} s{rate}", flush=True)
+    views = run.args.views
+    missing = {s.id: n for s in shapes if (n := sum(not view_is_complete(run.out / s.id, k) for k in range(views)))}
+    if interrupted:
+        print(f"{run.prog}: interrupted: {sum(missing.values())} views of {len(missing)} shapes are missing; "
+              f"run the same command again to render them", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if missing:
+        failed = [sid for sid in missing if sid in run.failures]
+        print(f"{run.prog}: {sum(missing.values())} views of {len(missing)} shapes are missing: {len(failed)} shapes "
+              f"failed (listed with the reason in {run.out / 'render_failures*.json'}; --retry-failed renders them again)",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> int:
+    """``genre data render``: render every shape's views; returns the exit code (see the module's docstring)."""
+    args = _build_parser(prog).parse_args(list(sys.argv[1:] if argv is None else argv))
+    try:
+        config, shapes = _shapes_to_render(args)
+    except _Refused as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     settings = RenderSettings(samples=args.samples, threads=args.threads, denoise=args.denoise, engine=args.engine)
@@ -186,139 +383,13 @@ def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> 
         print(f"{prog}: error: {out} was rendered with other settings: {_settings_difference(previous, run_settings)}; "
               f"use another --out", file=sys.stderr)
         return 2
-
-    failures_file = render_failures_path(out, args.shard)
-    failures: dict[str, str] = {}
-    for path in sorted(out.glob(FAILURES_GLOB)):
-        failures.update(_read_json(path, {}))
-    attempts = read_render_attempts(out, args.shard)
-    crash_log = crash_log_path(out, args.shard)
-    if args.retry_failed:
-        for path in out.glob(FAILURES_GLOB):
-            path.unlink(missing_ok=True)
-        failures = {}
-        attempts.crashes = {}
-    from tqdm import tqdm  # noqa: PLC0415
-
-    def note(text: str) -> None:
-        tqdm.write(f"{prog}: {text}", file=sys.stderr)
-
-    # The previous run of this shard died while rendering attempts.in_flight: a crash if it left a crash log.
-    if attempts.in_flight is not None:
-        sid = attempts.in_flight
-        try:
-            crash_text = crash_log.read_text(encoding="utf-8", errors="replace").strip()
-        except OSError:
-            crash_text = ""
-        counts = attempts.crashes if crash_text else attempts.interruptions
-        counts[sid] = counts.get(sid, 0) + 1
-        if crash_text:
-            first = crash_text.splitlines()[0]
-            note(f"Blender crashed on {sid} in an earlier run ({first}); crash {counts[sid]} of at most {MAX_CRASHES}")
-        attempts.in_flight = None
-    write_render_attempts(out, args.shard, attempts)
-
-    total_views = len(shapes) * args.views
-    bar = tqdm(total=total_views, unit="view", desc="render", disable=args.no_progress, dynamic_ncols=True)
-    renderer = None
-    rendered = 0
-    interrupted = False
+    run = _RenderRun(prog, args, config, out, settings, run_settings, previous)
+    _load_attempts(run)
     t0 = time.perf_counter()
-    crash_fh = open(crash_log, "w", encoding="utf-8")  # noqa: SIM115  (open while faulthandler may write to it)
-    faulthandler_was_enabled = faulthandler.is_enabled()
-    faulthandler.enable(file=crash_fh, all_threads=True)
-    stop = _StopOnSigint(prog)
-    try:
-        with stop:
-            for shape in shapes:
-                stop.check()
-                views = sample_views(shape.id, args.views, args.seed, config.camera)
-                if shape.id in failures:
-                    bar.update(args.views)
-                    continue
-                shape_dir = out / shape.id
-                if all(view_is_complete(shape_dir, k) for k in range(args.views)):
-                    bar.update(args.views)
-                    continue
-                crashes = attempts.crashes.get(shape.id, 0)
-                if crashes >= MAX_CRASHES:
-                    failures[shape.id] = f"Blender crashed {crashes} times while rendering it"
-                    atomic_write_json(failures_file, failures)
-                    note(f"skipped {shape.id}: {failures[shape.id]}")
-                    bar.update(args.views)
-                    continue
-                interruptions = attempts.interruptions.get(shape.id, 0)
-                if interruptions >= WARN_INTERRUPTIONS:
-                    note(f"warning: rendering {shape.id} was interrupted {interruptions} times before "
-                         f"(killed, perhaps for lack of memory?); trying again")
-                if renderer is None:  # started only when there is work; a failure here is fatal, not the shape's
-                    try:
-                        renderer = BlenderRenderer(config, settings)
-                    except ValueError as exc:
-                        note(f"error: {exc}")
-                        return 2
-                    except Exception as exc:  # noqa: BLE001
-                        note(f"error: could not set up Blender: {type(exc).__name__}: {exc}")
-                        return 2
-                    for line in renderer.notes:
-                        note(line)
-                    if previous is None:
-                        write_render_settings(out, run_settings)
-                        previous = run_settings
-                    stop.check()
-                attempts.in_flight = shape.id
-                write_render_attempts(out, args.shard, attempts)
-                todo = {k for k in range(args.views) if not view_is_complete(shape_dir, k)}
-                reported = [0]
-
-                def on_view(k, reported=reported, todo=todo):
-                    nonlocal rendered
-                    reported[0] += 1
-                    rendered += k in todo
-                    bar.update(1)
-                    stop.check()
-
-                try:
-                    render_shape(renderer, shape, views, out, args.seed, on_view=on_view)
-                except Exception as exc:  # noqa: BLE001  (one bad shape must not stop the corpus)
-                    failures[shape.id] = f"{type(exc).__name__}: {exc}"
-                    atomic_write_json(failures_file, failures)
-                    note(f"skipped {shape.id}: {failures[shape.id]}")
-                    bar.update(args.views - reported[0])
-                attempts.in_flight = None
-                attempts.crashes.pop(shape.id, None)
-                attempts.interruptions.pop(shape.id, None)
-                write_render_attempts(out, args.shard, attempts)
-    except KeyboardInterrupt:  # asked for by _StopOnSigint (or SIGINT outside the main thread's handler)
-        interrupted = True
-        if attempts.in_flight is not None:
-            sid = attempts.in_flight
-            attempts.interruptions[sid] = attempts.interruptions.get(sid, 0) + 1
-            attempts.in_flight = None
-            write_render_attempts(out, args.shard, attempts)
-    finally:
-        bar.close()
-        if renderer is not None:
-            renderer.close()
-        faulthandler.disable()
-        if faulthandler_was_enabled:
-            faulthandler.enable(file=sys.__stderr__, all_threads=True)
-        crash_fh.close()
-    dt = time.perf_counter() - t0
-    rate = f", {dt / rendered:.3f} s/view including start-up" if rendered else ""
-    print(f"rendered {rendered} views of {len(shapes)} shapes in {dt:.1f} s{rate}", flush=True)
-    missing = {s.id: n for s in shapes if (n := sum(not view_is_complete(out / s.id, k) for k in range(args.views)))}
-    if interrupted:
-        print(f"{prog}: interrupted: {sum(missing.values())} views of {len(missing)} shapes are missing; "
-              f"run the same command again to render them", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    if missing:
-        failed = [sid for sid in missing if sid in failures]
-        print(f"{prog}: {sum(missing.values())} views of {len(missing)} shapes are missing: {len(failed)} shapes "
-              f"failed (listed with the reason in {out / 'render_failures*.json'}; --retry-failed renders them again)",
-              file=sys.stderr)
-        return 1
-    return 0
+    code, interrupted = _render_all(run, shapes)
+    if code is not None:
+        return code
+    return _outcome(run, shapes, time.perf_counter() - t0, interrupted)
 
 
 if __name__ == "__main__":

@@ -207,6 +207,41 @@ def _parse_material(cursor: _Cursor, line: str) -> np.ndarray:
     return np.round(rgba * 255).astype(np.uint8)
 
 
+def _parse_surface(cursor: _Cursor, vertices: np.ndarray, triangles: list[tuple[int, int, int]],
+                   tri_material: list[int]) -> None:
+    """One ``SURF`` block of an object whose (V, 3) ``vertices`` are read: its triangles (vertex indices) and
+    their material index appended to ``triangles`` and ``tri_material``; lines add nothing."""
+    surf = cursor.next_tokens()
+    if surf[0] != "SURF" or len(surf) < 2:
+        raise cursor.fail(f"expected SURF, got {surf[0]!r}")
+    kind = _int(cursor, surf[1]) & 0x0F
+    material = 0
+    while True:
+        t = cursor.next_tokens()
+        if t[0] == "mat":
+            material = _int(cursor, t[1])
+        elif t[0] == "refs":
+            break
+        else:
+            raise cursor.fail(f"unexpected {t[0]!r} in SURF block")
+    refs = [_int(cursor, cursor.next_tokens()[0]) for _ in range(_int(cursor, t[1]))]
+    if refs and max(refs) >= len(vertices):
+        raise cursor.fail(f"surface refers to vertex {max(refs)}, object has {len(vertices)}")
+    if kind == 0:
+        # drop repeated consecutive corners before triangulating
+        clean = [r for k, r in enumerate(refs) if r != refs[k - 1]] if len(refs) > 1 else refs
+        if len(clean) >= 3:
+            local = triangulate_polygon(vertices[clean])
+            new = [(clean[a], clean[b], clean[c]) for a, b, c in local]
+            triangles.extend(new)
+            tri_material.extend([material] * len(new))
+    elif kind == 4:
+        new = _strip_triangles(refs)
+        triangles.extend(new)
+        tri_material.extend([material] * len(new))
+    # kinds 1 and 2 are lines: no surface
+
+
 def _parse_object(
     cursor: _Cursor,
     first: list[str],
@@ -248,35 +283,7 @@ def _parse_object(
                 vertices[i] = _floats(cursor, cursor.next_tokens(), 3)
         elif key == "numsurf":
             for _ in range(_int(cursor, tokens[1])):
-                surf = cursor.next_tokens()
-                if surf[0] != "SURF" or len(surf) < 2:
-                    raise cursor.fail(f"expected SURF, got {surf[0]!r}")
-                kind = _int(cursor, surf[1]) & 0x0F
-                material = 0
-                while True:
-                    t = cursor.next_tokens()
-                    if t[0] == "mat":
-                        material = _int(cursor, t[1])
-                    elif t[0] == "refs":
-                        break
-                    else:
-                        raise cursor.fail(f"unexpected {t[0]!r} in SURF block")
-                refs = [_int(cursor, cursor.next_tokens()[0]) for _ in range(_int(cursor, t[1]))]
-                if refs and max(refs) >= len(vertices):
-                    raise cursor.fail(f"surface refers to vertex {max(refs)}, object has {len(vertices)}")
-                if kind == 0:
-                    # drop repeated consecutive corners before triangulating
-                    clean = [r for k, r in enumerate(refs) if r != refs[k - 1]] if len(refs) > 1 else refs
-                    if len(clean) >= 3:
-                        local = triangulate_polygon(vertices[clean])
-                        new = [(clean[a], clean[b], clean[c]) for a, b, c in local]
-                        triangles.extend(new)
-                        tri_material.extend([material] * len(new))
-                elif kind == 4:
-                    new = _strip_triangles(refs)
-                    triangles.extend(new)
-                    tri_material.extend([material] * len(new))
-                # kinds 1 and 2 are lines: no surface
+                _parse_surface(cursor, vertices, triangles, tri_material)
         elif key == "kids":
             kids = _int(cursor, tokens[1])
             local = np.eye(4)

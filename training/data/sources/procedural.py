@@ -443,114 +443,168 @@ def _draw_primitive(sub: str, index: int, rng: np.random.Generator) -> dict:
 # ----------------------------------------------------------------------------- generators: csg
 
 
-def _draw_csg(sub: str, rng: np.random.Generator) -> dict:
+def _csg_plate_with_holes(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``plate_with_holes``: (its steps, what it records, its size)."""
     u = rng.uniform
+    a, b, c = u(0.4, 1.0), u(0.4, 1.0), u(0.15, 0.5)
+    n = int(rng.integers(1, 3))
+    through = bool(rng.random() < 0.6)
+    if through:
+        z0, z1 = -0.75 * c, 0.75 * c
+    else:
+        depth = u(0.4, 0.8) * c
+        z0, z1 = c / 2 - depth, 0.75 * c
+    steps = [["base", _box((a, b, c))]]
+    if n == 1:
+        r = u(0.15, 0.35) * min(a, b)
+        room_x, room_y = max(0.0, a / 2 - r - 0.12 * a), max(0.0, b / 2 - r - 0.12 * b)
+        centres = [(u(-1, 1) * room_x, u(-1, 1) * room_y)]
+    else:
+        r = u(0.6, 1.0) * min(0.18 * a, 0.35 * b)
+        centres = [(-a / 4, 0.0), (a / 4, 0.0)]
+    for cx, cy in centres:
+        steps.append(["difference", _cyl(r, z1 - z0, (cx, cy, (z0 + z1) / 2))])
+    info = {"holes": n, "through": through, "base": _rv((a, b, c))}
+    size = (a, b, c)
+    return steps, info, size
+
+
+def _csg_box_with_pocket(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``box_with_pocket``: (its steps, what it records, its size)."""
+    u = rng.uniform
+    a, b, c = u(0.3, 1.0), u(0.3, 1.0), u(0.2, 0.8)
+    variant = "pocket" if rng.random() < 0.5 else "step"
+    if variant == "pocket":
+        wa, wb = u(0.08, 0.2) * a, u(0.08, 0.2) * b
+        depth = u(0.3, 0.8) * c
+        tool = _box((a - 2 * wa, b - 2 * wb, depth + 0.25 * c),
+                    (0.0, 0.0, c / 2 - depth + (depth + 0.25 * c) / 2))
+    else:
+        la, depth = u(0.3, 0.6) * a, u(0.3, 0.7) * c
+        tool = _box((la + 0.25 * a, 1.5 * b, depth + 0.25 * c),
+                    (a / 2 - la + (la + 0.25 * a) / 2, 0.0, c / 2 - depth + (depth + 0.25 * c) / 2))
+    steps = [["base", _box((a, b, c))], ["difference", tool]]
+    info = {"variant": variant}
+    size = (a, b, c)
+    return steps, info, size
+
+
+def _csg_tube(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``tube``: (its steps, what it records, its size)."""
+    u = rng.uniform
+    big, h = u(0.15, 0.6), u(0.2, 1.2)
+    small = big * u(0.4, 0.8)
+    through = bool(rng.random() < 0.6)
+    if through:
+        tool = _cyl(small, 1.5 * h)
+    else:
+        depth = u(0.5, 0.9) * h
+        tool = _cyl(small, depth + 0.25 * h, (0.0, 0.0, h / 2 - depth + (depth + 0.25 * h) / 2))
+    steps = [["base", _cyl(big, h)], ["difference", tool]]
+    info = {"through": through}
+    size = (2 * big, 2 * big, h)
+    return steps, info, size
+
+
+def _csg_cut_sphere(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``cut_sphere``: (its steps, what it records, its size)."""
+    u = rng.uniform
+    r = u(0.3, 0.8)
+    top = u(-0.3, 0.6) * r
+    steps = [["base", _sphere((r, r, r))], ["difference", _box((3 * r, 3 * r, 2 * r), (0.0, 0.0, top + r))]]
+    bottom = -r
+    if rng.random() < 0.5:
+        bottom = -u(0.3, 0.8) * r
+        steps.append(["difference", _box((3 * r, 3 * r, 2 * r), (0.0, 0.0, bottom - r))])
+    info = {"cut_top": _r(top), "cut_bottom": _r(bottom)}
+    width = 2 * r if top >= 0 else 2 * math.sqrt(r * r - top * top)  # the equator may be cut away
+    size = (width, width, top - bottom)
+    return steps, info, size
+
+
+def _csg_box_with_boss(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``box_with_boss``: (its steps, what it records, its size)."""
+    u = rng.uniform
+    a, b, c = u(0.3, 1.0), u(0.3, 1.0), u(0.15, 0.6)
+    r = u(0.15, 0.4) * min(a, b)
+    hb = u(0.2, 0.8) * max(a, b)
+    z0 = c / 2 - 0.3 * c
+    steps = [["base", _box((a, b, c))], ["union", _cyl(r, c / 2 + hb - z0, (0.0, 0.0, (z0 + c / 2 + hb) / 2))]]
+    bored = bool(rng.random() < 0.5)
+    if bored:
+        steps.append(["difference", _cyl(r * u(0.35, 0.7), 2 * (c + hb), (0.0, 0.0, 0.0))])
+    info = {"bored": bored}
+    size = (a, b, c + hb)
+    return steps, info, size
+
+
+def _csg_dumbbell(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``dumbbell``: (its steps, what it records, its size)."""
+    u = rng.uniform
+    info: dict = {}
+    r, length = u(0.05, 0.2), u(0.5, 1.2)
+    ball = r * u(1.3, 2.2)
+    steps = [["base", _cyl(r, length)],
+             ["union", _sphere((ball, ball, ball), (0.0, 0.0, length / 2))],
+             ["union", _sphere((ball, ball, ball), (0.0, 0.0, -length / 2))]]
+    size = (2 * ball, 2 * ball, length + 2 * ball)
+    return steps, info, size
+
+
+def _csg_cross(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``cross``: (its steps, what it records, its size)."""
+    u = rng.uniform
+    l1, l2 = u(0.5, 1.0), u(0.5, 1.0)
+    w1 = u(0.1, 0.3)
+    w2 = w1 * (u(0.6, 0.85) if rng.random() < 0.5 else u(1.15, 1.5))
+    h1 = u(0.1, 0.3)
+    h2 = h1 * u(0.55, 0.85)
+    steps = [["base", _box((l1, w1, h1))], ["union", _box((w2, l2, h2))]]
+    size = [l1, l2, h1]
+    if rng.random() < 0.5:
+        w3 = min(w1, w2) * u(0.5, 0.8)
+        l3 = u(0.5, 1.0)
+        steps.append(["union", _box((w3, w3 * u(0.8, 0.95), l3))])
+        size[2] = max(h1, l3)
+    info = {"arms": len(steps)}
+    return steps, info, size
+
+
+def _csg_bracket(rng: np.random.Generator) -> tuple[list, dict, tuple | list]:
+    """One draw of the CSG shape ``bracket``: (its steps, what it records, its size)."""
+    u = rng.uniform
+    info: dict = {}
+    a, b, t1 = u(0.4, 1.0), u(0.25, 0.7), u(0.06, 0.2)
+    t2, h = u(0.06, 0.2), u(0.3, 0.9)
+    b2 = b * u(0.6, 0.9)
+    x0, x1 = a / 2 - 0.7 * t2, a / 2 + 0.3 * t2
+    steps = [["base", _box((a, b, t1))],
+             ["union", _box((t2, b2, h), ((x0 + x1) / 2, 0.0, h / 2))]]
+    free = a - 0.7 * t2  # plate length left of the upright
+    r = u(0.15, 0.3) * min(free, b)
+    steps.append(["difference", _cyl(r, 3 * t1, (-a / 2 + free / 2, 0.0, 0.0))])
+    size = (x1 + a / 2, b, h + t1 / 2)
+    return steps, info, size
+
+
+_CSG_DRAWERS = {
+    "plate_with_holes": _csg_plate_with_holes,
+    "box_with_pocket": _csg_box_with_pocket,
+    "tube": _csg_tube,
+    "cut_sphere": _csg_cut_sphere,
+    "box_with_boss": _csg_box_with_boss,
+    "dumbbell": _csg_dumbbell,
+    "cross": _csg_cross,
+    "bracket": _csg_bracket,
+}
+
+
+def _draw_csg(sub: str, rng: np.random.Generator) -> dict:
+    """A CSG shape of kind ``sub``, drawn again until it is thick enough: {"params": its steps and record, "size"}."""
+    if sub not in _CSG_DRAWERS:
+        raise ValueError(f"unknown csg shape {sub!r}")
     for _ in range(_MAX_TRIES):
-        info: dict = {}
-        if sub == "plate_with_holes":
-            a, b, c = u(0.4, 1.0), u(0.4, 1.0), u(0.15, 0.5)
-            n = int(rng.integers(1, 3))
-            through = bool(rng.random() < 0.6)
-            if through:
-                z0, z1 = -0.75 * c, 0.75 * c
-            else:
-                depth = u(0.4, 0.8) * c
-                z0, z1 = c / 2 - depth, 0.75 * c
-            steps = [["base", _box((a, b, c))]]
-            if n == 1:
-                r = u(0.15, 0.35) * min(a, b)
-                room_x, room_y = max(0.0, a / 2 - r - 0.12 * a), max(0.0, b / 2 - r - 0.12 * b)
-                centres = [(u(-1, 1) * room_x, u(-1, 1) * room_y)]
-            else:
-                r = u(0.6, 1.0) * min(0.18 * a, 0.35 * b)
-                centres = [(-a / 4, 0.0), (a / 4, 0.0)]
-            for cx, cy in centres:
-                steps.append(["difference", _cyl(r, z1 - z0, (cx, cy, (z0 + z1) / 2))])
-            info = {"holes": n, "through": through, "base": _rv((a, b, c))}
-            size = (a, b, c)
-        elif sub == "box_with_pocket":
-            a, b, c = u(0.3, 1.0), u(0.3, 1.0), u(0.2, 0.8)
-            variant = "pocket" if rng.random() < 0.5 else "step"
-            if variant == "pocket":
-                wa, wb = u(0.08, 0.2) * a, u(0.08, 0.2) * b
-                depth = u(0.3, 0.8) * c
-                tool = _box((a - 2 * wa, b - 2 * wb, depth + 0.25 * c),
-                            (0.0, 0.0, c / 2 - depth + (depth + 0.25 * c) / 2))
-            else:
-                la, depth = u(0.3, 0.6) * a, u(0.3, 0.7) * c
-                tool = _box((la + 0.25 * a, 1.5 * b, depth + 0.25 * c),
-                            (a / 2 - la + (la + 0.25 * a) / 2, 0.0, c / 2 - depth + (depth + 0.25 * c) / 2))
-            steps = [["base", _box((a, b, c))], ["difference", tool]]
-            info = {"variant": variant}
-            size = (a, b, c)
-        elif sub == "tube":
-            big, h = u(0.15, 0.6), u(0.2, 1.2)
-            small = big * u(0.4, 0.8)
-            through = bool(rng.random() < 0.6)
-            if through:
-                tool = _cyl(small, 1.5 * h)
-            else:
-                depth = u(0.5, 0.9) * h
-                tool = _cyl(small, depth + 0.25 * h, (0.0, 0.0, h / 2 - depth + (depth + 0.25 * h) / 2))
-            steps = [["base", _cyl(big, h)], ["difference", tool]]
-            info = {"through": through}
-            size = (2 * big, 2 * big, h)
-        elif sub == "cut_sphere":
-            r = u(0.3, 0.8)
-            top = u(-0.3, 0.6) * r
-            steps = [["base", _sphere((r, r, r))], ["difference", _box((3 * r, 3 * r, 2 * r), (0.0, 0.0, top + r))]]
-            bottom = -r
-            if rng.random() < 0.5:
-                bottom = -u(0.3, 0.8) * r
-                steps.append(["difference", _box((3 * r, 3 * r, 2 * r), (0.0, 0.0, bottom - r))])
-            info = {"cut_top": _r(top), "cut_bottom": _r(bottom)}
-            width = 2 * r if top >= 0 else 2 * math.sqrt(r * r - top * top)  # the equator may be cut away
-            size = (width, width, top - bottom)
-        elif sub == "box_with_boss":
-            a, b, c = u(0.3, 1.0), u(0.3, 1.0), u(0.15, 0.6)
-            r = u(0.15, 0.4) * min(a, b)
-            hb = u(0.2, 0.8) * max(a, b)
-            z0 = c / 2 - 0.3 * c
-            steps = [["base", _box((a, b, c))], ["union", _cyl(r, c / 2 + hb - z0, (0.0, 0.0, (z0 + c / 2 + hb) / 2))]]
-            bored = bool(rng.random() < 0.5)
-            if bored:
-                steps.append(["difference", _cyl(r * u(0.35, 0.7), 2 * (c + hb), (0.0, 0.0, 0.0))])
-            info = {"bored": bored}
-            size = (a, b, c + hb)
-        elif sub == "dumbbell":
-            r, length = u(0.05, 0.2), u(0.5, 1.2)
-            ball = r * u(1.3, 2.2)
-            steps = [["base", _cyl(r, length)],
-                     ["union", _sphere((ball, ball, ball), (0.0, 0.0, length / 2))],
-                     ["union", _sphere((ball, ball, ball), (0.0, 0.0, -length / 2))]]
-            size = (2 * ball, 2 * ball, length + 2 * ball)
-        elif sub == "cross":
-            l1, l2 = u(0.5, 1.0), u(0.5, 1.0)
-            w1 = u(0.1, 0.3)
-            w2 = w1 * (u(0.6, 0.85) if rng.random() < 0.5 else u(1.15, 1.5))
-            h1 = u(0.1, 0.3)
-            h2 = h1 * u(0.55, 0.85)
-            steps = [["base", _box((l1, w1, h1))], ["union", _box((w2, l2, h2))]]
-            size = [l1, l2, h1]
-            if rng.random() < 0.5:
-                w3 = min(w1, w2) * u(0.5, 0.8)
-                l3 = u(0.5, 1.0)
-                steps.append(["union", _box((w3, w3 * u(0.8, 0.95), l3))])
-                size[2] = max(h1, l3)
-            info = {"arms": len(steps)}
-        elif sub == "bracket":
-            a, b, t1 = u(0.4, 1.0), u(0.25, 0.7), u(0.06, 0.2)
-            t2, h = u(0.06, 0.2), u(0.3, 0.9)
-            b2 = b * u(0.6, 0.9)
-            x0, x1 = a / 2 - 0.7 * t2, a / 2 + 0.3 * t2
-            steps = [["base", _box((a, b, t1))],
-                     ["union", _box((t2, b2, h), ((x0 + x1) / 2, 0.0, h / 2))]]
-            free = a - 0.7 * t2  # plate length left of the upright
-            r = u(0.15, 0.3) * min(free, b)
-            steps.append(["difference", _cyl(r, 3 * t1, (-a / 2 + free / 2, 0.0, 0.0))])
-            size = (x1 + a / 2, b, h + t1 / 2)
-        else:
-            raise ValueError(f"unknown csg shape {sub!r}")
+        steps, info, size = _CSG_DRAWERS[sub](rng)
         if _thick_enough(size):
             return {"params": {"steps": steps, **info}, "size": _rv(size)}
     raise RuntimeError(f"no thick enough {sub} in {_MAX_TRIES} draws")

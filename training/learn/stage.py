@@ -1,0 +1,142 @@
+"""One stage's trainable module: the model with that stage's nets trainable and its loss (``forward(batch)``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from genre_backend.geometry.spherical import crop_sph, pad_sph
+from genre_backend.nets.model import GenRe, save_model
+
+from .losses import depth_gradient_loss, sph_loss, voxel_loss
+
+__all__ = ["BASELINE_STAGES", "StageModule"]
+
+BASELINE_STAGES = ("completion", "onestep")
+
+
+class StageModule(nn.Module):
+    """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
+
+    def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
+                 sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0):
+        super().__init__()
+        self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
+        self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
+        self.depth_gradient_weight = depth_gradient_weight  # the depth loss's gradient matching term
+        if sph_teacher > 0 and stage != "refine":
+            raise ValueError(f"sph_teacher: only the refine stage feeds the true map (stage {stage!r})")
+        if depth_dropout > 0 and stage not in ("refine", "joint"):
+            raise ValueError(f"depth_dropout: only the refine and joint stages have depth voxels to empty (stage {stage!r})")
+        # training batches only (StepBatches' per-sample "coin"): validation and inference see every input as it is
+        self.sph_teacher, self.depth_dropout = sph_teacher, depth_dropout
+        self.baseline = None
+        if stage in BASELINE_STAGES:
+            from .baselines import CompletionBaseline, OneStepNet
+
+            self.baseline = (CompletionBaseline if stage == "completion" else OneStepNet)(model.config)
+            if stage == "completion":  # the depth net it completes from: GenRe's (from --init), frozen
+                self.baseline.depth_net.load_state_dict(model.depth_net.state_dict())
+                # the completion net has the refiner's architecture and starts where GenRe's refiner
+                # is: freshly initialised after the depth stage, or trained when continuing from full
+                # weights, so that the two voxel nets always start level
+                self.baseline.completion.load_state_dict(model.refiner.state_dict())
+        trainable = {"depth": [model.depth_net], "inpaint": [model.inpaint_net], "refine": [model.refiner], "joint": [model],
+                     "completion": [], "onestep": []}[stage]
+        for p in model.parameters():
+            p.requires_grad_(False)
+        for part in trainable:
+            for p in part.parameters():
+                p.requires_grad_(True)
+        self.frozen = [m for m in (model.depth_net, model.inpaint_net, model.refiner) if not any(p.requires_grad for p in m.parameters())]
+        if stage == "completion":
+            for p in self.baseline.depth_net.parameters():
+                p.requires_grad_(False)
+            self.frozen.append(self.baseline.depth_net)
+
+    def checkpointed(self) -> tuple[str, nn.Module]:
+        """The key prefix and module a checkpoint keeps: GenRe's nets, or for a baseline stage the
+        baseline alone (so its checkpoint does not depend on GenRe's architecture)."""
+        return ("model", self.model) if self.baseline is None else ("baseline", self.baseline)
+
+    def save_weights(self, path: Path, extra: dict) -> None:
+        """The stage's weights file: GenRe's format, or the baseline's for a baseline stage."""
+        if self.baseline is None:
+            save_model(self.model, path, extra)
+        else:
+            from .baselines import save_baseline
+
+            save_baseline(self.baseline, path, extra)
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for m in self.frozen:
+            m.eval()  # frozen nets keep their batch-norm statistics
+        return self
+
+    # ---- losses -------------------------------------------------------------------------
+    def depth_loss(self, out, batch):
+        valid = batch["depth"] > 0
+        scale = self.model.config.network.depth_output_scale
+        err = ((out["depth"] - batch["depth"]) * scale) ** 2
+        l_depth = (err * valid).sum() / valid.sum().clamp(min=1)
+        l_sil = F.binary_cross_entropy_with_logits(out["silhouette_logits"], batch["mask"].float())
+        terms = {"depth_mse": l_depth, "silhouette_bce": l_sil}
+        loss = l_depth + l_sil
+        if self.depth_gradient_weight > 0:
+            l_grad = depth_gradient_loss(out["depth"] * scale, batch["depth"] * scale, valid)
+            terms["depth_gradient_l1"] = l_grad
+            loss = loss + self.depth_gradient_weight * l_grad
+        return loss, terms
+
+    def sph_loss(self, parts: dict[str, torch.Tensor], batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """:func:`training.learn.losses.sph_loss` of the inpainting net's ``parts`` against ``batch["full_sph"]``."""
+        return sph_loss(parts, batch["full_sph"], self.model.config.geometry, self.sph_loss_kind)
+
+    def voxel_loss(self, logits, batch):
+        """:func:`training.learn.losses.voxel_loss` of the refiner's logits against ``batch["voxels"]``."""
+        return voxel_loss(logits, batch["voxels"], self.surface_weight)
+
+    def forward(self, batch: dict[str, torch.Tensor]):
+        m = self.model
+        if self.stage == "depth":
+            return self.depth_loss(m.depth_net(batch["rgb"]), batch)
+        if self.stage == "onestep":
+            pad = m.config.geometry.sph_pad
+            return self.sph_loss({"map": pad_sph(self.baseline(batch["rgb"])[:, None], pad)}, batch)
+        if self.stage == "completion":
+            b = self.baseline
+            with torch.no_grad():
+                depth = m.masked_depth(b.depth_net(batch["rgb"])["depth"], batch["mask"])
+                vox_depth = b.depth_voxels(depth)
+            return self.voxel_loss(b.complete(vox_depth), batch)
+        with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
+            depth_out = m.depth_net(batch["rgb"])
+            depth = m.masked_depth(depth_out["depth"], batch["mask"])
+            partial = m.partial_sph(depth)
+        pad = m.config.geometry.sph_pad
+        if self.stage == "inpaint":
+            return self.sph_loss(m.inpaint_net.forward_parts(pad_sph(partial[:, None], pad)), batch)
+        with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
+            sph_parts = m.inpaint_net.forward_parts(pad_sph(partial[:, None], pad))
+            full = crop_sph(sph_parts["map"], pad)[:, 0]
+            if self.training and "coin" in batch and self.sph_teacher > 0:
+                full = torch.where((batch["coin"][:, 0] < self.sph_teacher)[:, None, None], batch["full_sph"], full)
+            vox_sph, vox_depth = m.sph_voxels(full), m.depth_voxels(depth)
+        if self.training and "coin" in batch and self.depth_dropout > 0:
+            keep = (batch["coin"][:, 1] >= self.depth_dropout).to(vox_depth.dtype)
+            vox_depth = vox_depth * keep.view(-1, *([1] * (vox_depth.dim() - 1)))
+        logits = m.refine(vox_sph, vox_depth)
+        loss, terms = self.voxel_loss(logits, batch)
+        if self.stage == "joint":
+            l_sph, sph_terms = self.sph_loss(sph_parts, batch)
+            terms.update(sph_terms)
+            loss = loss + l_sph
+            if self.depth_weight > 0:
+                l_depth, depth_terms = self.depth_loss(depth_out, batch)
+                terms.update(depth_terms)
+                loss = loss + self.depth_weight * l_depth
+        return loss, terms
