@@ -214,6 +214,8 @@ class Server:
         if box is not None:
             from ..validation import check_box
 
+            if not isinstance(box, list):  # (check_box also reads the command line's "x0,y0,x1,y1" text)
+                raise RequestError("bad_field", f"field box: expected four numbers [x0, y0, x1, y1] in an array, got {_show(box, 60)}", rid)
             try:
                 box = check_box("box", box)
             except ValueError as exc:
