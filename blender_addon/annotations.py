@@ -17,7 +17,9 @@ keeps its annotation on the space (``SpaceImageEditor.annotation``, an
 ``Annotation`` datablock: layers → frames → strokes → points); a point's
 ``co`` is in the editor's view space, where the image spans 0–1 on both
 axes, y up (Blender's ``image_main_region_set_view2d`` normalises the
-view by the image's size).  Strokes are drawn :data:`STROKE_WIDTH_SHARE`
+view by the image's size; measured in a drawn Blender 3.4.1 editor,
+``tests/test_addon_gui.py``).  Before 4.3 the same data is
+``SpaceImageEditor.grease_pencil``.  Strokes are drawn :data:`STROKE_WIDTH_SHARE`
 of the photo's long side wide into a grey image the photo's size
 (:func:`rasterise`): 255 object, 0 background, 128 elsewhere, the backend's
 convention.  Photos whose file carries an EXIF rotation are shown unrotated
@@ -31,11 +33,10 @@ needs no running editor; :func:`find_annotation` looks for the editor.
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 import zlib
-
-import numpy as np
 
 __all__ = [
     "STROKE_WIDTH_SHARE",
@@ -90,14 +91,14 @@ def find_annotation(image, window_manager):
     return found
 
 
-def layer_lines(annotation, width: int, height: int) -> dict[str, list[np.ndarray]]:
-    """The annotation's strokes in the photo's pixels: kind → list of (N, 2) float64 (x right, y down) polylines.
+def layer_lines(annotation, width: int, height: int) -> dict[str, list[list[tuple[float, float]]]]:
+    """The annotation's strokes in the photo's pixels: kind → list of polylines, each a list of (x, y) (x right, y down).
 
     ``width`` and ``height``: the photo's pixels (the editor's 0–1 view
     space is scaled by them, y turned downward).  Points that are not
     finite are dropped.
     """
-    out: dict[str, list[np.ndarray]] = {OBJECT: [], BACKGROUND: [], BOX: []}
+    out: dict[str, list[list[tuple[float, float]]]] = {OBJECT: [], BACKGROUND: [], BOX: []}
     for layer in annotation.layers:
         if getattr(layer, "annotation_hide", getattr(layer, "hide", False)):
             continue
@@ -107,65 +108,69 @@ def layer_lines(annotation, width: int, height: int) -> dict[str, list[np.ndarra
         if frame is None:
             continue
         for stroke in frame.strokes:
-            co = np.array([tuple(p.co)[:2] for p in stroke.points], np.float64).reshape(-1, 2)
-            co = co[np.isfinite(co).all(axis=1)]
-            if len(co) == 0:
-                continue
-            out[layer_kind(layer.info)].append(np.stack([co[:, 0] * width, (1.0 - co[:, 1]) * height], axis=1))
+            line = [(float(p.co[0]) * width, (1.0 - float(p.co[1])) * height) for p in stroke.points]
+            line = [(x, y) for x, y in line if math.isfinite(x) and math.isfinite(y)]
+            if line:
+                out[layer_kind(layer.info)].append(line)
     return out
 
 
-def rasterise(lines: dict[str, list[np.ndarray]], width: int, height: int, stroke_width: float | None = None) -> np.ndarray:
-    """Object and background polylines (:func:`layer_lines`) → (height, width) uint8 strokes image.
+def rasterise(lines: dict[str, list[list[tuple[float, float]]]], width: int, height: int,
+              stroke_width: float | None = None) -> bytearray:
+    """Object and background polylines (:func:`layer_lines`) → the strokes image: (height × width) grey bytes, rows top down.
 
     255 under object strokes, 0 under background strokes (drawn last: they
     win where both cross), 128 elsewhere.  Each polyline is drawn as discs
     of diameter ``stroke_width`` pixels (default :data:`STROKE_WIDTH_SHARE`
-    of the long side, at least 3) every half pixel along it; a single point
-    is one disc.  Box lines are not drawn.
+    of the long side, at least 3) every quarter of that width (at most half
+    a pixel apart) along it; a pixel is covered when its centre is inside a
+    disc; a single point is one disc.  Box lines are not drawn.  Plain
+    Python (Blender builds without numpy exist, Debian's among them).
     """
     if stroke_width is None:
         stroke_width = max(3.0, STROKE_WIDTH_SHARE * max(width, height))
     r = stroke_width / 2.0
-    image = np.full((height, width), UNKNOWN_GREY, np.uint8)
+    step = max(0.5, r / 2.0)
+    image = bytearray([UNKNOWN_GREY]) * (width * height)
     for kind, value in ((OBJECT, OBJECT_GREY), (BACKGROUND, BACKGROUND_GREY)):
         for line in lines.get(kind, []):
-            pts = [line[0]]
-            for a, b in zip(line[:-1], line[1:]):
-                n = max(1, int(np.ceil(np.hypot(*(b - a)) * 2.0)))
-                t = np.arange(1, n + 1)[:, None] / n
-                pts.extend(a + (b - a) * t)
-            for x, y in pts:
-                x0, x1 = max(0, int(np.floor(x - r))), min(width, int(np.ceil(x + r)) + 1)
-                y0, y1 = max(0, int(np.floor(y - r))), min(height, int(np.ceil(y + r)) + 1)
-                if x0 >= x1 or y0 >= y1:
-                    continue
-                xs, ys = np.arange(x0, x1) + 0.5 - x, np.arange(y0, y1) + 0.5 - y  # pixel centres from the point
-                disc = xs[None, :] ** 2 + ys[:, None] ** 2 <= r * r
-                image[y0:y1, x0:x1][disc] = value
+            points = [line[0]]
+            for (ax, ay), (bx, by) in zip(line[:-1], line[1:]):
+                n = max(1, math.ceil(math.hypot(bx - ax, by - ay) / step))
+                points.extend((ax + (bx - ax) * i / n, ay + (by - ay) * i / n) for i in range(1, n + 1))
+            for x, y in points:
+                for row in range(max(0, math.floor(y - r)), min(height, math.ceil(y + r) + 1)):
+                    dy = row + 0.5 - y
+                    if dy * dy > r * r:
+                        continue
+                    half = math.sqrt(r * r - dy * dy)
+                    c0, c1 = max(0, math.ceil(x - half - 0.5)), min(width, math.floor(x + half - 0.5) + 1)  # centres in reach
+                    if c0 < c1:
+                        image[row * width + c0: row * width + c1] = bytes([value]) * (c1 - c0)
     return image
 
 
-def line_box(lines: list[np.ndarray], width: int, height: int) -> tuple[float, float, float, float] | None:
-    """The bounding box (x0, y0, x1, y1) of (N, 2) polylines in pixels, clipped to the photo; None without points or area."""
-    if not lines:
+def line_box(lines: list[list[tuple[float, float]]], width: int, height: int) -> tuple[float, float, float, float] | None:
+    """The bounding box (x0, y0, x1, y1) of polylines in pixels, clipped to the photo; None without points or area."""
+    points = [p for line in lines for p in line]
+    if not points:
         return None
-    pts = np.concatenate(lines, axis=0)
-    x0, y0 = max(0.0, float(pts[:, 0].min())), max(0.0, float(pts[:, 1].min()))
-    x1, y1 = min(float(width), float(pts[:, 0].max())), min(float(height), float(pts[:, 1].max()))
+    x0, y0 = max(0.0, min(p[0] for p in points)), max(0.0, min(p[1] for p in points))
+    x1, y1 = min(float(width), max(p[0] for p in points)), min(float(height), max(p[1] for p in points))
     if x1 - x0 < 1.0 or y1 - y0 < 1.0:
         return None
     return round(x0, 2), round(y0, 2), round(x1, 2), round(y1, 2)
 
 
-def write_png_gray(path: str, image: np.ndarray) -> None:
-    """Write a (height, width) uint8 array as an 8-bit grayscale PNG (no filter, zlib level 6)."""
-    height, width = image.shape
+def write_png_gray(path: str, image: bytes | bytearray, width: int, height: int) -> None:
+    """Write (height × width) grey bytes, rows top down, as an 8-bit grayscale PNG (no filter, zlib level 6)."""
+    if len(image) != width * height:
+        raise ValueError(f"write_png_gray: {len(image)} bytes for {width}×{height} pixels")
 
     def chunk(tag: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
 
-    rows = b"".join(b"\x00" + np.ascontiguousarray(image[y], np.uint8).tobytes() for y in range(height))
+    rows = b"".join(b"\x00" + bytes(image[y * width:(y + 1) * width]) for y in range(height))
     data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)) \
         + chunk(b"IDAT", zlib.compress(rows, 6)) + chunk(b"IEND", b"")
     tmp = f"{path}.tmp"
@@ -181,5 +186,5 @@ def guidance_from_annotation(annotation, width: int, height: int, folder: str
     strokes = ""
     if lines[OBJECT] or lines[BACKGROUND]:
         strokes = os.path.join(folder, "strokes.png")
-        write_png_gray(strokes, rasterise(lines, width, height))
+        write_png_gray(strokes, rasterise(lines, width, height), width, height)
     return strokes, line_box(lines[BOX], width, height)
