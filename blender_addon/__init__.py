@@ -24,10 +24,10 @@ import atexit
 if "ops" in locals():  # re-running register() after a script reload
     import importlib
 
-    for _name in ("backend", "geometry", "jobs", "props", "ops", "ui"):
+    for _name in ("annotations", "backend", "geometry", "jobs", "props", "ops", "ui"):
         importlib.reload(locals()[_name])
 
-from . import backend, geometry, jobs, ops, props, ui  # noqa: E402
+from . import annotations, backend, geometry, jobs, ops, props, ui  # noqa: E402
 
 _MODULES = (props, ops, ui)
 

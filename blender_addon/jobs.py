@@ -18,6 +18,7 @@ from typing import Any
 import bpy
 from mathutils import Matrix, Vector
 
+from .annotations import find_annotation, guidance_from_annotation
 from .backend import STAGE_LABELS, BackendError, BackendManager, Request, private_temp_root
 from .geometry import VIEW_TO_BLENDER_FRONT, MeshFileError, camera_setup, read_obj, to_blender_frame, upright_pixels
 
@@ -38,6 +39,8 @@ class JobSpec:
     image_path: str  # the file the backend reads
     work_dir: str  # this job's own temporary folder
     mask_path: str = ""
+    strokes_path: str = ""  # strokes image made from the annotation drawn over the photo (annotations.py)
+    box: tuple[float, float, float, float] | None = None  # the annotation's Box layer, the photo's pixels
     threshold: float | None = None
     hole_closing: int | None = None
     pit_sealing: int | None = None  # None: the weights' own pit sealing
@@ -60,6 +63,10 @@ class JobSpec:
         payload: dict[str, Any] = {"image": self.image_path, "output": self.output_path, "options": {"format": "obj"}}
         if self.mask_path:
             payload["mask"] = self.mask_path
+        if self.strokes_path:
+            payload["strokes"] = self.strokes_path
+        if self.box is not None:
+            payload["box"] = [float(v) for v in self.box]
         if self.threshold is not None:
             payload["options"]["threshold"] = float(self.threshold)
         if self.hole_closing is not None:
@@ -131,6 +138,30 @@ def _save_image_copy(image: "bpy.types.Image", path: str) -> None:
         bpy.data.images.remove(copy)
 
 
+def annotation_guidance(spec: JobSpec, settings) -> None:
+    """Fill ``spec``'s strokes file and box from an annotation drawn over the photo in an Image Editor.
+
+    The photo's Image datablock: the chosen image (source Image), else an
+    image whose file is the photo (source File).  Nothing when no Image
+    Editor shows it with an annotation, or the annotation has no strokes.
+    """
+    image = settings.image if settings.source == "IMAGE" else None
+    if image is None:
+        for candidate in bpy.data.images:
+            if candidate.source == "FILE" and _abspath(candidate.filepath) == spec.image_path:
+                image = candidate
+                break
+    if image is None:
+        return
+    annotation = find_annotation(image, bpy.context.window_manager)
+    if annotation is None:
+        return
+    width, height = image.size
+    if width == 0 or height == 0:
+        return
+    spec.strokes_path, spec.box = guidance_from_annotation(annotation, int(width), int(height), spec.work_dir)
+
+
 def prepare_job(settings, work_base: str) -> JobSpec:
     """Check the panel's settings and fix them in a :class:`JobSpec`; :class:`UserError` when something is missing.
 
@@ -166,6 +197,12 @@ def prepare_job(settings, work_base: str) -> JobSpec:
             shutil.rmtree(work_dir, ignore_errors=True)
         raise
     spec.mask_path = mask
+    if not mask and getattr(settings, "use_annotation", False):
+        try:
+            annotation_guidance(spec, settings)
+        except BaseException:
+            shutil.rmtree(work_dir, ignore_errors=True)
+            raise
     spec.threshold = float(settings.threshold) if settings.use_threshold else None
     spec.hole_closing = int(settings.hole_closing) if getattr(settings, "use_hole_closing", False) else None
     spec.pit_sealing = int(settings.pit_sealing) if getattr(settings, "use_pit_sealing", False) else None
@@ -263,6 +300,8 @@ class Job:
         obj = self.objects[0] if self.objects else None
         faces = res.get("faces", 0)
         line = f"{self.spec.name}: {res.get('vertices', 0):,} vertices, {faces:,} faces"
+        if isinstance(res.get("mask_source"), str):
+            line += f", mask: {res['mask_source']}"
         if isinstance(res.get("primitive"), str):
             line += f", a fitted {res['primitive']}"
         if obj is not None and self.spec.target_faces and faces > self.spec.target_faces:

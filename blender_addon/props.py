@@ -30,6 +30,13 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
         name="Mask",
         description="Optional black-and-white mask of the object, the photo's size (else the photo's alpha, else the network's own silhouette)",
     )
+    use_annotation: BoolProperty(
+        name="Use Annotation",
+        description="Guide the mask with what is drawn over the photo in an Image Editor with the Annotate tool: "
+                    "strokes on the object; strokes on a layer named 'Background' mark background; strokes on a layer "
+                    "named 'Box' give a box around the object. A mask file, when chosen, is used instead",
+        default=True,
+    )
     use_threshold: BoolProperty(name="Custom Threshold", description="Override the weights' isosurface threshold", default=False)
     threshold: FloatProperty(
         name="Threshold", description="Isosurface threshold of the voxel grid: lower gives a fuller shape",

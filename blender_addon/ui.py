@@ -31,6 +31,7 @@ class GENRE_PT_panel(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(settings, "mask_path", text="")
         row.operator("genre.choose_file", text="", icon="FILE_IMAGE").target = "MASK"
+        col.prop(settings, "use_annotation")
 
         box = col.box()
         row = box.row(align=True)
@@ -92,11 +93,14 @@ class GENRE_PT_panel(bpy.types.Panel):
             else:
                 counts, _, seconds = rest.rpartition(" in ")
                 col.label(text=f"{head} ({seconds})" if counts else head, icon="CHECKMARK")
-                col.label(text=(counts or rest).replace(" vertices,", " verts,"), icon="BLANK1")
+                counts, _, mask = (counts or rest).partition(", mask: ")
+                col.label(text=counts.replace(" vertices,", " verts,"), icon="BLANK1")
+                if mask:
+                    col.label(text=f"mask: {mask}", icon="BLANK1")
             if status.mask_warning and not status.message_is_error:
                 # the backend doubts the mask (probably the photo's frame): say so, with the way out
                 col = layout.column(align=True)
-                for i, part in enumerate(_wrap(f"Doubtful mask: {status.mask_warning}. Choose a mask file (white object on black) and reconstruct again.", 38)):
+                for i, part in enumerate(_wrap(f"Doubtful mask: {status.mask_warning}. Choose a mask file (white object on black), or annotate the photo in an Image Editor (object strokes; a Background layer; a Box layer), and reconstruct again.", 38)):
                     col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
 
 

@@ -7,6 +7,7 @@ it expected and what it got.
 
 from __future__ import annotations
 
+import math
 import numbers
 from typing import TYPE_CHECKING, Sequence
 
@@ -115,3 +116,30 @@ def _short_repr(value, limit: int = 300) -> str:
 
 def _fmt(shape: Sequence[int | str | None]) -> str:
     return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+
+
+def check_box(name: str, value) -> tuple[float, float, float, float]:
+    """A box around the object in a photo's pixels: four finite numbers x0, y0, x1, y1 with x0 < x1 and y0 < y1.
+
+    Accepts a sequence of four reals (bools refused) or the command line's text ``"x0,y0,x1,y1"``;
+    returns floats.  Whether the box meets the photo is checked once the photo is decoded
+    (:func:`genre_backend.inference.preprocess.photo_box`).
+    """
+    if isinstance(value, str):
+        parts = [p.strip() for p in value.split(",")]
+        try:
+            value = [float(p) for p in parts]
+        except ValueError:
+            raise ValueError(f"{name}: expected four numbers x0,y0,x1,y1 (pixels of the photo), got {_short_repr(value)}") from None
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != 4 or any(
+            isinstance(v, bool) or not isinstance(v, numbers.Real) for v in value):
+        raise ValueError(f"{name}: expected four numbers x0, y0, x1, y1 (pixels of the photo), got {_short_repr(value)}")
+    try:
+        x0, y0, x1, y1 = (float(v) for v in value)
+    except OverflowError:  # an integer past the float range
+        raise ValueError(f"{name}: expected four finite numbers, got {_short_repr(value)}") from None
+    if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+        raise ValueError(f"{name}: expected four finite numbers, got {_short_repr(value)}")
+    if not (x0 < x1 and y0 < y1):
+        raise ValueError(f"{name}: expected x0 < x1 and y0 < y1 (left, top, right, bottom), got {x0:g},{y0:g},{x1:g},{y1:g}")
+    return x0, y0, x1, y1

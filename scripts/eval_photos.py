@@ -16,7 +16,9 @@ shipped weights (or ``--weights``):
   doubtful, network seeding otherwise; the numbers that chose the default;
 * whether the final automatic mask is **doubtful** (the warning ``genre
   reconstruct`` prints: it covers > 85 % of the photo or touches > 50 % of
-  its border);
+  its border, or GrabCut's colours barely separate it, or it runs along the
+  photo's edge: ``docs/masks.md``; ``results/photos/table.md`` was written
+  before the last two tests);
 * the **side-view depth/width ratio** of the mesh reconstructed with the hand
   mask (extent along the view's z over extent along its x, the view frame
   of ``genre_backend/frame.py``) next to our judgement of the true ratio

@@ -446,7 +446,73 @@ def scenario_failures(args: dict) -> dict:
     return out
 
 
-SCENARIOS = {"install": scenario_install, "reconstruct": scenario_reconstruct, "failures": scenario_failures}
+def _annotate(bpy, window, area, region, lines: list[list[list[float]]], width: int, height: int) -> None:
+    """Draw ``lines`` (photo pixels, x right, y down) with the Annotate tool into the active layer.
+
+    The tool runs for real (``gpencil.annotate``, one element per point), but in background mode the Image
+    Editor's view is never drawn, so its view space is unset and the points land as NaN; they are then set
+    to the view-space coordinates Blender gives them in a drawn editor: 0–1 over the image, y up.
+    """
+    for line in lines:
+        elements = [{"name": "", "mouse": (10.0 * i, 10.0 * i), "mouse_event": (10.0 * i, 10.0 * i), "location": (0, 0, 0),
+                     "pressure": 1.0, "size": 0.0, "x_tilt": 0.0, "y_tilt": 0.0, "time": 0.0, "is_start": i == 0}
+                    for i in range(len(line))]
+        with bpy.context.temp_override(window=window, area=area, region=region):
+            assert bpy.ops.gpencil.annotate(mode="DRAW", stroke=elements, wait_for_input=False) == {"FINISHED"}
+    ann = area.spaces.active.annotation
+    layer = ann.layers[ann.layers.active_index]
+    strokes = list(layer.active_frame.strokes)[-len(lines):]
+    for stroke, line in zip(strokes, lines):
+        assert len(stroke.points) == len(line)
+        for point, (x, y) in zip(stroke.points, line):
+            point.co = (x / width, 1.0 - y / height, 0.0)
+
+
+def scenario_annotation(args: dict) -> dict:
+    """Strokes and a box drawn with the Annotate tool over a photo in an Image Editor → the request's strokes file and box."""
+    import shutil
+
+    import bpy
+
+    module = _install_legacy(bpy, args["zip"])
+    addon = sys.modules[module]
+    image = bpy.data.images.load(args["photo"])
+    width, height = image.size
+    window = bpy.context.window_manager.windows[0]
+    area = max(window.screen.areas, key=lambda a: a.width * a.height)
+    area.type = "IMAGE_EDITOR"
+    area.spaces.active.image = image
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    _annotate(bpy, window, area, region, args["object"], width, height)  # Blender's first layer ("Note"): object
+    ann = area.spaces.active.annotation
+    ann.layers.new("Background", set_active=True)
+    _annotate(bpy, window, area, region, args["background"], width, height)
+    ann.layers.new("Box", set_active=True)
+    _annotate(bpy, window, area, region, [args["box"]], width, height)
+    hidden = ann.layers.new("Hidden", set_active=True)
+    _annotate(bpy, window, area, region, [[[0, 0], [width, height]]], width, height)
+    hidden.annotation_hide = True  # a hidden layer says nothing
+    settings = bpy.context.scene.genre
+    out = {"default_on": settings.use_annotation, "layers": [layer.info for layer in ann.layers]}
+    settings.source = "IMAGE"
+    settings.image = image
+    work = args["work"]
+    spec = addon.jobs.prepare_job(settings, work)
+    out["payload"] = spec.request_payload()
+    if spec.strokes_path:
+        shutil.copy(spec.strokes_path, os.path.join(work, "strokes-copy.png"))
+        out["strokes_copy"] = os.path.join(work, "strokes-copy.png")
+    shutil.rmtree(spec.work_dir)
+    settings.use_annotation = False
+    out["payload_off"] = addon.jobs.prepare_job(settings, work).request_payload()
+    settings.use_annotation = True
+    settings.mask_path = args["photo"]  # a mask file wins over the annotation
+    out["payload_mask"] = addon.jobs.prepare_job(settings, work).request_payload()
+    return out
+
+
+SCENARIOS = {"install": scenario_install, "reconstruct": scenario_reconstruct, "failures": scenario_failures,
+             "annotation": scenario_annotation}
 
 
 def _scenario_main(argv: list[str]) -> int:
@@ -800,3 +866,48 @@ def test_failures_leave_nothing_behind_and_say_why(built, trained, tmp_path):
     assert "backend command not found" in r["check_missing"]
     assert "backend could not start" in r["check_bad_weights"] and "missing.safetensors" in r["check_bad_weights"]
     assert "(bad_weights)" in r["check_bad_weights"]
+
+
+def test_annotation_becomes_strokes_and_box(built, tmp_path):
+    """Annotate strokes over the robin in an Image Editor (headless bpy) → the strokes file and box the add-on sends,
+    which the backend reads back and which fix the robin's automatic mask against its hand mask."""
+    from genre_backend.inference.preprocess import composite, load_image, load_mask, load_strokes, photo_box
+    from genre_backend.inference.segment import segment
+
+    photos = REPO / "examples" / "photos"
+    drawn = json.loads((photos / "strokes.json").read_text())["robin"]
+    box = [[20, 2], [345, 2], [345, 230], [20, 230], [20, 2]]  # a loop around the robin
+    work = tmp_path / "work"
+    work.mkdir()
+    r = run_scenario("annotation", {"zip": str(built["legacy"]), "photo": str(photos / "robin.jpg"), "work": str(work),
+                                    "object": drawn["object"], "background": drawn["background"], "box": box}, tmp_path)
+    assert r["default_on"] is True and r["layers"] == ["Note", "Background", "Box", "Hidden"]
+    payload = r["payload"]
+    assert payload["box"] == pytest.approx([20, 2, 345, 230], abs=0.01)
+    assert "mask" not in payload and payload["strokes"].endswith("strokes.png")
+    assert "strokes" not in r["payload_off"] and "box" not in r["payload_off"]
+    assert r["payload_mask"]["mask"] == str(photos / "robin.jpg") and "strokes" not in r["payload_mask"]
+    image = load_image(photos / "robin.jpg")
+    fg, bg = load_strokes(r["strokes_copy"], image)
+    # the same polylines drawn by Pillow (7 px wide; the add-on's width is 1.2 % of the long side: 4.6 px)
+    from PIL import Image, ImageDraw
+
+    ref = Image.new("L", image.size, 128)
+    draw = ImageDraw.Draw(ref)
+    for kind, value in (("object", 255), ("background", 0)):
+        for line in drawn[kind]:
+            draw.line([tuple(p) for p in line], fill=value, width=7)
+    ref = np.asarray(ref)
+    for mine, theirs in ((fg, ref == 255), (bg, ref == 0)):
+        assert (mine & theirs).sum() / mine.sum() >= 0.95  # the add-on's strokes lie under Pillow's wider ones
+        assert (mine & theirs).sum() / theirs.sum() >= 0.55
+    assert not fg[:, :15].any() and not bg[:, :15].any()  # the hidden layer's diagonal is not drawn
+    hand = load_mask(photos / "robin_mask.png", image)
+    rgb = composite(image)
+    auto = segment(rgb).mask
+    guided = segment(rgb, box=photo_box(tuple(payload["box"]), image), object_strokes=fg, background_strokes=bg).mask
+
+    def iou(a, b):
+        return float((a & b).sum()) / float((a | b).sum())
+
+    assert iou(auto, hand) < 0.6 and iou(guided, hand) >= 0.7, (iou(auto, hand), iou(guided, hand))

@@ -13,7 +13,9 @@ framing here, and only here:
    limit), and larger ones are downscaled to at most :data:`WORK_SIDE` pixels
    on their long side, which is far more than the network input needs.
 2. **Mask** (:func:`preprocess`), in this order: a mask file given by the user
-   (same size as the image, not empty), else the image's alpha channel when it
+   (same size as the image, not empty), else a box and/or strokes given by the
+   user (:func:`photo_box`, :func:`load_strokes`: GrabCut seeded by them,
+   :func:`.segment.segment`), else the image's alpha channel when it
    has real transparency, else a mask found in the photo by GrabCut
    (:mod:`.segment`; seeded by the photo's border, a product-photo prior,
    which beat seeding by the depth net's silhouette on our real photos),
@@ -47,7 +49,7 @@ import numpy as np
 import torch
 
 from ..config import GenreConfig
-from .segment import DEFAULT_SEEDING, SEEDINGS, doubt, refine_mask
+from .segment import DEFAULT_SEEDING, SEEDINGS, STROKE_BACKGROUND_MAX, STROKE_OBJECT_MIN, doubt, segment
 
 __all__ = [
     "ImageError",
@@ -59,6 +61,8 @@ __all__ = [
     "MIN_OBJECT_PIXELS",
     "load_image",
     "load_mask",
+    "load_strokes",
+    "photo_box",
     "mask_bbox",
     "square_crop_box",
     "crop_resize",
@@ -139,7 +143,10 @@ class Preprocessed:
     (None for ``"silhouette"``: the caller projects the crop's silhouette
     back with :func:`uncrop`).  ``network_doubt``: when the depth net's own
     silhouette of the whole photo was doubtful
-    (:func:`.segment.doubt`), why; else None.
+    (:func:`.segment.doubt`), why; else None.  ``mask_doubt``: when the
+    GrabCut mask is doubtful (:func:`.segment.cut_doubt`), why; else None.
+    ``mask_source`` is also ``"box"``, ``"strokes"`` or ``"box+strokes"``
+    for a mask GrabCut found from a person's box and strokes.
     """
 
     rgb: torch.Tensor
@@ -151,6 +158,7 @@ class Preprocessed:
     fill: tuple[int, int, int]
     photo_mask: np.ndarray | None = None
     network_doubt: str | None = None
+    mask_doubt: str | None = None
 
 
 # ---------------------------------------------------------------------------------- decoding
@@ -295,6 +303,53 @@ def load_mask(path: str | os.PathLike, image: LoadedImage) -> np.ndarray:
     return mask
 
 
+def load_strokes(path: str | os.PathLike, image: LoadedImage) -> tuple[np.ndarray, np.ndarray]:
+    """A person's strokes file → ((H, W) bool object, (H, W) bool background) at the decoded image's resolution.
+
+    The file has the image's size (after EXIF rotation of both): grey level
+    (luminance) ≥ :data:`.segment.STROKE_OBJECT_MIN` (white) is sure object,
+    ≤ :data:`.segment.STROKE_BACKGROUND_MAX` (black) sure background, anything
+    between (mid grey, 128) says nothing, and so do transparent pixels (alpha
+    < 128), so strokes may be drawn on a transparent layer.  It must mark at
+    least one pixel.  Raises :class:`ImageError` ``bad_mask``.
+    """
+    from PIL import Image
+
+    m = load_image(path, code="bad_mask", what="strokes")
+    if m.original_size != image.original_size:
+        ow, oh = m.original_size
+        iw, ih = image.original_size
+        raise ImageError("bad_mask", f"{m.path}: strokes image is {ow}×{oh}, the image is {iw}×{ih}")
+    lum = m.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    seen = np.ones(lum.shape, bool) if m.alpha is None else m.alpha >= ALPHA_OBJECT_MIN
+    marks = []
+    for kind in (lum >= STROKE_OBJECT_MIN - 0.5, lum <= STROKE_BACKGROUND_MAX + 0.5):
+        kind &= seen
+        if kind.shape != image.rgb.shape[:2]:  # the image was downscaled: a pixel is marked when any of it is
+            im = Image.fromarray(kind.astype(np.uint8) * 255, "L").resize(image.size, Image.BOX, reducing_gap=2.0)
+            kind = np.asarray(im) > 0
+        marks.append(kind)
+    if not (marks[0].any() or marks[1].any()):
+        raise ImageError("bad_mask", f"{m.path}: no strokes (expected white object and/or black background strokes on grey 128 or transparency)")
+    return marks[0], marks[1]
+
+
+def photo_box(box: tuple[float, float, float, float], image: LoadedImage) -> tuple[float, float, float, float]:
+    """A box (x0, y0, x1, y1) in the photo's pixels (as displayed, after EXIF rotation) → the decoded image's pixels.
+
+    Clipped to the photo; raises :class:`ImageError` ``bad_mask`` when less
+    than a pixel of it is inside the photo.  (Its form is checked before,
+    :func:`genre_backend.validation.check_box`.)
+    """
+    w, h = image.original_size
+    x0, y0, x1, y1 = box
+    c = (max(0.0, x0), max(0.0, y0), min(float(w), x1), min(float(h), y1))
+    if c[2] - c[0] < 1.0 or c[3] - c[1] < 1.0:
+        raise ImageError("bad_mask", f"{image.path}: the box {x0:g},{y0:g},{x1:g},{y1:g} is not inside the {w}×{h} photo "
+                                     f"(less than a pixel of it is)")
+    return tuple(v * image.scale for v in c)
+
+
 # ---------------------------------------------------------------------------------- framing
 def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
     """Bounding box (x0, y0, x1, y1), exclusive upper bounds, of a (H, W) bool mask; None if empty."""
@@ -409,6 +464,8 @@ def preprocess(
     silhouette: SilhouetteFn | None = None,
     refine: bool = True,
     seeding: str = DEFAULT_SEEDING,
+    box: tuple[float, float, float, float] | None = None,
+    strokes_path: str | os.PathLike | None = None,
 ) -> Preprocessed:
     """Select the mask and bring the image to the canonical framing.
 
@@ -416,12 +473,16 @@ def preprocess(
     logits (float) or mask (bool) of the depth net, needed only when neither
     a mask file nor real alpha is there; it runs once on the whole image
     padded to a square.  Then, with ``refine`` (the default), the object's
-    mask is found in the photo by GrabCut (:func:`.segment.refine_mask`,
+    mask is found in the photo by GrabCut (:func:`.segment.segment`,
     ``seeding`` one of :data:`.segment.SEEDINGS`) and used like a mask file
     (``mask_source`` ``"grabcut"``); without it (or when GrabCut finds
     nothing) the returned ``mask`` is None so that the caller takes the
     silhouette of the final crop (``mask_source`` ``"silhouette"``).
-    Raises :class:`ImageError`.
+    ``box`` (x0, y0, x1, y1, the photo's pixels, :func:`photo_box`) and
+    ``strokes_path`` (:func:`load_strokes`): a person's guidance for GrabCut
+    (:func:`.segment.segment`); they take the place of the alpha channel and
+    of the automatic seeding, not of a mask file (giving both is a
+    ``ValueError``).  Raises :class:`ImageError`.
     """
     g = config.geometry
     size = g.image_size
@@ -433,7 +494,7 @@ def preprocess(
     def original_box(box):
         return tuple(float(v) * inv for v in box)
 
-    def framed(mask: np.ndarray, source: str, network_doubt: str | None = None) -> Preprocessed:
+    def framed(mask: np.ndarray, source: str, network_doubt: str | None = None, mask_doubt: str | None = None) -> Preprocessed:
         box = square_crop_box(mask_bbox(mask), g.object_fraction)
         fill = tuple(int(round(255 * c)) for c in NEUTRAL_BACKGROUND) if image.alpha is not None else _border_colour(rgb)
         crop = crop_resize(rgb, box, size, fill)
@@ -441,7 +502,17 @@ def preprocess(
         if int(crop_mask.sum()) < MIN_OBJECT_PIXELS:
             raise ImageError("no_object", f"{image.path}: no object: the {source} mask is too small to see at {size}² pixels")
         return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, original_box(box), image.original_size, notes, fill,
-                            photo_mask=mask, network_doubt=network_doubt)
+                            photo_mask=mask, network_doubt=network_doubt, mask_doubt=mask_doubt)
+
+    if box is not None or strokes_path is not None:
+        if mask_path is not None:
+            raise ValueError("give either a mask file or a box and strokes, not both")
+        fg, bg = load_strokes(strokes_path, image) if strokes_path is not None else (None, None)
+        found = segment(rgb, box=None if box is None else photo_box(box, image), object_strokes=fg, background_strokes=bg)
+        if int(found.mask.sum()) < MIN_OBJECT_PIXELS:
+            raise ImageError("no_object", f"{image.path}: no object found inside the {found.seeding.replace('+', ' and ')}")
+        notes.append(f"mask: GrabCut seeded by the {found.seeding.replace('+', ' and ')}")
+        return framed(found.mask, found.seeding, mask_doubt=found.doubt)
 
     if mask_path is not None or image.has_transparency():
         if mask_path is not None:
@@ -466,10 +537,10 @@ def preprocess(
     if network_doubt:
         notes.append(network_doubt)
     if refine:
-        refined, used = refine_mask(rgb, photo_prob, seeding)
-        if int(refined.sum()) >= MIN_OBJECT_PIXELS:
-            notes.append(f"mask: GrabCut seeded by the {'photo border' if used == 'border' else 'depth net silhouette'}")
-            return framed(refined, "grabcut", network_doubt)
+        found = segment(rgb, photo_prob, seeding)
+        if int(found.mask.sum()) >= MIN_OBJECT_PIXELS:
+            notes.append(f"mask: GrabCut seeded by the {'photo border' if found.seeding == 'border' else 'depth net silhouette'}")
+            return framed(found.mask, "grabcut", network_doubt, found.doubt)
         notes.append("GrabCut found no object: the depth net's silhouette is used")
     sil = prob > 0.5
     bbox = mask_bbox(sil)

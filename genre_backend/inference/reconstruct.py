@@ -148,12 +148,13 @@ class Reconstruction:
     """The result of one image.
 
     ``vertices`` (V, 3) float32 and ``faces`` (F, 3) int64: the mesh in the
-    view frame.  ``mask_source``: ``"file"``, ``"alpha"``, ``"grabcut"`` or
-    ``"silhouette"``.  ``photo_mask``: (H, W) bool, the mask the networks
+    view frame.  ``mask_source``: ``"file"``, ``"alpha"``, ``"grabcut"``,
+    ``"box"``, ``"strokes"``, ``"box+strokes"`` or ``"silhouette"``.  ``photo_mask``: (H, W) bool, the mask the networks
     used at the decoded photo's pixels (:meth:`mask_in_photo` gives it at
     the photo's own size).  ``mask_warning``: one line when that mask is
     doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
-    of the photo or touches most of its border), else None.
+    of the photo or touches most of its border; :func:`~genre_backend.inference.segment.cut_doubt`:
+    GrabCut's colours barely separate it, or it runs along the photo's edge), else None.
     ``threshold``, ``hole_closing``, ``silhouette_carve`` and ``visible_fusion``: the level, the hole
     sealing (voxels), whether the voxels outside the mask were carved away and whether the holes in the
     visible face were filled from the depth map, as the mesh was made.  ``pit_sealing``: the widest pit
@@ -187,6 +188,7 @@ class Reconstruction:
     intermediates: dict[str, torch.Tensor] = field(repr=False)
     notes: list[str] = field(default_factory=list)
     mask_path: Path | None = None
+    strokes_path: Path | None = None
     photo: LoadedImage | None = field(default=None, repr=False)
     fill: tuple[int, int, int] = (0, 0, 0)
     clean: CleanReport | None = None
@@ -206,7 +208,7 @@ class Reconstruction:
     @property
     def inputs(self) -> tuple[Path, ...]:
         """The files this result was made from (never overwritten by its own outputs)."""
-        return (self.image,) if self.mask_path is None else (self.image, self.mask_path)
+        return (self.image, *(p for p in (self.mask_path, self.strokes_path) if p is not None))
 
     def camera(self) -> dict:
         """The view the mesh is posed for (protocol ``camera`` object).
@@ -439,6 +441,8 @@ class Reconstructor:
         primitive_snap: float | None = None,
         test_time_mirror: bool | None = None,
         pit_sealing: int | None = None,
+        box: tuple[float, float, float, float] | None = None,
+        strokes_path: str | os.PathLike | None = None,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
@@ -468,7 +472,9 @@ class Reconstructor:
         ellipsoid whose silhouette matches the mask and which stays on the mesh within this tolerance
         (:func:`..geometry.primitives.snap`; default: the config's).  ``test_time_mirror``: average the refiner's
         output with that of the photo's mirror image, reflected back (:func:`..nets.model.mirror_averaged`; twice
-        the nets' time; default: the config's).  Raises
+        the nets' time; default: the config's).  ``box`` (x0, y0, x1, y1, the photo's pixels) and
+        ``strokes_path`` (white object and black background strokes on grey, the photo's size): a person's
+        guidance for the mask instead of the automatic one (:func:`.preprocess.preprocess`).  Raises
         :class:`ImageError` for bad images, masks or images with no object.
         """
         g = self.config.geometry
@@ -522,7 +528,8 @@ class Reconstructor:
             stage("load")
             image = load_image(image_path)
             stage("preprocess")
-            pre: Preprocessed = preprocess(image, self.config, mask_path=mask_path, silhouette=self._silhouette, refine=refine, seeding=seeding)
+            pre: Preprocessed = preprocess(image, self.config, mask_path=mask_path, silhouette=self._silhouette, refine=refine, seeding=seeding,
+                                           box=box, strokes_path=strokes_path)
             stage("depth")
             out = self._depth_net(pre.rgb)
             self._first_pass = None
@@ -566,7 +573,7 @@ class Reconstructor:
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
             box = tuple(v * image.scale for v in pre.crop_box)
             photo_mask = uncrop(mask[0].cpu().numpy(), box, image.size)
-        warning = doubt(photo_mask)
+        warning = "; ".join(w for w in (doubt(photo_mask), pre.mask_doubt) if w) or None
         inter = {
             "rgb": pre.rgb,
             "depth": out["depth"][0],
@@ -594,6 +601,7 @@ class Reconstructor:
             intermediates=inter,
             notes=notes,
             mask_path=None if mask_path is None else Path(mask_path),
+            strokes_path=None if strokes_path is None else Path(strokes_path),
             photo=image,
             fill=pre.fill,
             clean=clean,

@@ -1,4 +1,4 @@
-"""``genre reconstruct IMAGE… [-o OUT] [--mask M] [--threshold T] [--format obj|ply|glb]
+"""``genre reconstruct IMAGE… [-o OUT] [--mask M | --box x0,y0,x1,y1 --strokes S] [--threshold T] [--format obj|ply|glb]
 [--up y|z] [--texture] [--all-parts] [--no-refine] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
 
 One image or many (a progress bar on stderr for many).  Each mesh is written
@@ -6,8 +6,14 @@ atomically; every bad input gets one line on stderr naming the file and the
 problem (with its ``genre serve`` error code), the other images go on, and the
 exit status is 1 if any image failed (2 for bad arguments).  A doubtful mask
 (one that covers most of the photo or touches most of its border: probably
-the photo's frame, not the object) gets a warning line on stderr; the mesh is
-still written.
+the photo's frame, not the object; or a GrabCut mask whose colours barely
+separate from the background's, or an automatic one that runs along the
+photo's edge: :mod:`.segment`) gets a warning line on stderr; the mesh is
+still written.  ``--box`` (a box around the object, the photo's pixels) and
+``--strokes`` (an image the photo's size: white strokes on the object, black
+on the background, mid grey or transparency elsewhere) guide GrabCut instead
+of its automatic start; the result line then says ``mask: box``, ``mask:
+strokes`` or ``mask: box+strokes``.
 
 Axes: OBJ and glb are written +y up (the view frame), as their importers
 expect; a PLY is written +z up by default (``--up z``: Blender's axes, front
@@ -94,6 +100,12 @@ def _main(argv: list[str] | None, prog: str) -> int:
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (PNG, JPEG, …); RGBA images use their alpha as the mask")
     parser.add_argument("-o", "--output", metavar="OUT", help="mesh file (one image) or folder (default: the current folder)")
     parser.add_argument("--mask", metavar="M", help="mask file for the (single) image: white object on black, same size")
+    parser.add_argument("--box", metavar="X0,Y0,X1,Y1",
+                        help="a box around the object in the (single) photo's pixels (left, top, right, bottom; x right, "
+                             "y down): GrabCut finds the object inside it")
+    parser.add_argument("--strokes", metavar="S",
+                        help="strokes image for the (single) photo, the photo's size: white (>= 192) on the object, black "
+                             "(<= 63) on the background, mid grey (128) or transparent elsewhere; GrabCut keeps them")
     parser.add_argument("--threshold", type=float, metavar="T", help="isosurface level in (0, 1) (default: the weights' config)")
     parser.add_argument("--hole-closing", type=int, metavar="K",
                         help="seal holes in the mesh up to about 2·K voxels across, 0-8 (default: the weights' config; "
@@ -139,6 +151,22 @@ def _main(argv: list[str] | None, prog: str) -> int:
     images = [Path(p) for p in args.images]
     if args.mask and len(images) > 1:
         parser.error("--mask applies to one image; give one image per call")
+    box = None
+    if args.box is not None or args.strokes is not None:
+        used = " and ".join(n for n, v in (("--box", args.box), ("--strokes", args.strokes)) if v is not None)
+        if len(images) > 1:
+            parser.error(f"{used} apply to one image; give one image per call")
+        if args.mask:
+            parser.error(f"give either --mask or {used}, not both")
+        if args.no_refine:
+            parser.error(f"{used} guide GrabCut; --no-refine turns it off")
+    if args.box is not None:
+        from ..validation import check_box
+
+        try:
+            box = check_box("--box", args.box)
+        except ValueError as exc:
+            parser.error(str(exc))
     if args.threshold is not None:
         from ..validation import check_threshold  # (torch loads only once a command runs)
 
@@ -241,12 +269,12 @@ def _main(argv: list[str] | None, prog: str) -> int:
                 if args.save_intermediates:
                     intermediates = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
                 preview = out.with_name(out.stem + "_preview.png") if args.preview else None
-                check_outputs(out, fmt, args.texture, (image, args.mask), intermediates, preview)  # every output, before any work
+                check_outputs(out, fmt, args.texture, (image, args.mask, args.strokes), intermediates, preview)  # every output, before any work
                 result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
                                  refine=not args.no_refine, hole_closing=args.hole_closing,
                                  silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
                                  primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror,
-                                 pit_sealing=args.pit_sealing)
+                                 pit_sealing=args.pit_sealing, box=box, strokes_path=args.strokes)
                 path, used = result.save_mesh(out, fmt, texture=args.texture, up=up)
                 if intermediates is not None:
                     result.save_intermediates(intermediates)
@@ -265,6 +293,7 @@ def _main(argv: list[str] | None, prog: str) -> int:
                 if result.mask_warning:
                     fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \
                         else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"
+                    fix += ", or guide it with --box and --strokes"
                     say(f"{prog}: warning: {image}: doubtful mask: {result.mask_warning}; {fix}", err=True)
             except Exception as exc:  # one bad input must not stop the others
                 failed += 1

@@ -92,6 +92,8 @@ class Job:
     test_time_mirror: bool | None = None
     pit_sealing: int | None = None
     up: str | None = None
+    box: tuple[float, float, float, float] | None = None  # a person's box and strokes file for GrabCut (mask inputs)
+    strokes: str | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -205,11 +207,30 @@ class Server:
             raise RequestError("bad_field", f"{where} '{name}' is not a usable path: it {problem}", rid)
         return value
 
+    def _guidance(self, msg: dict, rid: Any, mask: str | None) -> tuple[tuple[float, float, float, float] | None, str | None]:
+        """The request's ``box`` ([x0, y0, x1, y1], the photo's pixels) and ``strokes`` (a path), checked; (None, None) when absent."""
+        strokes = self._str(msg, "strokes", rid, False)
+        box = msg.get("box")
+        if box is not None:
+            from ..validation import check_box
+
+            if not isinstance(box, list):  # (check_box also reads the command line's "x0,y0,x1,y1" text)
+                raise RequestError("bad_field", f"field box: expected four numbers [x0, y0, x1, y1] in an array, got {_show(box, 60)}", rid)
+            try:
+                box = check_box("box", box)
+            except ValueError as exc:
+                raise RequestError("bad_field", f"field {_one_line(exc)}", rid) from None
+        if mask is not None and (box is not None or strokes is not None):
+            given = " and ".join(f"'{n}'" for n, v in (("box", box), ("strokes", strokes)) if v is not None)
+            raise RequestError("bad_field", f"give either 'mask' or {given}, not both", rid)
+        return box, strokes
+
     def _parse_job(self, msg: dict) -> Job:
         rid = self._id(msg, required=True)
         image = self._str(msg, "image", rid, True)
         output = self._str(msg, "output", rid, True)
         mask = self._str(msg, "mask", rid, False)
+        box, strokes = self._guidance(msg, rid, mask)
         options = msg.get("options")
         if options is None:  # (absent or null)
             options = {}
@@ -277,7 +298,7 @@ class Server:
         return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
                    hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve,
                    visible_fusion=fusion, primitive_snap=None if snap is None else float(snap), test_time_mirror=mirror,
-                   pit_sealing=None if pits is None else int(pits), up=up)
+                   pit_sealing=None if pits is None else int(pits), up=up, box=box, strokes=strokes)
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -388,7 +409,7 @@ class Server:
         log.info("job %s: %s -> %s", _cap(_key(job.id), 300), _cap(job.image, 300), _cap(job.output, 300))
         try:
             # every output (mesh, .mtl, texture, intermediates folder) before any network runs
-            check_outputs(job.output, job.format, job.texture, (job.image, job.mask), job.save_intermediates)
+            check_outputs(job.output, job.format, job.texture, (job.image, job.mask, job.strokes), job.save_intermediates)
             result = self.rec.run(
                 job.image,
                 mask_path=job.mask,
@@ -399,6 +420,8 @@ class Server:
                 primitive_snap=job.primitive_snap,
                 test_time_mirror=job.test_time_mirror,
                 pit_sealing=job.pit_sealing,
+                box=job.box,
+                strokes_path=job.strokes,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
                 keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
