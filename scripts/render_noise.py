@@ -14,16 +14,19 @@ eroded by 1 px so the anti-aliased outline is left out), it prints per folder:
 * ``p99``: the 99th percentile of ``|rgb - reference|`` over those pixels
   (the fireflies).
 
-The numbers in ``training/render/scene.py`` (Despeckle for Blenders without
-OpenImageDenoise) come from::
+The numbers in ``training/render/scene.py`` and docs/data.md (adaptive
+sampling for Blenders without OpenImageDenoise) come from, with SHAPES a
+folder of corpus meshes (``sh3d-blendswap-cc-0-stove-169``,
+``sh3d-blendswap-cc-by-coffeetable-22``, ``sh3d-blendswap-cc-0-antiquechair-101``,
+``sh3d-blendswap-cc-0-armchair-1``)::
 
     R="blender -b --factory-startup --python training/render/blender_script.py --"
     $R --shapes SHAPES --views 2 --no-progress --samples 16 --no-denoise --out n34_s16_raw
-    $R --shapes SHAPES --views 2 --no-progress --samples 16 --out n34_s16_dsp
+    $R --shapes SHAPES --views 2 --no-progress --samples 16 --out n34_final
     $R --shapes SHAPES --views 2 --no-progress --samples 512 --no-denoise --out n34_ref
     .venv/bin/genre data render --shapes SHAPES --views 2 --no-progress --samples 16 --out n50_oidn
     .venv/bin/genre data render --shapes SHAPES --views 2 --no-progress --samples 512 --no-denoise --out n50_ref
-    .venv/bin/python scripts/render_noise.py --reference n34_ref n34_s16_raw n34_s16_dsp
+    .venv/bin/python scripts/render_noise.py --reference n34_ref n34_s16_raw n34_final
     .venv/bin/python scripts/render_noise.py --reference n50_ref n50_oidn
 """
 

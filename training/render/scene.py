@@ -67,6 +67,7 @@ __all__ = [
     "ENGINES",
     "RAW_BACKGROUND",
     "NO_DENOISER_SAMPLE_FACTOR",
+    "NO_DENOISER_NOISE_THRESHOLD",
     "engine_problem",
     "RenderSettings",
     "BlenderRenderer",
@@ -84,13 +85,17 @@ _ENGINE_IDS = {"cycles": ("CYCLES",), "eevee": ("BLENDER_EEVEE", "BLENDER_EEVEE_
                "workbench": ("BLENDER_WORKBENCH",)}
 # Workbench anti-aliasing takes one of these sample counts (or none).
 _WORKBENCH_AA = (5, 8, 11, 16, 32)
-# Without OpenImageDenoise (Debian's Blender 3.4.1 has no denoiser at all), Cycles renders this many times
-# the samples asked for.  On 8 views of 4 textured corpus shapes at 128² (scripts/render_noise.py), the mean
-# |RGB - a 512-sample render| inside the object fell from 9.5 (16 samples) to 4.4 (64), its 99th
-# percentile from 45 to 19 and the speckle (|RGB - 3×3 median|) from 9.5 to 5.3; bpy 5.0.1 at 16 samples
-# with OIDN scores 5.2, 23 and 3.5 against its own reference.  Blender's Despeckle node (0.5: no change;
-# 0.03: speckle 5.9 but the error 9.7) and a 3×3 median on top of 64 samples (error 4.4 -> 4.6–4.9) did worse.
-NO_DENOISER_SAMPLE_FACTOR = 4
+# Without OpenImageDenoise (Debian's Blender 3.4.1 has no denoiser at all), Cycles samples adaptively up to
+# this many times the samples asked for (at least twice as many), stopping where the noise falls under the
+# threshold.  On 8 views of 4 textured corpus shapes at 128² (scripts/render_noise.py), the mean
+# |RGB - a 512-sample render| inside the object: 16 samples 9.5, 64 samples 4.4, 128 samples 2.9, adaptive
+# up to 256 at 0.02 2.5 (at 0.05: 4.3); its 99th percentile 45, 19, 12, 10; the speckle (|RGB - 3×3
+# median|) 9.5, 5.3, 4.3, 4.0 (the 512-sample renders' own texture: 3.3).  bpy 5.0.1 at 16 samples with
+# OIDN scores 5.2, 23 and 3.5 against its own reference.  Blender's Despeckle node (thresholds 0.5: no
+# change; 0.03: speckle 5.9 but the error 9.7) and a 3×3 median on top of 64 samples (error 4.4 -> 4.6–4.9)
+# did worse.  Cost on the shared 2-core machine: ~1 s a view more than 16 samples.
+NO_DENOISER_SAMPLE_FACTOR = 16
+NO_DENOISER_NOISE_THRESHOLD = 0.02
 # The raw depth of background pixels, for every engine (what Cycles and Workbench write).
 RAW_BACKGROUND = 1e10
 # Camera clipping.  Shapes lie within ~0.9 of the origin and the camera 2.2 from it; a near clip of 0.1
@@ -139,7 +144,7 @@ class RenderSettings:
     quality.  At 16 samples the HDRI lighting leaves strong speckle noise on
     every surface; the fast denoiser removes it for ~0.05 s/view at 128²,
     far cheaper than the samples that would do the same.  A Blender built
-    without OpenImageDenoise (Debian's 3.4.1) renders
+    without OpenImageDenoise (Debian's 3.4.1) samples adaptively up to
     :data:`NO_DENOISER_SAMPLE_FACTOR` times the samples instead and says so
     (:attr:`BlenderRenderer.notes`).
     """
@@ -177,8 +182,9 @@ class BlenderRenderer:
     :attr:`notes` lists what differs from the settings asked for (e.g. no
     denoiser in this Blender), one line each.  :attr:`denoise` is whether
     the denoiser is really on; :attr:`denoiser` says what stands for it
-    (``"oidn"``, ``"samples"``: :data:`NO_DENOISER_SAMPLE_FACTOR` times the
-    samples, or None) and :attr:`samples` is Cycles' real sample count.
+    (``"oidn"``, ``"samples"``: adaptive sampling up to
+    :data:`NO_DENOISER_SAMPLE_FACTOR` times the samples, or None) and
+    :attr:`samples` is Cycles' real (most) sample count.
 
     Blender has one scene state per process, so only the newest renderer is
     usable (:attr:`is_active`); an older one raises RuntimeError.
@@ -306,13 +312,16 @@ class BlenderRenderer:
         self.denoiser = ("oidn" if _cycles_has_oidn() else "samples") if self.settings.denoise else None
         self.denoise = self.denoiser == "oidn"
         self.samples = self.settings.samples
+        cycles.use_adaptive_sampling = False
         if self.denoiser == "samples":
             self.samples *= NO_DENOISER_SAMPLE_FACTOR
-            self.notes.append(f"this Blender's Cycles ({self.blender_version}) has no OpenImageDenoise: rendering "
-                              f"{self.samples} samples instead of {self.settings.samples} (--no-denoise: "
-                              f"{self.settings.samples}, noisy)")
+            cycles.use_adaptive_sampling = True
+            cycles.adaptive_threshold = NO_DENOISER_NOISE_THRESHOLD
+            cycles.adaptive_min_samples = 2 * self.settings.samples
+            self.notes.append(f"this Blender's Cycles ({self.blender_version}) has no OpenImageDenoise: sampling "
+                              f"adaptively up to {self.samples} samples instead of {self.settings.samples} "
+                              f"(--no-denoise: {self.settings.samples}, noisy)")
         cycles.samples = self.samples
-        cycles.use_adaptive_sampling = False
         cycles.use_denoising = self.denoiser == "oidn"
         if self.denoiser == "oidn":
             cycles.denoiser = "OPENIMAGEDENOISE"
@@ -480,8 +489,12 @@ class BlenderRenderer:
         for obj in meshes:
             slots = obj.data.materials
             if len(slots) == 0:
-                slots.append(self.default_material)
-                self.uses_default_material = True
+                colours = _colour_attribute(obj.data)
+                if colours is not None:  # what Blender 4+/5's glTF importer makes; 3.4's makes no material
+                    slots.append(self._vertex_colour_material(colours))
+                else:
+                    slots.append(self.default_material)
+                    self.uses_default_material = True
             for i, mat in enumerate(slots):
                 if mat is None:
                     slots[i] = self.default_material
@@ -496,6 +509,21 @@ class BlenderRenderer:
         self.scene.camera = self.camera
         self.shape_path = path
         return len(meshes)
+
+    def _vertex_colour_material(self, attribute: str):
+        """A material showing the colour attribute ``attribute`` (Principled BSDF: metallic 0, roughness 0.5),
+        as the glTF importer of Blender 4 and 5 makes for a mesh with vertex colours and no material."""
+        mat = self.bpy.data.materials.new("genre_vertex_colour")
+        if mat.node_tree is None:
+            mat.use_nodes = True
+        nodes = mat.node_tree.nodes
+        bsdf = next(n for n in nodes if n.type == "BSDF_PRINCIPLED")
+        bsdf.inputs["Metallic"].default_value = 0.0
+        bsdf.inputs["Roughness"].default_value = 0.5
+        node = nodes.new("ShaderNodeVertexColor")
+        node.layer_name = attribute
+        mat.node_tree.links.new(node.outputs["Color"], bsdf.inputs["Base Color"])
+        return mat
 
     def shape_bounds(self) -> np.ndarray:
         """World-space bounds (2, 3) float64 [min, max] of the loaded shape's vertices."""
@@ -683,6 +711,14 @@ def _numpy_bool_alias():
     finally:
         if added:
             np.__dict__.pop("bool", None)
+
+
+def _colour_attribute(mesh) -> str | None:
+    """The name of ``mesh``'s first colour attribute (glTF ``COLOR_0``: ``Col`` in 3.4, ``Color`` in 5.0), or None."""
+    attributes = getattr(mesh, "color_attributes", None)  # Blender 3.2+
+    if attributes is None:
+        attributes = getattr(mesh, "vertex_colors", ())
+    return attributes[0].name if len(attributes) else None
 
 
 def _set_if_present(owner, name: str, value) -> None:
