@@ -8,7 +8,8 @@ import trimesh
 from PIL import Image
 
 from genre_backend.config import CameraConfig
-from genre_backend.inference.colour import photo_texture, project, sample_bilinear, seen_vertices, zbuffer, zbuffer_reference
+from genre_backend.inference.colour import (harmonic_fill, hidden_edge_jumps, mesh_edges, photo_texture, project, sample_bilinear,
+                                           seen_vertices, zbuffer, zbuffer_reference)
 from genre_backend.inference.mesh_export import OutputError, mesh_files, write_mesh
 
 CAM = CameraConfig()
@@ -53,7 +54,7 @@ def test_seen_vertices_of_a_sphere_are_its_front_cap():
     assert not seen3[uv[:, 0] >= 64].any() and seen3[(uv[:, 0] < 60) & seen].all()
 
 
-def test_photo_texture_uvs_are_projections_and_hidden_vertices_borrow_the_nearest_seen():
+def test_photo_texture_uvs_are_projections_and_hidden_uvs_are_harmonic():
     v, f = _sphere(subdivisions=3)
     image = np.zeros((64, 64, 3), np.uint8)
     tex = photo_texture(v, f, CAM, np.ones((128, 128), bool), image, tolerance=0.02)
@@ -62,12 +63,122 @@ def test_photo_texture_uvs_are_projections_and_hidden_vertices_borrow_the_neares
     assert np.allclose(tex.uv[tex.seen], expect[tex.seen], atol=1e-6)
     hidden = np.flatnonzero(~tex.seen)
     assert len(hidden) > 0
-    seen_idx = np.flatnonzero(tex.seen)
-    for i in hidden[:: max(1, len(hidden) // 25)]:
-        j = seen_idx[np.argmin(np.linalg.norm(v[seen_idx] - v[i], axis=1))]
-        assert np.allclose(tex.uv[i], tex.uv[j])
+    # each hidden vertex's UV is the mean of its neighbours' (a full mask: nothing is moved back inside it)
+    e = mesh_edges(f)
+    total = np.zeros((len(v), 2))
+    count = np.zeros(len(v))
+    for i, j in ((0, 1), (1, 0)):
+        np.add.at(total, e[:, i], tex.uv[e[:, j]].astype(np.float64))
+        np.add.at(count, e[:, i], 1)
+    assert np.abs(tex.uv[hidden] - total[hidden] / count[hidden, None]).max() < 1e-5
     with pytest.raises(ValueError, match="uint8"):
         photo_texture(v, f, CAM, np.ones((128, 128), bool), image.astype(np.float32), tolerance=0.02)
+
+
+def test_harmonic_fill_reproduces_a_linear_field_and_anchors_loose_parts():
+    """On a regular triangulated grid the mean of a vertex's 6 neighbours of a linear function is its value, so
+    the fill from the border alone is the function itself; a part with no known vertex takes the nearest known."""
+    n = 12
+    yy, xx = np.mgrid[0:n, 0:n]
+    verts = np.stack([xx.ravel(), yy.ravel(), np.zeros(n * n)], axis=1).astype(np.float64)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    truth = np.stack([0.3 * verts[:, 0] - 0.7 * verts[:, 1] + 2.0, 5.0 + verts[:, 1]], axis=1)
+    border = (xx == 0) | (yy == 0) | (xx == n - 1) | (yy == n - 1)
+    start = np.where(border.ravel()[:, None], truth, 0.0)
+    assert np.abs(harmonic_fill(start, border.ravel(), faces) - truth).max() < 1e-9
+    # a second, loose triangle far away: the value of the known vertex nearest to it
+    verts2 = np.concatenate([verts, [[30.0, 0.0, 0.0], [31.0, 0.0, 0.0], [30.0, 1.0, 0.0]]])
+    faces2 = np.concatenate([faces, [[n * n, n * n + 1, n * n + 2]]])
+    start2 = np.concatenate([start, np.full((3, 2), -9.0)])
+    known2 = np.concatenate([border.ravel(), np.zeros(3, bool)])
+    out = harmonic_fill(start2, known2, faces2, verts2)
+    assert np.array_equal(out[n * n:], np.repeat(truth[idx[0, n - 1]][None], 3, axis=0))
+
+
+def _two_colour_photo(side: int, mask: np.ndarray):
+    """A (side, side, 3) photo of the mask (S, S) bool: red left of the centre, blue right, green backdrop,
+    drawn at the photo's resolution from the mask scaled by nearest pixel (so the outline blends nothing)."""
+    s = mask.shape[0]
+    i = np.minimum(((np.arange(side) + 0.5) * s / side).astype(int), s - 1)
+    big = mask[np.ix_(i, i)]
+    photo = np.zeros((side, side, 3), np.uint8)
+    photo[...] = GREEN
+    left = np.arange(side)[None, :] < side // 2
+    photo[big & left] = RED
+    photo[big & ~left] = BLUE
+    return photo
+
+
+RED, BLUE, GREEN = (200, 30, 30), (30, 30, 200), (0, 255, 0)
+
+
+def _sphere_mask(size=128, radius=0.35, shrink_px=0.0):
+    from genre_backend.geometry.analytic import sphere_silhouette_radius_px
+
+    r = sphere_silhouette_radius_px(CAM, size, radius) - shrink_px
+    yy, xx = np.mgrid[0:size, 0:size]
+    return np.hypot(xx + 0.5 - size / 2, yy + 0.5 - size / 2) < r
+
+
+def test_hidden_side_of_a_sphere_never_takes_the_backdrop_and_mirrors_the_photo():
+    """A sphere photographed half red, half blue before a green backdrop, with a mask 1.5 px looser than the
+    sphere (as automatic masks often are): the seen vertices on the outline show the backdrop.  Each hidden
+    vertex used to borrow the nearest seen vertex's UV, and 83 % of them came out green (only 15 % of the
+    back's left side red).
+    Now no hidden vertex has any green, the left of the back is red and its right blue (the photo
+    mirrored through the outline), and the texture outside the mask is painted over."""
+    v, f = _sphere(subdivisions=4)
+    photo = _two_colour_photo(256, _sphere_mask())
+    mask = _sphere_mask(shrink_px=-1.5)
+    tex = photo_texture(v, f, CAM, mask, photo, tolerance=0.02)
+    colours = tex.vertex_colours()[:, :3].astype(int)
+    hidden = ~tex.seen
+    assert hidden.sum() > 1000
+    assert colours[hidden, 1].max() <= 30  # red, blue and their blends all have green 30; the backdrop 255
+    outside = ~np.repeat(np.repeat(mask, 2, axis=0), 2, axis=1)
+    assert (tex.image[outside][:, 1] <= 30).all()  # no backdrop outside the mask
+    left, right = hidden & (v[:, 0] < -0.05), hidden & (v[:, 0] > 0.05)
+    assert (colours[left] == RED).all(axis=1).mean() > 0.95 and (colours[right] == BLUE).all(axis=1).mean() > 0.95
+
+
+def test_hidden_colours_of_a_sphere_change_smoothly():
+    """A photo whose colour is linear across it (red rising left to right, blue falling): the hidden
+    colours vary by at most 5/255 between neighbours (measured: at most 3.3, mean 0.98; each hidden vertex
+    borrowing the nearest seen vertex's UV, as before: up to 47, mean 1.9, 99th percentile 31)."""
+    v, f = _sphere(subdivisions=4)
+    mask = _sphere_mask()
+    side = 256
+    ramp = np.linspace(0, 255, side)
+    photo = np.zeros((side, side, 3), np.uint8)
+    photo[..., 0] = np.rint(ramp)[None, :]
+    photo[..., 2] = np.rint(255 - ramp)[None, :]
+    photo[..., 1] = 90
+    tex = photo_texture(v, f, CAM, mask, photo, tolerance=0.02)
+    jumps = hidden_edge_jumps(tex, f)
+    assert len(jumps) > 2000
+    assert jumps.max() <= 5.0, jumps.max()
+    assert jumps.mean() <= 1.2, jumps.mean()
+
+
+def test_a_concave_outline_keeps_hidden_uvs_inside_the_shrunk_mask():
+    """The mask of a sphere with a notch cut into it (concave): no hidden UV lands outside the mask shrunk by
+    2 px, and every texture pixel outside the mask takes an object colour."""
+    v, f = _sphere(subdivisions=4)
+    mask = _sphere_mask()
+    mask[40:88, 64:] = False  # a notch from the right into the centre
+    photo = _two_colour_photo(256, mask)
+    tex = photo_texture(v, f, CAM, mask, photo, tolerance=0.02)
+    from scipy.ndimage import distance_transform_edt
+
+    shrunk = distance_transform_edt(mask) > 2.0  # (the mask does not touch the border)
+    uv = tex.uv[~tex.seen].astype(np.float64)
+    cols = np.floor(uv[:, 0] * 128).astype(int)
+    rows = np.floor((1 - uv[:, 1]) * 128).astype(int)
+    assert shrunk[rows, cols].all()
+    assert (tex.image[..., 1] <= 30).all()
+    assert tex.vertex_colours()[~tex.seen, 1].max() <= 30
 
 
 def test_sample_bilinear_against_pixel_centres():

@@ -254,15 +254,12 @@ class Reconstruction:
         Needs the decoded photo (``photo``); computed once and kept.
         """
         if self._texture is None:
-            from scipy.ndimage import binary_erosion
-
             if self.photo is None:
                 raise ValueError("this reconstruction keeps no photo to colour the mesh from")
             x0, y0, x1, y1 = (v * self.photo.scale for v in self.crop_box)  # original → decoded pixels
             side = int(np.clip(round(x1 - x0), self.config.geometry.image_size, MAX_TEXTURE_SIDE))
             image = crop_resize(composite(self.photo), (x0, y0, x1, y1), side, self.fill)
-            # one pixel in from the mask's edge, so no vertex takes the background's colour
-            mask = binary_erosion(self.intermediates["mask"].numpy().astype(bool), iterations=1)
+            mask = self.intermediates["mask"].numpy().astype(bool)  # (photo_texture shrinks it)
             tolerance = 1.5 / self.config.geometry.voxel_size  # a voxel and a half (the mesh is cut from voxels)
             self._texture = photo_texture(self.vertices, self.faces, self.config.camera, mask, image, tolerance)
         return self._texture

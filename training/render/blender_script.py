@@ -15,6 +15,13 @@ the repository's ``.venv``, made by ``scripts/setup.sh``) when its Python
 version is Blender's; whatever is still missing is named in one line and the
 exit code is 2.  The exit code is otherwise ``genre data render``'s.
 
+The environment's numpy (1.26) is then the one Blender's own add-ons use as
+well: Debian's Blender 3.4.1 brings no numpy of its own (it would use the
+system's ``python3-numpy``, 1.24, not installed here), and both lack the
+``np.bool`` that 3.4's glTF importer calls; :mod:`training.render.scene`
+lends it for each import (numpy 2's alias) rather than keeping torch's
+numpy off the path.
+
 Importing this module does nothing; Blender runs it as ``__main__``.
 """
 

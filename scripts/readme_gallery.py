@@ -1,0 +1,83 @@
+#!/usr/bin/env python3
+"""The README's picture grid: real photos and their textured meshes from the front, the side and behind.
+
+    .venv/bin/python scripts/readme_gallery.py [--out docs/gallery.png] [--weights default] [--tile 150]
+
+One row per photo of ``examples/photos`` (hand-drawn masks, as
+``genre reconstruct PHOTO --mask PHOTO_mask.png --texture``): the photo, then
+the mesh with the photo's colour (:meth:`Reconstruction.texture`) rendered
+by :func:`genre_backend.inference.blender.render_views` (Workbench, the
+``--preview`` sheet's renderer) from the photo's viewpoint, from the right
+(90°) and from behind, at one scale per row.  Written as a 256-colour PNG
+(kept under 400 KB); the sizes and timings are printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+# (photo, caption): round and boxy objects, then the weak cases (flat or thin objects come out thick).
+ROWS = [("apple.jpg", "apple"), ("bus.jpg", "bus"), ("quokka.jpg", "quokka"),
+        ("lighter.png", "lighter (flat)"), ("butterfly.jpg", "butterfly (thin)")]
+COLUMNS = ("photo", "mesh: photo's view", "from the right", "from behind")
+LABEL_H = 18
+
+
+def _fit(image: np.ndarray, tile: int) -> Image.Image:
+    """``image`` (H, W, 3) uint8 scaled to fit a white (tile, tile) square, centred."""
+    im = Image.fromarray(image)
+    im.thumbnail((tile, tile), Image.LANCZOS)
+    out = Image.new("RGB", (tile, tile), "white")
+    out.paste(im, ((tile - im.width) // 2, (tile - im.height) // 2))
+    return out
+
+
+def main() -> int:
+    from genre_backend.inference.blender import render_views
+    from genre_backend.inference.reconstruct import Reconstructor
+    from genre_backend.io import resolve_weights
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", type=Path, default=REPO / "docs" / "gallery.png")
+    p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")
+    p.add_argument("--tile", type=int, default=150, help="pixels a side of each picture")
+    args = p.parse_args()
+    tile = args.tile
+    rec = Reconstructor(args.weights)
+    sheet = Image.new("RGB", (tile * len(COLUMNS), LABEL_H + len(ROWS) * (tile + LABEL_H)), "white")
+    draw = ImageDraw.Draw(sheet)
+    for j, name in enumerate(COLUMNS):
+        draw.text((j * tile + 4, 3), name, fill="black")
+    for i, (photo, caption) in enumerate(ROWS):
+        t0 = time.perf_counter()
+        path = REPO / "examples" / "photos" / photo
+        mask = path.with_name(path.stem + "_mask.png")
+        result = rec.run(path, mask_path=mask)
+        tex = result.texture()
+        views = render_views(result.vertices, result.faces, tile * 2, camera=result.config.camera,
+                             uv=tex.uv, texture=tex.image, views=("front", "side", "back"))
+        with Image.open(path) as im:
+            pictures = [_fit(np.asarray(im.convert("RGB")), tile)]
+        pictures += [Image.fromarray(v).resize((tile, tile), Image.LANCZOS) for v in views]
+        y = LABEL_H + i * (tile + LABEL_H)
+        draw.text((4, y + 3), f"{caption}: {len(result.faces):,} faces", fill="black")
+        for j, pic in enumerate(pictures):
+            sheet.paste(pic, (j * tile, y + LABEL_H))
+        print(f"{photo:<14} {len(result.faces):>7,} faces  {time.perf_counter() - t0:5.1f} s", flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    sheet.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(args.out, optimize=True)
+    print(f"wrote {args.out} ({sheet.width}×{sheet.height}, {args.out.stat().st_size / 1024:.0f} KB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
