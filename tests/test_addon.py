@@ -223,11 +223,11 @@ def scenario_reconstruct(args: dict) -> dict:
     settings.photo_path = args["photo"]
     settings.smoothing = 1
     settings.target_faces = 10
-    out = {"rows_before": len(settings.options)}  # no rows until the backend has said what it takes
+    early = {"rows_before": len(settings.options)}  # no rows until the backend has said what it takes
     # Check backend brings the rows: one per option of the backend's record but the add-on's own
     assert sorted(bpy.ops.genre.check_backend()) == ["FINISHED"]
-    out["rows"] = [(r.name, r.kind, r.label, bool(r.help), r.override, r.weights_value) for r in settings.options]
-    out["ready_options"] = ops.manager.client.ready["options"]
+    early["rows"] = [(r.name, r.kind, r.label, bool(r.help), r.override, r.weights_value) for r in settings.options]
+    early["ready_options"] = ops.manager.client.ready["options"]
     values = {"threshold": 0.2, "hole_closing": 7, "pit_sealing": 5, "silhouette_carve": True, "primitive_snap": 0.3,
               "test_time_mirror": True, "visible_fusion": True, "all_parts": True}
     for row in settings.options:  # values that are not the weights': an unticked row must come back to the weights' own
@@ -237,7 +237,7 @@ def scenario_reconstruct(args: dict) -> dict:
         _override(settings, "threshold", args["threshold"])
     settings.quality = "FAST"
     status = bpy.context.window_manager.genre_status
-    out = {}
+    out = dict(early)
     snap = _Snapshot(bpy)
     t0 = time.monotonic()
     job, outcome, states = _drive(ops, settings, prefs, status, scene)
@@ -761,7 +761,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
 
     assert r["rows_before"] == 0
     record = [o for o in OPTIONS if o.name not in ("format", "up", "texture")]
-    assert [row[:4] for row in r["rows"]] == [(o.name, o.kind, o.label, True) for o in record]
+    assert [tuple(row[:4]) for row in r["rows"]] == [(o.name, o.kind, o.label, True) for o in record]
     assert all(override is False for *_, override, _ in r["rows"])
     assert {row[0]: json.loads(row[5]) for row in r["rows"]} == {
         o.name: getattr(geometry, o.weights) if o.weights else o.default for o in record}  # the model's own, shown beside
@@ -818,7 +818,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert max(r["progress_seen"]) > 0
     # the operator reuses the running backend
     assert r["operator"] == ["FINISHED"] and r["same_backend"]
-    assert len(r["objects_after_second"]) == 3
+    assert len(r["objects_after_second"]) == 5  # the first mesh and camera, the overridden one and camera, the operator's
     assert r["check"] == ["FINISHED"]
     assert "preset tiny" in r["backend_info"] and "device cpu" in r["backend_info"] and f"threshold {level}" in r["backend_info"]
     assert r["backend_exit_after_disable"] is not None
