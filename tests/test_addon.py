@@ -62,6 +62,36 @@ def _registration_state(bpy, module: str) -> dict:
     }
 
 
+class _Layout:
+    """A stand-in for bpy's UILayout (which needs a window region): records each prop, operator and label drawn."""
+
+    def __init__(self, calls=None):
+        self.calls = [] if calls is None else calls
+        self.enabled = True
+        self.scale_y = 1.0
+
+    def _sub(self, *args, **kwargs):
+        return _Layout(self.calls)
+
+    row = column = box = split = _sub
+
+    def prop(self, data, name, **kwargs):
+        self.calls.append(["prop", getattr(data, "name", "") if name != "quality" else "", name, kwargs.get("text")])
+
+    def operator(self, idname, **kwargs):
+        self.calls.append(["operator", idname, kwargs.get("text")])
+        return type("Op", (), {})()
+
+    def label(self, **kwargs):
+        self.calls.append(["label", kwargs.get("text")])
+
+    def separator(self, **kwargs):
+        pass
+
+    def template_ID(self, *args, **kwargs):
+        self.calls.append(["template_ID"])
+
+
 def scenario_install(args: dict) -> dict:
     import bpy
 
@@ -81,6 +111,23 @@ def scenario_install(args: dict) -> dict:
     # the photo's row shows the file's name, its tooltip the whole path
     settings.photo_path = "/a/long/folder/name/that/a/sidebar/cuts/off/chair.jpg"
     out["photo_tooltip"] = mod.ops.GENRE_OT_choose_file.description(bpy.context, type("P", (), {"target": "PHOTO"})())
+    settings.photo_path = ""
+    # the panels drawn into a layout that records what they show
+    ready = {"options": [
+        {"name": "threshold", "type": "float", "min": 0, "max": 1, "min_open": True, "max_open": True, "choices": None,
+         "default": 0.45, "label": "Threshold", "help": "isosurface level"},
+        {"name": "test_time_mirror", "type": "bool", "min": None, "max": None, "choices": None, "default": True,
+         "label": "Mirror Average", "help": "mirror"},
+        {"name": "texture", "type": "bool", "default": False, "label": "Colour from Photo", "help": "the add-on's own"}]}
+    mod.ops.sync_options(settings, ready)
+    settings.options["threshold"].override = True
+    drawn = _Layout()
+    mod.ui.GENRE_PT_advanced.draw(type("P", (), {"layout": drawn})(), bpy.context)
+    out["advanced_drawn"] = drawn.calls
+    drawn = _Layout()
+    settings.photo_path = "/a/long/folder/chair.jpg"
+    mod.ui.GENRE_PT_panel.draw(type("P", (), {"layout": drawn})(), bpy.context)
+    out["main_drawn"] = drawn.calls
     settings.photo_path = ""
     prefs = bpy.context.preferences.addons[module].preferences
     out["prefs_idname"] = type(prefs).bl_idname
@@ -683,6 +730,18 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
     assert r["advanced"] == ["GENRE_PT_panel", ["DEFAULT_CLOSED"], "GenRe"]
     assert r["quality"] == ["BEST", ["FAST", "BEST"]]
     assert r["photo_tooltip"].startswith("/a/long/folder/name/that/a/sidebar/cuts/off/chair.jpg\n")
+    # Advanced: a row per schema option but the add-on's own (texture): its label on one checkbox, the model's value
+    # beside it (the value field too when ticked), a help button; then the add-on's own smoothing and face target
+    assert r["advanced_drawn"] == [
+        ["prop", "threshold", "override", "Threshold"], ["prop", "threshold", "float_value", ""], ["label", "model: 0.45"],
+        ["operator", "genre.option_help", ""],
+        ["prop", "test_time_mirror", "override", "Mirror Average"], ["label", "On (model)"], ["operator", "genre.option_help", ""],
+        ["prop", "", "smoothing", None], ["prop", "", "target_faces", None]]
+    # the main panel: source, the photo's name (not its cut-off path), mask, Quality, colour, camera, Reconstruct
+    assert [c for c in r["main_drawn"] if c[0] != "label"] == [
+        ["prop", "", "source", None], ["operator", "genre.choose_file", "chair.jpg"], ["operator", "genre.choose_file", "Mask (optional)…"],
+        ["prop", "", "quality", None], ["prop", "", "colour_from_photo", None], ["prop", "", "add_camera", None],
+        ["operator", "genre.reconstruct", None]]
     assert r["model_default"] == "default"
     assert r["model_items"] == [["default", "Product"], ["protocol", "Research protocol"], ["custom", "Custom file"]]
     assert r["argv"] == {"default": ["--weights", "default"], "protocol": ["--weights", "protocol"],
