@@ -145,3 +145,32 @@ def test_the_steps_run_in_their_one_order():
     assert torch.equal(off.shape_grid(prob, mask, depth, cam, g), prob)
     v, f, fit = off.snap_mesh("v", "f", depth, cam)  # snapping off: the mesh as it is, untouched
     assert (v, f, fit) == ("v", "f", None)
+
+
+def test_min_part_share_drops_the_pieces_smaller_than_it():
+    """The option added after the record (one field in options.py): its flag, its key, its row and its effect."""
+    from genre_backend.geometry.cleanup import DEFAULT_KEEP_FRACTION
+
+    spec = BY_NAME["min_part_share"]
+    assert spec.default == DEFAULT_KEEP_FRACTION and spec.expected() == "a number in [0, 1]" and spec.weights is None
+    assert MeshOptions().resolved(DISTANCE).keep_fraction == DEFAULT_KEEP_FRACTION
+    assert MeshOptions(min_part_share=0.5).resolved(DISTANCE).keep_fraction == 0.5
+    assert MeshOptions(min_part_share=0.5, all_parts=True).resolved(DISTANCE).keep_fraction == 0.0
+    with pytest.raises(OptionError, match=r"^min_part_share: expected a number in \[0, 1\], got 1.5$"):
+        MeshOptions(min_part_share=1.5)
+    assert from_arguments(_parser().parse_args(["--min-part-share", "0.2"])).min_part_share == 0.2
+    assert parse_request_options({"min_part_share": 0}, str).min_part_share == 0.0
+    assert {e["name"]: e["default"] for e in schema(DISTANCE)["options"]}["min_part_share"] == DEFAULT_KEEP_FRACTION
+    # two balls, the small one 1/8 of the large one's area: kept at 0.1, dropped at 0.2
+    n = 32
+    grid = torch.zeros((n, n, n))
+    idx = torch.arange(n, dtype=torch.float32)
+    x, y, z = torch.meshgrid(idx, idx, idx, indexing="ij")
+    grid[((x - 10) ** 2 + (y - 16) ** 2 + (z - 16) ** 2) <= 36] = 1.0
+    grid[((x - 24) ** 2 + (y - 16) ** 2 + (z - 16) ** 2) <= 4.4] = 1.0
+    shell = GeometryConfig(target="shell", voxel_size=n)
+    parts = []
+    for share in (0.1, 0.2):
+        _, v, f, report = MeshOptions(threshold=0.5, min_part_share=share).resolved(shell).mesh(grid, shell)
+        parts.append(report.parts)
+    assert parts == [2, 1]

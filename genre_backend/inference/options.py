@@ -175,7 +175,12 @@ class MeshOptions:
         help="also run the photo's mirror image and average the two (about twice the networks' time)")
     all_parts: bool | None = _option(
         kind="bool", default=False, label="Keep All Parts",
-        help="keep every separate piece of the mesh (off: pieces smaller than 5% of the largest's area are dropped)")
+        help="keep every separate piece of the mesh (off: pieces smaller than Smallest Part are dropped)")
+    # how small a separate piece may be and stay (geometry.cleanup.clean_mesh's keep_fraction, whose default it repeats)
+    min_part_share: float | None = _option(
+        kind="float", lo=0.0, hi=1.0, default=0.05, metavar="SHARE", label="Smallest Part",
+        help="drop separate pieces of the mesh smaller in area than this share of the largest (0 keeps every piece; "
+             "all_parts overrides it)")
     texture: bool | None = _option(
         kind="bool", default=False, label="Colour from Photo",
         help="colour the mesh from the photo (OBJ: UVs, an .mtl and NAME_texture.png; glb: embedded; ply: vertex colours)")
@@ -226,10 +231,8 @@ class MeshOptions:
 
     @property
     def keep_fraction(self) -> float:
-        """The share of the largest part's area below which a part is dropped (0 with ``all_parts``)."""
-        from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
-
-        return 0.0 if self.all_parts else DEFAULT_KEEP_FRACTION
+        """The share of the largest part's area below which a part is dropped: ``min_part_share`` (0 with ``all_parts``)."""
+        return 0.0 if self.all_parts else self.min_part_share
 
     # ---- the steps after the networks, in their one order --------------------------------------------------
     def shape_grid(self, prob: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor, camera, geometry) -> torch.Tensor:
