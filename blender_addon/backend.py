@@ -360,7 +360,8 @@ class Request:
     After each :meth:`tick`, ``state`` is one of ``starting``, ``running``,
     ``cancelling`` (still going) or ``done``, ``failed``, ``cancelled``
     (finished); ``stage``/``fraction`` describe the progress, ``result`` is
-    the answering event and ``error`` the one-line reason of a failure.
+    the answering event, ``ready`` the backend's ``ready`` event (with the mesh options' schema) once seen, and
+    ``error`` the one-line reason of a failure.
     """
 
     get_client: Callable[[], BackendClient]
@@ -375,6 +376,7 @@ class Request:
     stage: str = "starting"
     fraction: float = 0.0
     result: dict[str, Any] | None = None
+    ready: dict[str, Any] | None = None  # the backend's ready event (its option schema, docs/protocol.md), once seen
     error: str = ""
     started_at: float = 0.0
     finished_at: float = 0.0
@@ -429,7 +431,10 @@ class Request:
         for event in client.poll():
             self._on_event(now, event)
             if self.finished:
-                return
+                break
+        self.ready = client.ready if client.ready is not None else self.ready
+        if self.finished:
+            return
         if self._sent_at is None:
             if client.ready is not None:
                 if self._cancel_requested:

@@ -20,6 +20,7 @@ from mathutils import Matrix, Vector
 
 from .annotations import find_annotation, guidance_from_annotation
 from .backend import STAGE_LABELS, BackendError, BackendManager, Request, private_temp_root
+from .schema import QUALITIES
 from .geometry import VIEW_TO_BLENDER_FRONT, MeshFileError, camera_setup, read_obj, to_blender_frame, upright_pixels
 
 __all__ = ["UserError", "JobSpec", "JobLimits", "Job", "prepare_job", "work_root", "COLLECTION_NAME", "BackendError"]
@@ -41,17 +42,12 @@ class JobSpec:
     mask_path: str = ""
     strokes_path: str = ""  # strokes image made from the annotation drawn over the photo (annotations.py)
     box: tuple[float, float, float, float] | None = None  # the annotation's Box layer, the photo's pixels
-    threshold: float | None = None
-    hole_closing: int | None = None
-    pit_sealing: int | None = None  # None: the weights' own pit sealing
-    silhouette_carve: bool | None = None
-    test_time_mirror: bool | None = None  # None: the weights' own mirror averaging
+    quality: str = "best"  # the backend's named set of options (schema.QUALITIES)
+    options: dict[str, Any] = field(default_factory=dict)  # the Advanced rows ticked: option name → value
     smoothing: int = 0
     target_faces: int = 0
     add_camera: bool = True
     colour_from_photo: bool = True
-    keep_all_parts: bool = False
-    primitive_snap: float | None = None  # None: the weights' own regular-shape snapping
     photo_image: str = ""  # name of an image datablock showing the photo (when chosen in Blender)
     photo_file: str = ""  # else: the photo's file, loaded as the camera's background when needed
 
@@ -60,30 +56,41 @@ class JobSpec:
         return os.path.join(self.work_dir, "mesh.obj")
 
     def request_payload(self) -> dict[str, Any]:
-        payload: dict[str, Any] = {"image": self.image_path, "output": self.output_path, "options": {"format": "obj"}}
+        options = {**self.options, "quality": self.quality, "format": "obj"}
+        if self.colour_from_photo:
+            options["texture"] = True
+        payload: dict[str, Any] = {"image": self.image_path, "output": self.output_path, "options": options}
         if self.mask_path:
             payload["mask"] = self.mask_path
         if self.strokes_path:
             payload["strokes"] = self.strokes_path
         if self.box is not None:
             payload["box"] = [float(v) for v in self.box]
-        if self.threshold is not None:
-            payload["options"]["threshold"] = float(self.threshold)
-        if self.hole_closing is not None:
-            payload["options"]["hole_closing"] = int(self.hole_closing)
-        if self.pit_sealing is not None:
-            payload["options"]["pit_sealing"] = int(self.pit_sealing)
-        if self.silhouette_carve is not None:
-            payload["options"]["silhouette_carve"] = bool(self.silhouette_carve)
-        if self.test_time_mirror is not None:
-            payload["options"]["test_time_mirror"] = bool(self.test_time_mirror)
-        if self.colour_from_photo:
-            payload["options"]["texture"] = True
-        if self.keep_all_parts:
-            payload["options"]["all_parts"] = True
-        if self.primitive_snap is not None:
-            payload["options"]["primitive_snap"] = float(self.primitive_snap)
         return payload
+
+
+def row_overrides(rows) -> dict[str, Any]:
+    """The Advanced rows that are ticked, as request options (name → value); :class:`UserError` for a value out of range.
+
+    ``rows``: the scene's ``genre.options`` items (:class:`~.props.GENRE_PG_option`) or anything with their attributes.
+    """
+    import json
+
+    from .schema import check_value
+
+    out = {}
+    for row in rows:
+        if not row.override:
+            continue
+        value = {"float": lambda: round(float(row.float_value), 6), "int": lambda: int(row.int_value), "bool": lambda: bool(row.bool_value),
+                 "choice": lambda: str(row.choice_value)}.get(row.kind, lambda: None)()
+        entry = {"type": row.kind, "label": row.label, "name": row.name, "min": row.lo, "max": row.hi,
+                 "min_open": row.lo_open, "max_open": row.hi_open, "choices": json.loads(row.choices or "null")}
+        problem = check_value(entry, value)
+        if problem:
+            raise UserError(problem)
+        out[row.name] = value
+    return out
 
 
 def work_root(package: str) -> str:
@@ -171,6 +178,7 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     mask = _abspath(settings.mask_path)
     if mask:
         _check_file(mask, "mask")
+    overrides = row_overrides(getattr(settings, "options", ()))  # (before any folder is made)
     work_dir = ""
     try:
         if settings.source == "IMAGE":
@@ -203,17 +211,12 @@ def prepare_job(settings, work_base: str) -> JobSpec:
         except BaseException:
             shutil.rmtree(work_dir, ignore_errors=True)
             raise
-    spec.threshold = float(settings.threshold) if settings.use_threshold else None
-    spec.hole_closing = int(settings.hole_closing) if getattr(settings, "use_hole_closing", False) else None
-    spec.pit_sealing = int(settings.pit_sealing) if getattr(settings, "use_pit_sealing", False) else None
-    spec.silhouette_carve = bool(settings.silhouette_carve) if getattr(settings, "use_silhouette_carve", False) else None
-    spec.test_time_mirror = bool(settings.test_time_mirror) if getattr(settings, "use_test_time_mirror", False) else None
+    spec.quality = next((name for ident, _, _, name in QUALITIES if ident == getattr(settings, "quality", "BEST")), "best")
+    spec.options = overrides
     spec.smoothing = int(settings.smoothing)
     spec.target_faces = int(settings.target_faces)
     spec.add_camera = bool(settings.add_camera)
     spec.colour_from_photo = bool(getattr(settings, "colour_from_photo", False))
-    spec.keep_all_parts = bool(getattr(settings, "keep_all_parts", False))
-    spec.primitive_snap = float(settings.primitive_snap) if getattr(settings, "use_primitive_snap", False) else None
     return spec
 
 

@@ -12,6 +12,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
+from . import schema
 from .backend import BackendError, BackendManager, Request, build_command, weights_argument
 from .jobs import Job, JobLimits, UserError, prepare_job, work_root
 from .props import ADDON_PACKAGE, get_preferences
@@ -71,6 +72,7 @@ def advance(job: Job, scene, status, cursor_location, now: float | None = None):
     """
     try:
         job.tick(now)
+        sync_options(getattr(scene, "genre", None), job.request.ready)
         status.progress = job.fraction
         status.stage = job.stage_label
         if not job.finished:
@@ -79,7 +81,7 @@ def advance(job: Job, scene, status, cursor_location, now: float | None = None):
             try:
                 job.apply(scene, cursor_location)
                 outcome = ("INFO", job.result_line())
-                _follow_threshold(scene, job.request.result or {})
+                follow_result(getattr(scene, "genre", None), job.request.result or {})
             except UserError as exc:
                 outcome = ("ERROR", f"GenRe: {exc}")
         elif job.state == "cancelled":
@@ -93,31 +95,62 @@ def advance(job: Job, scene, status, cursor_location, now: float | None = None):
     return outcome
 
 
-def _follow_threshold(scene, result: dict) -> None:
-    """Without an override, the Threshold field shows the level the weights used, so ticking
-    Custom Threshold starts from the shipped mesh rather than from an arbitrary 0.5."""
-    settings = getattr(scene, "genre", None)
-    level = result.get("threshold")
-    if settings is not None and not settings.use_threshold and isinstance(level, (int, float)) and 0.0 < level < 1.0:
-        settings.threshold = float(level)
-    sealing = result.get("hole_closing")  # likewise the hole sealing
-    if (settings is not None and not getattr(settings, "use_hole_closing", True) and isinstance(sealing, int)
-            and not isinstance(sealing, bool) and 0 <= sealing <= 8):
-        settings.hole_closing = sealing
-    pits = result.get("pit_sealing")  # and the pit sealing
-    if (settings is not None and not getattr(settings, "use_pit_sealing", True) and isinstance(pits, int)
-            and not isinstance(pits, bool) and 0 <= pits <= 8):
-        settings.pit_sealing = pits
-    snap = result.get("primitive_snap")  # and the regular-shape snapping
-    if (settings is not None and not getattr(settings, "use_primitive_snap", True) and isinstance(snap, (int, float))
-            and not isinstance(snap, bool) and 0.0 <= snap <= 0.5):
-        settings.primitive_snap = float(snap)
-    carve = result.get("silhouette_carve")  # and the outline trim
-    if settings is not None and not getattr(settings, "use_silhouette_carve", True) and isinstance(carve, bool):
-        settings.silhouette_carve = carve
-    mirror = result.get("test_time_mirror")  # and the mirror averaging
-    if settings is not None and not getattr(settings, "use_test_time_mirror", True) and isinstance(mirror, bool):
-        settings.test_time_mirror = mirror
+def _set_value(row, value) -> None:
+    """Put ``value`` (of the row's kind) into the row's value field."""
+    if row.kind == "float" and isinstance(value, (int, float)) and not isinstance(value, bool):
+        row.float_value = float(value)
+    elif row.kind == "int" and isinstance(value, int) and not isinstance(value, bool):
+        row.int_value = value
+    elif row.kind == "bool" and isinstance(value, bool):
+        row.bool_value = value
+    elif row.kind == "choice" and isinstance(value, str):
+        row.choice_value = value
+
+
+_synced: dict = {}
+
+
+def sync_options(settings, event) -> None:
+    """Make the Advanced rows the backend's schema (``event``: its ``ready`` or ``version`` event): a row per option
+    (:func:`.schema.rows`), in its order, with its label, help, range and the weights' value; a row kept from before
+    keeps its tick and, when ticked, its value; an unticked one shows the weights' value."""
+    entries = schema.rows(event)
+    if settings is None or not entries:
+        return
+    key = (id(event), settings.as_pointer(), len(settings.options))
+    if _synced.get("key") == key:
+        return  # (this event is already in these rows: nothing written on every tick)
+    _synced["key"] = key
+    rows = settings.options
+    wanted = [e["name"] for e in entries]
+    for i in reversed(range(len(rows))):
+        if rows[i].name not in wanted:
+            rows.remove(i)
+    for index, e in enumerate(entries):
+        row = rows.get(e["name"])
+        if row is None:
+            row = rows.add()
+            row.name = e["name"]
+        row.kind, row.label, row.help = e["type"], str(e.get("label") or e["name"]), str(e.get("help") or "")
+        row.lo, row.hi = float(e.get("min") or 0.0), float(e.get("max") or 0.0)
+        row.lo_open, row.hi_open = bool(e.get("min_open")), bool(e.get("max_open"))
+        row.choices = schema.dumps(e.get("choices"))
+        row.weights_value = schema.dumps(e.get("default"))
+        if not row.override:
+            _set_value(row, e.get("default"))  # so that ticking starts from the model's own setting
+        current = [r.name for r in rows].index(e["name"])
+        if current != index:
+            rows.move(current, index)
+
+
+def follow_result(settings, result: dict) -> None:
+    """An unticked row shows the value the backend used (the result's echo of the option), so that ticking it starts
+    from the shipped mesh rather than from an arbitrary value."""
+    if settings is None:
+        return
+    for row in settings.options:
+        if not row.override and row.name in result:
+            _set_value(row, result[row.name])
 
 
 def finish_job(job: Job, status, outcome) -> None:
@@ -153,10 +186,13 @@ def start_check(prefs, status, *, backend: BackendManager | None = None) -> Requ
     return req
 
 
-def advance_check(req: Request, status, now: float | None = None):
-    """One tick of Check backend; returns None while waiting, else ``(level, message)`` (also shown in the preferences)."""
+def advance_check(req: Request, status, now: float | None = None, scene=None):
+    """One tick of Check backend; returns None while waiting, else ``(level, message)`` (also shown in the preferences).
+
+    With ``scene``, the Advanced rows are made from the backend's option schema as soon as it is ready."""
     try:
         req.tick(now)
+        sync_options(getattr(scene, "genre", None), req.ready)
     except Exception as exc:  # never leave the preferences stuck in "checking"
         req.cancel()
         req.state, req.error = "failed", f"unexpected error: {type(exc).__name__}: {exc}"
@@ -327,7 +363,7 @@ class GENRE_OT_check_backend(_TimerModal, bpy.types.Operator):
     def modal(self, context, event):
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        outcome = advance_check(self._req, context.window_manager.genre_status)
+        outcome = advance_check(self._req, context.window_manager.genre_status, scene=context.scene)
         _redraw(context)
         if outcome is None:
             return {"RUNNING_MODAL"}
@@ -346,7 +382,7 @@ class GENRE_OT_check_backend(_TimerModal, bpy.types.Operator):
         if self._req is None:
             return {"CANCELLED"}
         while True:
-            outcome = advance_check(self._req, context.window_manager.genre_status)
+            outcome = advance_check(self._req, context.window_manager.genre_status, scene=context.scene)
             if outcome is not None:
                 self.report({outcome[0]}, f"GenRe: {outcome[1]}")
                 return {"FINISHED"} if outcome[0] == "INFO" else {"CANCELLED"}
@@ -365,6 +401,14 @@ class GENRE_OT_choose_file(bpy.types.Operator):
     # What the file browser shows: images and folders only.
     filter_image: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
     filter_folder: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
+
+    @classmethod
+    def description(cls, context, properties):
+        """The tooltip: the chosen file's whole path (the button shows its name only)."""
+        settings = context.scene.genre
+        current = settings.photo_path if properties.target == "PHOTO" else settings.mask_path
+        what = "photo" if properties.target == "PHOTO" else "mask (optional: white object on black, the photo's size)"
+        return f"{bpy.path.abspath(current)}\nClick to choose another {what}" if current else f"Choose the {what}"
 
     def invoke(self, context, event):
         settings = context.scene.genre
@@ -387,7 +431,41 @@ class GENRE_OT_choose_file(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (GENRE_OT_reconstruct, GENRE_OT_cancel, GENRE_OT_check_backend, GENRE_OT_choose_file)
+class GENRE_OT_clear_mask(bpy.types.Operator):
+    """Use no mask file (the photo's alpha, else the object found in the photo)"""
+
+    bl_idname = "genre.clear_mask"
+    bl_label = "Clear Mask"
+    bl_options = {"INTERNAL", "UNDO"}
+
+    def execute(self, context):
+        context.scene.genre.mask_path = ""
+        return {"FINISHED"}
+
+
+class GENRE_OT_option_help(bpy.types.Operator):
+    """What an Advanced option does (its tooltip is the backend's help line)"""
+
+    bl_idname = "genre.option_help"
+    bl_label = "About This Option"
+    bl_options = {"INTERNAL"}
+
+    option: StringProperty(options={"HIDDEN", "SKIP_SAVE"})
+
+    @classmethod
+    def description(cls, context, properties):
+        row = context.scene.genre.options.get(properties.option)
+        return row.help if row is not None and row.help else cls.__doc__
+
+    def execute(self, context):
+        row = context.scene.genre.options.get(self.option)
+        if row is not None:
+            self.report({"INFO"}, f"{row.label}: {row.help}")
+        return {"FINISHED"}
+
+
+CLASSES = (GENRE_OT_reconstruct, GENRE_OT_cancel, GENRE_OT_check_backend, GENRE_OT_choose_file, GENRE_OT_clear_mask,
+           GENRE_OT_option_help)
 
 
 def shutdown_backend() -> None:

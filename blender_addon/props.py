@@ -2,13 +2,54 @@
 
 from __future__ import annotations
 
+import math
+
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from .backend import MODELS
+from .schema import QUALITIES
 
 # The add-on's module name: "genre" as a legacy add-on, "bl_ext.<repo>.genre" as an extension.
 ADDON_PACKAGE = __package__
+
+
+def _clamp(self, context):
+    """Keep a row's number inside the option's range (an open end: one step inside it)."""
+    if self.kind == "float":
+        lo = self.lo + (0.001 if self.lo_open else 0.0)
+        hi = self.hi - (0.001 if self.hi_open else 0.0)
+        value = min(max(self.float_value, lo), hi)
+        if abs(value - self.float_value) > 1e-6:  # (the property is float32: an exact comparison would never settle)
+            self.float_value = value
+    elif self.kind == "int":
+        value = int(min(max(self.int_value, math.ceil(self.lo)), math.floor(self.hi)))
+        if value != self.int_value:
+            self.int_value = value
+
+
+class GENRE_PG_option(bpy.types.PropertyGroup):
+    """One mesh option's row in the Advanced panel, made from the backend's schema (``name``: the option's name).
+
+    ``override`` on: the value here is sent (``float_value``, ``int_value``, ``bool_value`` or ``choice_value`` by
+    ``kind``); off: the weights' own (``weights_value``, the schema's default as JSON) is used and shown.
+    """
+
+    label: StringProperty(name="Label")
+    help: StringProperty(name="Help")
+    kind: StringProperty(name="Kind")  # float | int | bool | choice
+    lo: FloatProperty(name="Minimum")
+    hi: FloatProperty(name="Maximum")
+    lo_open: BoolProperty(name="Minimum Excluded")
+    hi_open: BoolProperty(name="Maximum Excluded")
+    choices: StringProperty(name="Choices")  # JSON list
+    weights_value: StringProperty(name="Weights' Value", default="null")  # JSON
+    override: BoolProperty(name="Override", description="Use the value beside this box instead of the model's own setting",
+                           default=False)
+    float_value: FloatProperty(name="Value", precision=3, step=1, update=_clamp)
+    int_value: IntProperty(name="Value", update=_clamp)
+    bool_value: BoolProperty(name="Value")
+    choice_value: StringProperty(name="Value")
 
 
 class GENRE_PG_settings(bpy.types.PropertyGroup):
@@ -37,48 +78,11 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
                     "named 'Box' give a box around the object. A mask file, when chosen, is used instead",
         default=True,
     )
-    use_threshold: BoolProperty(name="Custom Threshold", description="Override the weights' isosurface threshold", default=False)
-    threshold: FloatProperty(
-        name="Threshold", description="Isosurface threshold of the voxel grid: lower gives a fuller shape",
-        # The shipped 'default' weights' level (tests/test_layout.py holds the two together); the field
-        # follows the level the backend reports for whatever weights it runs.
-        default=0.45, min=0.01, max=0.99, step=1, precision=2,
-    )
-    use_hole_closing: BoolProperty(name="Custom Hole Sealing", description="Override the weights' hole sealing", default=False)
-    hole_closing: IntProperty(
-        name="Seal Holes", description="Seal holes in the mesh up to about twice this many voxels across "
-                                       "(0: none; more also fills narrow gaps between parts)",
-        # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=1, min=0, max=8,
-    )
-    use_pit_sealing: BoolProperty(name="Custom Pit Sealing", description="Override the weights' pit sealing", default=False)
-    pit_sealing: IntProperty(
-        name="Seal Pits", description="Fill narrow, deep pits in the side the photo shows, up to about twice this many "
-                                      "voxels across, with the surface around them (0: none)",
-        # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=4, min=0, max=8,
-    )
-    use_silhouette_carve: BoolProperty(name="Custom Outline Trim", description="Override the weights' outline trim", default=False)
-    silhouette_carve: BoolProperty(
-        name="Trim to Outline", description="Cut away whatever would stick out past the object's outline in the photo "
-                                            "(the mask), so the mesh matches the photo from its viewpoint",
-        # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=False,
-    )
-    use_test_time_mirror: BoolProperty(name="Custom Mirror Average", description="Override the weights' mirror averaging", default=False)
-    test_time_mirror: BoolProperty(
-        name="Mirror Average", description="Also reconstruct the photo's mirror image and average the two meshes' "
-                                           "voxels (the networks' errors that are not mirror-symmetric partly cancel); "
-                                           "about twice the networks' time",
-        # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=True,
-    )
-    smoothing: IntProperty(
-        name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
-    )
-    target_faces: IntProperty(
-        name="Target Faces", description="Decimate to about this many faces (a Decimate modifier; 0 keeps every face)",
-        default=0, min=0, soft_max=200000,
+    quality: EnumProperty(
+        name="Quality",
+        description="How hard the backend works: a named set of its options (the Advanced rows you tick override it)",
+        items=[(ident, label, text) for ident, label, text, _ in QUALITIES],
+        default="BEST",
     )
     colour_from_photo: BoolProperty(
         name="Colour from Photo",
@@ -86,18 +90,14 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
                     "(sides the photo does not show take the colour of the nearest surface it shows)",
         default=True,
     )
-    use_primitive_snap: BoolProperty(name="Custom Shape Snapping", description="Override the weights' regular-shape snapping", default=False)
-    primitive_snap: FloatProperty(
-        name="Snap Shapes", description="When the photo shows a plain box, cylinder, cone, torus or ellipsoid, give that "
-                                        "exact shape instead of the network's rounded mesh if its outline matches the "
-                                        "object's and it stays on the mesh within this tolerance (0: never)",
-        # The shipped 'default' weights' setting; the field follows what the backend reports.
-        default=0.0, min=0.0, max=0.5, step=1, precision=2,
+    # the Advanced rows: one per mesh option the backend publishes (its `ready` event's schema), filled by ops.sync_options
+    options: CollectionProperty(type=GENRE_PG_option)
+    smoothing: IntProperty(
+        name="Smoothing", description="Smoothing iterations (a Smooth modifier; 0 for none)", default=2, min=0, max=50,
     )
-    keep_all_parts: BoolProperty(
-        name="Keep All Parts",
-        description="Keep every separate piece of the mesh (off: pieces smaller than 5% of the largest are dropped)",
-        default=False,
+    target_faces: IntProperty(
+        name="Target Faces", description="Decimate to about this many faces (a Decimate modifier; 0 keeps every face)",
+        default=0, min=0, soft_max=200000,
     )
     add_camera: BoolProperty(
         name="Add Matching Camera",
@@ -180,7 +180,7 @@ def get_preferences(context=None):
     return addon.preferences if addon is not None else None
 
 
-CLASSES = (GENRE_PG_settings, GENRE_PG_status, GENRE_AP_preferences)
+CLASSES = (GENRE_PG_option, GENRE_PG_settings, GENRE_PG_status, GENRE_AP_preferences)
 
 
 def register():

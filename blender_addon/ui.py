@@ -1,8 +1,11 @@
-"""The "GenRe" tab of the 3D viewport's sidebar."""
+"""The "GenRe" tab of the 3D viewport's sidebar: the main panel an artist needs, and the research knobs under Advanced."""
+
+import json
+import os
 
 import bpy
 
-from . import ops
+from . import ops, schema
 
 
 class GENRE_PT_panel(bpy.types.Panel):
@@ -22,53 +25,21 @@ class GENRE_PT_panel(bpy.types.Panel):
         col.enabled = not running
         col.row().prop(settings, "source", expand=True)
         if settings.source == "FILE":
-            row = col.row(align=True)
-            row.prop(settings, "photo_path", text="")
-            row.operator("genre.choose_file", text="", icon="FILE_IMAGE").target = "PHOTO"
+            # the button shows the file's name (a path field cuts long paths off); its tooltip the whole path
+            name = os.path.basename(settings.photo_path) if settings.photo_path else "Choose Photo…"
+            col.operator("genre.choose_file", text=name, icon="FILE_IMAGE").target = "PHOTO"
         else:
             col.template_ID(settings, "image", open="image.open")
-        col.label(text="Mask (optional):")
         row = col.row(align=True)
-        row.prop(settings, "mask_path", text="")
-        row.operator("genre.choose_file", text="", icon="FILE_IMAGE").target = "MASK"
+        row.operator("genre.choose_file", text=os.path.basename(settings.mask_path) if settings.mask_path else "Mask (optional)…",
+                     icon="MOD_MASK").target = "MASK"
+        if settings.mask_path:
+            row.operator("genre.clear_mask", text="", icon="X")
         col.prop(settings, "use_annotation")
-
-        box = col.box()
-        row = box.row(align=True)
-        row.prop(settings, "use_threshold", text="")
-        sub = row.row()
-        sub.enabled = settings.use_threshold
-        sub.prop(settings, "threshold")
-        row = box.row(align=True)
-        row.prop(settings, "use_hole_closing", text="")
-        sub = row.row()
-        sub.enabled = settings.use_hole_closing
-        sub.prop(settings, "hole_closing")
-        row = box.row(align=True)
-        row.prop(settings, "use_pit_sealing", text="")
-        sub = row.row()
-        sub.enabled = settings.use_pit_sealing
-        sub.prop(settings, "pit_sealing")
-        row = box.row(align=True)
-        row.prop(settings, "use_silhouette_carve", text="")
-        sub = row.row()
-        sub.enabled = settings.use_silhouette_carve
-        sub.prop(settings, "silhouette_carve")
-        row = box.row(align=True)
-        row.prop(settings, "use_test_time_mirror", text="")
-        sub = row.row()
-        sub.enabled = settings.use_test_time_mirror
-        sub.prop(settings, "test_time_mirror")
-        box.prop(settings, "smoothing")
-        box.prop(settings, "target_faces")
-        box.prop(settings, "colour_from_photo")
-        row = box.row(align=True)
-        row.prop(settings, "use_primitive_snap", text="")
-        sub = row.row()
-        sub.enabled = settings.use_primitive_snap
-        sub.prop(settings, "primitive_snap")
-        box.prop(settings, "keep_all_parts")
-        box.prop(settings, "add_camera")
+        col.separator()
+        col.row().prop(settings, "quality", expand=True)
+        col.prop(settings, "colour_from_photo")
+        col.prop(settings, "add_camera")
 
         if running:
             label = status.stage or "Working"
@@ -116,7 +87,59 @@ def _wrap(text, width):
     return lines + [line] if line else lines
 
 
-CLASSES = (GENRE_PT_panel,)
+class GENRE_PT_advanced(bpy.types.Panel):
+    """The mesh options the backend publishes (one row each: tick to override the model's own value) and the add-on's own."""
+
+    bl_label = "Advanced"
+    bl_idname = "GENRE_PT_advanced"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "GenRe"
+    bl_parent_id = "GENRE_PT_panel"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.genre
+        layout.enabled = not (ops.active.job is not None and not ops.active.job.finished)
+        col = layout.column(align=True)
+        if not len(settings.options):
+            col.label(text="The model's options show here once the backend has started.", icon="INFO")
+            col.operator("genre.check_backend", text="Load Options", icon="PLUGIN")
+        for row in settings.options:
+            draw_option_row(col, row)
+        layout.separator()
+        layout.prop(settings, "smoothing")
+        layout.prop(settings, "target_faces")
+
+
+VALUE_PROPERTY = {"float": "float_value", "int": "int_value", "bool": "bool_value", "choice": "choice_value"}
+
+
+def draw_option_row(layout, row) -> None:
+    """One option: its label on the one checkbox (ticked: override), the value (editable when ticked), the model's own value."""
+    try:
+        weights = json.loads(row.weights_value)
+    except ValueError:
+        weights = None
+    entry = {"type": row.kind}
+    line = layout.row(align=True)
+    split = line.split(factor=0.55, align=True)
+    split.prop(row, "override", text=row.label)
+    right = split.row(align=True)
+    own = schema.shown(entry, weights)
+    if row.override:
+        if row.kind == "bool":
+            right.prop(row, "bool_value", text="On" if row.bool_value else "Off", toggle=True)
+        else:
+            right.prop(row, VALUE_PROPERTY.get(row.kind, "choice_value"), text="")
+        right.label(text=f"model: {own}")
+    else:
+        right.label(text=f"{own} (model)")
+    line.operator("genre.option_help", text="", icon="QUESTION", emboss=False).option = row.name
+
+
+CLASSES = (GENRE_PT_panel, GENRE_PT_advanced)
 
 
 def register():

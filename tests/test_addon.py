@@ -52,13 +52,44 @@ def _registration_state(bpy, module: str) -> dict:
 
     return {
         "enabled": module in {a.module for a in bpy.context.preferences.addons},
-        "ops": sorted(n for n in ("reconstruct", "cancel", "check_backend", "choose_file") if n in dir(bpy.ops.genre)),
+        "ops": sorted(n for n in ("reconstruct", "cancel", "check_backend", "choose_file", "clear_mask", "option_help")
+                      if n in dir(bpy.ops.genre)),
         "panel": hasattr(bpy.types, "GENRE_PT_panel"),
         "scene_settings": hasattr(bpy.types.Scene, "genre"),
         "status": hasattr(bpy.types.WindowManager, "genre_status"),
         "prefs": module in bpy.context.preferences.addons and bpy.context.preferences.addons[module].preferences is not None,
         "loaded": addon_utils.check(module)[1],
     }
+
+
+class _Layout:
+    """A stand-in for bpy's UILayout (which needs a window region): records each prop, operator and label drawn."""
+
+    def __init__(self, calls=None):
+        self.calls = [] if calls is None else calls
+        self.enabled = True
+        self.scale_y = 1.0
+
+    def _sub(self, *args, **kwargs):
+        return _Layout(self.calls)
+
+    row = column = box = split = _sub
+
+    def prop(self, data, name, **kwargs):
+        self.calls.append(["prop", getattr(data, "name", "") if name != "quality" else "", name, kwargs.get("text")])
+
+    def operator(self, idname, **kwargs):
+        self.calls.append(["operator", idname, kwargs.get("text")])
+        return type("Op", (), {})()
+
+    def label(self, **kwargs):
+        self.calls.append(["label", kwargs.get("text")])
+
+    def separator(self, **kwargs):
+        pass
+
+    def template_ID(self, *args, **kwargs):
+        self.calls.append(["template_ID"])
 
 
 def scenario_install(args: dict) -> dict:
@@ -73,6 +104,31 @@ def scenario_install(args: dict) -> dict:
     # the panel draws (a UILayout needs a real region, so check the class is a registered sidebar panel)
     panel = bpy.types.GENRE_PT_panel
     out["panel_place"] = [panel.bl_space_type, panel.bl_region_type, panel.bl_category]
+    advanced = bpy.types.GENRE_PT_advanced  # the research knobs: a subpanel, closed until opened
+    out["advanced"] = [advanced.bl_parent_id, sorted(advanced.bl_options), advanced.bl_category]
+    settings = bpy.context.scene.genre
+    out["quality"] = [settings.quality, [i.identifier for i in type(settings).bl_rna.properties["quality"].enum_items]]
+    # the photo's row shows the file's name, its tooltip the whole path
+    settings.photo_path = "/a/long/folder/name/that/a/sidebar/cuts/off/chair.jpg"
+    out["photo_tooltip"] = mod.ops.GENRE_OT_choose_file.description(bpy.context, type("P", (), {"target": "PHOTO"})())
+    settings.photo_path = ""
+    # the panels drawn into a layout that records what they show
+    ready = {"options": [
+        {"name": "threshold", "type": "float", "min": 0, "max": 1, "min_open": True, "max_open": True, "choices": None,
+         "default": 0.45, "label": "Threshold", "help": "isosurface level"},
+        {"name": "test_time_mirror", "type": "bool", "min": None, "max": None, "choices": None, "default": True,
+         "label": "Mirror Average", "help": "mirror"},
+        {"name": "texture", "type": "bool", "default": False, "label": "Colour from Photo", "help": "the add-on's own"}]}
+    mod.ops.sync_options(settings, ready)
+    settings.options["threshold"].override = True
+    drawn = _Layout()
+    mod.ui.GENRE_PT_advanced.draw(type("P", (), {"layout": drawn})(), bpy.context)
+    out["advanced_drawn"] = drawn.calls
+    drawn = _Layout()
+    settings.photo_path = "/a/long/folder/chair.jpg"
+    mod.ui.GENRE_PT_panel.draw(type("P", (), {"layout": drawn})(), bpy.context)
+    out["main_drawn"] = drawn.calls
+    settings.photo_path = ""
     prefs = bpy.context.preferences.addons[module].preferences
     out["prefs_idname"] = type(prefs).bl_idname
     # the Model choice: the shipped weights by name, or a custom file (its path used only then)
@@ -189,6 +245,17 @@ def _mesh_report(obj, bpy) -> dict:
     return out
 
 
+def _row_value(row):
+    return {"float": row.float_value, "int": row.int_value, "bool": row.bool_value, "choice": row.choice_value}[row.kind]
+
+
+def _override(settings, name, value) -> None:
+    """Tick an Advanced row and give it ``value``."""
+    row = settings.options[name]
+    row.override = True
+    setattr(row, {"float": "float_value", "int": "int_value", "bool": "bool_value", "choice": "choice_value"}[row.kind], value)
+
+
 def scenario_reconstruct(args: dict) -> dict:
     """A real reconstruction driven step by step, a second one through the operator, and Check backend."""
     import bpy
@@ -203,28 +270,27 @@ def scenario_reconstruct(args: dict) -> dict:
     settings.photo_path = args["photo"]
     settings.smoothing = 1
     settings.target_faces = 10
+    early = {"rows_before": len(settings.options)}  # no rows until the backend has said what it takes
+    # Check backend brings the rows: one per option of the backend's record but the add-on's own
+    assert sorted(bpy.ops.genre.check_backend()) == ["FINISHED"]
+    early["rows"] = [(r.name, r.kind, r.label, bool(r.help), r.override, r.weights_value) for r in settings.options]
+    early["ready_options"] = ops.manager.client.ready["options"]
+    values = {"threshold": 0.2, "hole_closing": 7, "pit_sealing": 5, "silhouette_carve": True, "primitive_snap": 0.3,
+              "test_time_mirror": True, "visible_fusion": True, "all_parts": True}
+    for row in settings.options:  # values that are not the weights': an unticked row must come back to the weights' own
+        if row.name in values:  # (an option added to the backend's record later keeps its row as the schema made it)
+            setattr(row, {"float": "float_value", "int": "int_value", "bool": "bool_value"}[row.kind], values[row.name])
     if args.get("threshold") is not None:
-        settings.use_threshold = True
-        settings.threshold = args["threshold"]
-    else:
-        settings.threshold = 0.2  # not the weights' level: a plain run should bring the field to it
-    settings.hole_closing = 7  # likewise the hole sealing
-    settings.pit_sealing = 5  # and the pit sealing (the test weights do not seal pits)
-    settings.silhouette_carve = True  # and the outline trim (the test weights do not carve)
-    settings.primitive_snap = 0.3  # and the regular-shape snapping (the test weights do not snap)
-    settings.test_time_mirror = True  # and the mirror averaging (the test weights do not mirror)
+        _override(settings, "threshold", args["threshold"])
+    settings.quality = "FAST"
     status = bpy.context.window_manager.genre_status
-    out = {}
+    out = dict(early)
     snap = _Snapshot(bpy)
     t0 = time.monotonic()
     job, outcome, states = _drive(ops, settings, prefs, status, scene)
     out["first_seconds"] = time.monotonic() - t0
-    out["threshold_field_after"] = settings.threshold
-    out["hole_closing_field_after"] = settings.hole_closing
-    out["pit_sealing_field_after"] = settings.pit_sealing
-    out["silhouette_carve_field_after"] = settings.silhouette_carve
-    out["primitive_snap_field_after"] = settings.primitive_snap
-    out["test_time_mirror_field_after"] = settings.test_time_mirror
+    out["fields_after"] = {r.name: _row_value(r) for r in settings.options}
+    out["payload"] = job.request.payload
     out["outcome"] = list(outcome)
     out["result_event"] = job.request.result
     out["stages"] = sorted({s[1] for s in states})
@@ -236,6 +302,17 @@ def scenario_reconstruct(args: dict) -> dict:
                            "mask_warning": status.mask_warning}
     out["job_dirs_after"] = _job_dirs(ops)
     pid = ops.manager.client.pid
+
+    # a ticked row overrides the model's value and the quality's set: sent, and used
+    _override(settings, "test_time_mirror", True)
+    _override(settings, "hole_closing", 2)
+    job, outcome, _ = _drive(ops, settings, prefs, status, scene)
+    out["overridden"] = {"outcome": list(outcome), "payload": job.request.payload["options"],
+                         "used": {k: job.request.result.get(k) for k in ("test_time_mirror", "hole_closing")}}
+    _override(settings, "hole_closing", 99)  # clamped to the schema's range
+    out["clamped"] = settings.options["hole_closing"].int_value
+    for row in settings.options:
+        row.override = False
 
     # the operator's execute() path (scripts, background mode) reuses the same backend process
     settings.add_camera = False
@@ -304,8 +381,8 @@ def scenario_failures(args: dict) -> dict:
     settings = scene.genre
     settings.photo_path = args["photo"]
     if args.get("threshold") is not None:
-        settings.use_threshold = True
-        settings.threshold = args["threshold"]
+        assert sorted(bpy.ops.genre.check_backend()) == ["FINISHED"]  # (the rows come from the backend's schema)
+        _override(settings, "threshold", args["threshold"])
     status = bpy.context.window_manager.genre_status
     out: dict = {}
 
@@ -638,6 +715,31 @@ def test_read_obj(tmp_path):
         geometry.read_obj(p)
 
 
+def test_rows_come_from_the_backends_schema():
+    """bpy-free: which schema entries get an Advanced row, how a row's value is checked and shown."""
+    from genre_backend.inference.options import schema as backend_schema
+    from genre_backend.config import GeometryConfig
+
+    sch = _load("genre_addon_schema", ADDON / "schema.py")
+    ready = {"type": "ready", **backend_schema(GeometryConfig(target="distance", pit_sealing=4))}
+    rows = sch.rows(ready)
+    assert [e["name"] for e in rows] == [e["name"] for e in ready["options"] if e["name"] not in ("format", "up", "texture")]
+    assert {e["name"]: e["default"] for e in rows}["pit_sealing"] == 4
+    new = {"name": "new_knob", "type": "int", "min": 1, "max": 3, "default": 2, "label": "New Knob", "help": "h"}
+    assert sch.rows({"options": [*ready["options"], new]})[-1] == new  # a new backend option: a row, no add-on change
+    assert sch.rows({"options": [{"name": "x", "type": "matrix"}, {"name": "y", "type": "float"}, 3]}) == []  # (ill-formed)
+    assert sch.rows({}) == sch.rows(None) == []
+    by = {e["name"]: e for e in rows}
+    assert sch.check_value(by["threshold"], 0.5) is None and sch.check_value(by["primitive_snap"], 0.0) is None
+    assert sch.check_value(by["threshold"], 1.0) == "Threshold: expected a number in (0, 1), got 1"
+    assert sch.check_value(by["primitive_snap"], 1.0) == "Snap Shapes: expected a number in [0, 1), got 1"
+    assert sch.check_value(by["hole_closing"], 9) == "Seal Holes: expected an integer in [0, 8], got 9"
+    assert sch.check_value(by["test_time_mirror"], 1) == "Mirror Average: expected on or off"
+    assert [sch.shown(by["threshold"], 0.45), sch.shown(by["test_time_mirror"], True), sch.shown(by["pit_sealing"], None)] == [
+        "0.45", "On", "?"]
+    assert sorted(q[3] for q in sch.QUALITIES) == sorted(q["name"] for q in ready["qualities"])  # the backend's named sets, by name
+
+
 def test_build_command(tmp_path):
     backend = _load("genre_addon_backend", ADDON / "backend.py")
     py = sys.executable
@@ -683,13 +785,29 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
     r = run_scenario("install", {"kind": kind, "zip": str(built[kind])}, tmp_path)
     module = "bl_ext.user_default.genre" if kind == "extension" else "genre"
     assert r["module"] == module and r["package"] == module and r["prefs_idname"] == module
-    everything = {"enabled": True, "ops": ["cancel", "check_backend", "choose_file", "reconstruct"], "panel": True,
+    everything = {"enabled": True, "ops": ["cancel", "check_backend", "choose_file", "clear_mask", "option_help", "reconstruct"],
+                  "panel": True,
                   "scene_settings": True, "status": True, "prefs": True, "loaded": True}
     assert r["after_enable"] == everything
     assert r["after_disable"] == {"enabled": False, "ops": [], "panel": False, "scene_settings": False, "status": False,
                                   "prefs": False, "loaded": False}
     assert r["after_reenable"] == everything
     assert r["panel_place"] == ["VIEW_3D", "UI", "GenRe"]
+    assert r["advanced"] == ["GENRE_PT_panel", ["DEFAULT_CLOSED"], "GenRe"]
+    assert r["quality"] == ["BEST", ["FAST", "BEST"]]
+    assert r["photo_tooltip"].startswith("/a/long/folder/name/that/a/sidebar/cuts/off/chair.jpg\n")
+    # Advanced: a row per schema option but the add-on's own (texture): its label on one checkbox, the model's value
+    # beside it (the value field too when ticked), a help button; then the add-on's own smoothing and face target
+    assert r["advanced_drawn"] == [
+        ["prop", "threshold", "override", "Threshold"], ["prop", "threshold", "float_value", ""], ["label", "model: 0.45"],
+        ["operator", "genre.option_help", ""],
+        ["prop", "test_time_mirror", "override", "Mirror Average"], ["label", "On (model)"], ["operator", "genre.option_help", ""],
+        ["prop", "", "smoothing", None], ["prop", "", "target_faces", None]]
+    # the main panel: source, the photo's name (not its cut-off path), mask, Quality, colour, camera, Reconstruct
+    assert [c for c in r["main_drawn"] if c[0] != "label"] == [
+        ["prop", "", "source", None], ["operator", "genre.choose_file", "chair.jpg"], ["operator", "genre.choose_file", "Mask (optional)…"],
+        ["prop", "", "quality", None], ["prop", "", "colour_from_photo", None], ["prop", "", "add_camera", None],
+        ["operator", "genre.reconstruct", None]]
     assert r["model_default"] == "default"
     assert r["model_items"] == [["default", "Product"], ["protocol", "Research protocol"], ["custom", "Custom file"]]
     assert r["argv"] == {"default": ["--weights", "default"], "protocol": ["--weights", "protocol"],
@@ -761,14 +879,30 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     # no override: the mesh is cut at the weights' level, and the panel's Threshold field now shows it
     from genre_backend.nets.model import load_model
 
-    level = load_model(weights).config.geometry.default_threshold
-    assert ev["threshold"] == level and r["threshold_field_after"] == pytest.approx(level)
-    assert ev["hole_closing"] == load_model(weights).config.geometry.hole_closing == r["hole_closing_field_after"]
-    assert ev["pit_sealing"] == load_model(weights).config.geometry.pit_sealing == r["pit_sealing_field_after"] == 0
-    assert ev["silhouette_carve"] is load_model(weights).config.geometry.silhouette_carve is r["silhouette_carve_field_after"] is False
-    assert ev["primitive_snap"] == load_model(weights).config.geometry.primitive_snap == r["primitive_snap_field_after"] == 0.0
-    assert ev["primitive"] is None
-    assert ev["test_time_mirror"] is load_model(weights).config.geometry.test_time_mirror is r["test_time_mirror_field_after"] is False
+    geometry = load_model(weights).config.geometry
+    level = geometry.default_threshold
+    # the Advanced rows: none before the backend ran, then one per option of its record but format, up and texture
+    from genre_backend.inference.options import OPTIONS
+
+    assert r["rows_before"] == 0
+    record = [o for o in OPTIONS if o.name not in ("format", "up", "texture")]
+    assert [tuple(row[:4]) for row in r["rows"]] == [(o.name, o.kind, o.label, True) for o in record]
+    assert all(override is False for *_, override, _ in r["rows"])
+    assert {row[0]: json.loads(row[5]) for row in r["rows"]} == {
+        o.name: getattr(geometry, o.weights) if o.weights else o.default for o in record}  # the model's own, shown beside
+    assert r["ready_options"] and {e["name"] for e in r["ready_options"]} == {o.name for o in OPTIONS}
+    # nothing ticked: only the quality's name, the format and the colour are sent; the mesh is the weights'
+    assert r["payload"]["options"] == {"quality": "fast", "format": "obj", "texture": True}
+    assert ev["threshold"] == level and r["fields_after"]["threshold"] == pytest.approx(level)
+    for name in ("hole_closing", "pit_sealing", "silhouette_carve", "primitive_snap", "visible_fusion"):  # each row follows the weights
+        assert ev[name] == getattr(geometry, name) == r["fields_after"][name], name
+    assert ev["primitive"] is None and r["fields_after"]["all_parts"] is True  # (all_parts: no echo in the result; kept)
+    assert ev["test_time_mirror"] is geometry.test_time_mirror is r["fields_after"]["test_time_mirror"] is False
+    # a ticked row: sent and used, over the quality's set (Fast turns the mirror average off)
+    assert r["overridden"]["outcome"][0] == "INFO"
+    assert r["overridden"]["payload"] == {"test_time_mirror": True, "hole_closing": 2, "quality": "fast", "format": "obj", "texture": True}
+    assert r["overridden"]["used"] == {"test_time_mirror": True, "hole_closing": 2}
+    assert r["clamped"] == 8
     mesh = r["mesh"]
     assert mesh["name"] == "box"
     assert mesh["collections"] == ["GenRe"]
@@ -809,7 +943,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert max(r["progress_seen"]) > 0
     # the operator reuses the running backend
     assert r["operator"] == ["FINISHED"] and r["same_backend"]
-    assert len(r["objects_after_second"]) == 3
+    assert len(r["objects_after_second"]) == 5  # the first mesh and camera, the overridden one and camera, the operator's
     assert r["check"] == ["FINISHED"]
     assert "preset tiny" in r["backend_info"] and "device cpu" in r["backend_info"] and f"threshold {level}" in r["backend_info"]
     assert r["backend_exit_after_disable"] is not None

@@ -44,6 +44,7 @@ import pytest
 from hypothesis import HealthCheck, assume, example, given, note, settings
 from hypothesis import strategies as st
 
+from genre_backend.inference.options import OPTIONS, QUALITIES
 from genre_backend.io import is_temporary_name
 from test_server import ServerProcess
 
@@ -54,11 +55,10 @@ ERROR_CODES = {"bad_json", "unknown_type", "missing_field", "bad_field", "bad_im
 JOB_CODES = {"bad_image", "bad_mask", "no_object", "output_unwritable"}  # how an accepted job may fail
 DIRECT_CODES = {"bad_json", "unknown_type", "missing_field", "bad_field", "unknown_job", "internal"}  # answers to the line itself
 STAGES = ["load", "preprocess", "depth", "partial_sph", "inpaint", "voxels", "refine", "mesh", "write"]
-# every option the server accepts (genre_backend/inference/server.py, _OPTION_KEYS), each drawn below
-OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror",
-               "format", "up", "save_intermediates", "texture", "all_parts")
-FLAGS = ("texture", "all_parts", "silhouette_carve", "visible_fusion", "test_time_mirror")  # the boolean options
-WIDTHS = ("hole_closing", "pit_sealing")  # the voxel-width options
+# every option the server accepts: the mesh options' record (genre_backend/inference/options.py), the named set `quality`
+# and the intermediates folder; each drawn below, the record's ones from their own kind and range
+RECORD = {o.name: o for o in OPTIONS}
+OPTION_KEYS = (*RECORD, "quality", "save_intermediates")
 MAX_MESSAGE = 2100  # the server's 2,000-character cap plus its "… (N characters)" tail
 
 
@@ -117,6 +117,47 @@ ANY = st.one_of(JSON, HUGE, TEXT, LONG, st.just(OMIT))
 PARTS = ["id", "image", "output", "mask", "options", *OPTION_KEYS, "unknown_option", "extra"]
 
 
+def fitting(spec):
+    """Values the record says ``spec`` takes (and ``None``, not given): its ends, the inside of its range, its choices."""
+    if spec.kind == "bool":
+        return st.sampled_from([True, False, None])
+    if spec.kind == "choice":
+        return st.sampled_from([*spec.choices, None])
+    ends = [v for v, open_ in ((spec.lo, spec.lo_open), (spec.hi, spec.hi_open)) if not open_]
+    if spec.kind == "int":
+        return st.one_of(st.integers(int(spec.lo), int(spec.hi)), st.sampled_from([*map(int, ends), None]))
+    inside = st.floats(spec.lo, spec.hi, exclude_min=spec.lo_open, exclude_max=spec.hi_open)
+    near = [spec.lo + 1e-9 if spec.lo_open else spec.lo, spec.hi - 1e-9 if spec.hi_open else spec.hi]
+    return st.one_of(inside, st.sampled_from([*near, *[int(e) for e in ends if float(e).is_integer()], 5e-324 + spec.lo, None]))
+
+
+def unfitting(spec):
+    """Odd values for ``spec``: anything JSON, the wrong kind, just outside its range, NaN and overflowing numbers."""
+    odd = [True, "1", [], {}, Raw("NaN"), Raw("1e400"), Raw("-1e400")]
+    if spec.kind == "choice":
+        odd += [c.upper() for c in spec.choices] + [c + " " for c in spec.choices] + [c + "\x00" for c in spec.choices] + [""]
+    elif spec.kind == "bool":
+        odd += [0, 1, "true"]
+    else:
+        odd += [spec.lo, spec.hi, spec.lo - 1, spec.hi + 1, spec.lo - 1e-4, spec.hi + 1e-4, -0.0, float(spec.hi), float(spec.lo) + 0.5]
+    return st.one_of(JSON, HUGE, st.sampled_from(odd))
+
+
+def takes(spec, value) -> bool:
+    """Whether the protocol document's rules for ``spec``'s kind and range accept ``value`` (``None``: not given)."""
+    if value is None:
+        return True
+    if spec.kind == "bool":
+        return isinstance(value, bool)
+    if spec.kind == "choice":
+        return isinstance(value, str) and value in spec.choices
+    if isinstance(value, bool) or not isinstance(value, int if spec.kind == "int" else (int, float)):
+        return False
+    above = spec.lo < value if spec.lo_open else spec.lo <= value
+    below = value < spec.hi if spec.hi_open else value <= spec.hi
+    return above and below
+
+
 @dataclass(frozen=True)
 class Tree:
     """The temporary tree: ``root/work`` is the server's working folder; ``root/inputs`` holds the photo and its mask."""
@@ -172,44 +213,26 @@ def _example_strategy():
         msg["output"] = draw(st.one_of(confined, confined, confined, special_out))
         msg["mask"] = draw(st.sampled_from([OMIT, None, mask, mask]))
         opts = {}
-        if draw(st.booleans()):
-            opts["threshold"] = draw(st.one_of(st.floats(0.05, 0.95), st.sampled_from([1e-300, 0.5, 0.999999, 5e-324])))
-        if draw(st.booleans()):
-            opts["format"] = draw(st.sampled_from(["obj", "ply", "glb", None]))
+        for name, spec in RECORD.items():  # every mesh option, by its kind and range
+            if draw(st.integers(0, 2)) == 0:
+                opts[name] = draw(fitting(spec))
+        if draw(st.integers(0, 3)) == 0:
+            opts["quality"] = draw(st.sampled_from([*QUALITIES, None]))
         if draw(st.integers(0, 3)) == 0:
             opts["save_intermediates"] = draw(folder_field)
-        for flag in FLAGS:
-            if draw(st.integers(0, 2)) == 0:
-                opts[flag] = draw(st.sampled_from([True, False, None]))
-        for width in WIDTHS:
-            if draw(st.integers(0, 3)) == 0:
-                opts[width] = draw(st.sampled_from([0, 1, 2, 8, None]))
-        if draw(st.integers(0, 3)) == 0:
-            opts["primitive_snap"] = draw(st.sampled_from([0, 0.0, 0.05, 0.5, 0.999, None]))
-        if draw(st.integers(0, 3)) == 0:
-            opts["up"] = draw(st.sampled_from(["y", "z", None]))
         if "id" in broken:
             msg["id"] = draw(st.one_of(VALID_ID, INVALID_ID, st.just(OMIT)))
         if "output" in broken:
             msg["output"] = draw(st.one_of(ANY, special_out))
         if "mask" in broken:
             msg["mask"] = draw(st.one_of(ANY, special_in, st.just(photo)))
-        if "threshold" in broken:
-            opts["threshold"] = draw(st.one_of(HUGE, JSON, st.floats(), st.sampled_from([0, 1, 0.0, 1.0, -0.0, True, "0.5", Raw("1e-400")])))
-        if "format" in broken:
-            opts["format"] = draw(st.one_of(JSON, st.sampled_from(["OBJ", "stl", "", "obj ", "obj\x00"])))
+        for name, spec in RECORD.items():
+            if name in broken:
+                opts[name] = draw(unfitting(spec))
+        if "quality" in broken:
+            opts["quality"] = draw(st.one_of(JSON, st.sampled_from(["Fast", "best ", "", "slow", 1, True, "fast\x00"])))
         if "save_intermediates" in broken:
             opts["save_intermediates"] = draw(st.one_of(folder_field, ANY))
-        for flag in FLAGS:
-            if flag in broken:
-                opts[flag] = draw(st.one_of(JSON, st.sampled_from([0, 1, "true", [], {}])))
-        for width in WIDTHS:
-            if width in broken:
-                opts[width] = draw(st.one_of(JSON, HUGE, st.sampled_from([-1, 9, 1.0, 2.5, True, "1", Raw("1e400"), Raw("NaN")])))
-        if "primitive_snap" in broken:
-            opts["primitive_snap"] = draw(st.one_of(JSON, HUGE, st.sampled_from([1, 1.0, -0.0001, -0.0, True, "0.1", Raw("NaN"), Raw("1e400")])))
-        if "up" in broken:
-            opts["up"] = draw(st.one_of(JSON, st.sampled_from(["Z", "x", "", "y ", "z", "z\x00"])))
         if "unknown_option" in broken:
             opts[draw(TEXT)] = draw(JSON)
         msg["options"] = {k: v for k, v in opts.items() if v is not OMIT}
@@ -339,30 +362,22 @@ def refusals(msg: dict) -> set[str]:
     if opts is not None:
         if not isinstance(opts, dict):
             return codes | {"bad_field"}
-        t, f, s, up, snap = (opts.get(k) for k in ("threshold", "format", "save_intermediates", "up", "primitive_snap"))
+        f, s, up, quality = (opts.get(k) for k in ("format", "save_intermediates", "up", "quality"))
         if set(opts) - set(OPTION_KEYS):
             codes.add("bad_field")
-        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < 1):
+        if not all(takes(spec, opts.get(name)) for name, spec in RECORD.items()):
             codes.add("bad_field")
-        if f is not None and f not in ("obj", "ply", "glb"):
+        if quality is not None and not (isinstance(quality, str) and quality in QUALITIES):
             codes.add("bad_field")
         output = msg.get("output")
         ext = PurePosixPath(output).suffix.lower().lstrip(".") if usable_path(output) else None
         if f in ("obj", "ply", "glb") and ext in ("obj", "ply", "glb") and ext != f:  # format and extension must agree
             codes.add("bad_field")
-        if up is not None:
+        if up == "z":
             written = f if f in ("obj", "ply", "glb") else (ext if ext in ("obj", "ply", "glb") else "obj")
-            if up not in ("y", "z") or (up == "z" and written != "ply"):  # up z is for ply only
+            if written != "ply":  # up z is for ply only
                 codes.add("bad_field")
         if s is not None and not usable_path(s):
-            codes.add("bad_field")
-        if any(opts.get(k) is not None and not isinstance(opts.get(k), bool) for k in FLAGS):
-            codes.add("bad_field")
-        for width in WIDTHS:
-            v = opts.get(width)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 8):
-                codes.add("bad_field")
-        if snap is not None and (isinstance(snap, bool) or not isinstance(snap, (int, float)) or not 0.0 <= snap < 1.0):
             codes.add("bad_field")
     return codes
 
@@ -589,6 +604,8 @@ def test_the_fuzzer_draws_every_option_the_server_accepts():
     from genre_backend.inference.server import _OPTION_KEYS
 
     assert set(OPTION_KEYS) == set(_OPTION_KEYS) and set(OPTION_KEYS) <= set(PARTS)
+    assert {"threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror",
+            "format", "up", "texture", "all_parts"} <= set(RECORD)  # (the options that were written out by hand before the record)
 
 
 @pytest.fixture(scope="module")

@@ -150,33 +150,13 @@ def test_addon_stage_labels_cover_the_backend_stages():
     assert all(isinstance(v, str) and v for v in STAGE_LABELS.values())
 
 
-def test_addon_threshold_default_is_the_shipped_weights_level():
-    """The add-on runs the product weights, `default`, by default: its threshold field starts at their level."""
-    import json
+def test_addon_keeps_no_copy_of_the_backends_options():
+    """The add-on's option rows come from the backend's schema (`ready`): it declares no property of its own for a mesh
+    option, so no default or range of the weights can go stale in it."""
+    from genre_backend.inference.options import OPTIONS
 
-    shipped = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"]["default_threshold"]
     tree = ast.parse((REPO / "blender_addon" / "props.py").read_text())
-    # bpy properties are annotations: `threshold: FloatProperty(..., default=…)`
-    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "threshold"
-                for kw in node.annotation.keywords if kw.arg == "default"]
-    assert defaults == [shipped]
-    # and its hole-sealing field at theirs
-    sealing = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("hole_closing", 0)
-    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "hole_closing"
-                for kw in node.annotation.keywords if kw.arg == "default"]
-    assert defaults == [sealing]
-    # and its pit-sealing field at theirs
-    pits = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("pit_sealing", 0)
-    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "pit_sealing"
-                for kw in node.annotation.keywords if kw.arg == "default"]
-    assert defaults == [pits]
-    # and its outline-trim field at theirs
-    carve = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("silhouette_carve", False)
-    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "silhouette_carve"
-                for kw in node.annotation.keywords if kw.arg == "default"]
-    assert defaults == [carve]
-    # and its mirror-averaging field at theirs
-    mirror = json.loads((REPO / "genre_backend" / "weights" / "default.json").read_text())["config"]["geometry"].get("test_time_mirror", False)
-    defaults = [kw.value.value for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "test_time_mirror"
-                for kw in node.annotation.keywords if kw.arg == "default"]
-    assert defaults == [mirror]
+    declared = {node.target.id for node in ast.walk(tree) if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)}
+    assert "options" in declared and "quality" in declared
+    assert declared & {o.name for o in OPTIONS} == set()
+    assert declared & {"use_" + o.name for o in OPTIONS} == set()

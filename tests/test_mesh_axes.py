@@ -178,7 +178,7 @@ def test_serve_up_option(tmp_path):
     server = Server(Reconstructor(DEFAULT_WEIGHTS), out, "cpu")
     assert server.serve(io.StringIO("".join(json.dumps(r) + "\n" for r in requests))) == 0
     events = {e.get("id"): e for e in map(json.loads, out.getvalue().splitlines()) if e["type"] in ("error", "result")}
-    assert events["bad-axis"]["code"] == "bad_field" and "'y' or 'z'" in events["bad-axis"]["message"]
+    assert events["bad-axis"]["code"] == "bad_field" and "expected one of 'y', 'z'" in events["bad-axis"]["message"]
     for rid in ("z-obj", "z-glb"):
         assert events[rid]["code"] == "bad_field" and "ply only" in events[rid]["message"], events[rid]
     res = events["y-ply"]

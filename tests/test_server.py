@@ -129,6 +129,31 @@ def server(trained):
     assert s.close() == 0
 
 
+def test_ready_and_version_publish_the_options_record(server, trained):
+    """The schema of every mesh option (the add-on builds its rows from it), defaults from the loaded weights."""
+    from genre_backend.inference.options import OPTIONS, QUALITIES
+    from genre_backend.nets.model import load_model
+
+    geometry = load_model(trained[0]).config.geometry
+    server.send({"type": "version", "id": "v"})
+    ev = server.until(lambda e: e["type"] == "version")[-1]
+    entries = {o["name"]: o for o in ev["options"]}
+    assert list(entries) == [o.name for o in OPTIONS]
+    for o in OPTIONS:
+        e = entries[o.name]
+        assert set(e) == {"name", "type", "min", "max", "min_open", "max_open", "choices", "default", "label", "help", "weights"}
+        assert e["type"] == o.kind and e["label"] and e["help"] and "\n" not in e["help"]
+        assert e["default"] == (getattr(geometry, o.weights) if o.weights else o.default)
+    assert entries["threshold"]["default"] == geometry.default_threshold and entries["threshold"]["min_open"] is True
+    assert (entries["primitive_snap"]["min"], entries["primitive_snap"]["max"], entries["primitive_snap"]["max_open"]) == (0.0, 1.0, True)
+    assert entries["up"]["choices"] == ["y", "z"] and entries["texture"]["default"] is False
+    assert [q["name"] for q in ev["qualities"]] == list(QUALITIES) and {q["name"]: q["options"] for q in ev["qualities"]}["fast"] == {
+        "test_time_mirror": False}
+    server.send({"type": "reconstruct", "id": "bad-snap", "image": "a.png", "output": "b.obj", "options": {"primitive_snap": 1}})
+    err = server.until(lambda e: e["type"] == "error")[-1]  # the one message style: WHERE: expected WHAT, got VALUE
+    assert err["message"] == "option 'primitive_snap': expected a number in [0, 1), got 1", err
+
+
 def _alive(server):
     server.send({"type": "ping", "id": "alive"})
     assert server.until(lambda e: e["type"] == "pong")[-1] == {"type": "pong", "id": "alive"}
@@ -177,6 +202,8 @@ def test_ping_and_version(server, trained):
         ('{"type": "reconstruct", "id": 25, "image": "a.png", "output": "b.obj", "options": {"test_time_mirror": "on"}}', "bad_field", 25),
         ('{"type": "reconstruct", "id": 26, "image": "a.png", "output": "b.obj", "options": {"pit_sealing": 9}}', "bad_field", 26),
         ('{"type": "reconstruct", "id": 27, "image": "a.png", "output": "b.obj", "options": {"pit_sealing": true}}', "bad_field", 27),
+        ('{"type": "reconstruct", "id": 28, "image": "a.png", "output": "b.obj", "options": {"quality": "slow"}}', "bad_field", 28),
+        ('{"type": "reconstruct", "id": 29, "image": "a.png", "output": "b.obj", "options": {"quality": 1}}', "bad_field", 29),
         ('{"type": "reconstruct", "id": true, "image": "a.png", "output": "b.obj"}', "bad_field", None),
         ('{"type": "cancel"}', "missing_field", None),
         ('{"type": "cancel", "id": "nobody"}', "unknown_job", "nobody"),
@@ -193,7 +220,7 @@ def test_malformed_requests_get_error_events(server, line, code, rid):
 def test_reconstruct_reports_progress_and_result(server, files, trained):
     out = files["out"] / "box.ply"
     server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.45, "hole_closing": 2, "silhouette_carve": True, "visible_fusion": True, "primitive_snap": 0.99, "test_time_mirror": True,
-                                                                                                                "pit_sealing": 3,
+                                                                                                                "pit_sealing": 3, "quality": "fast",
                                                                                                                 "save_intermediates": str(files["out"] / "inter")}})
     events = server.until(lambda e: e["type"] in ("result", "error"))
     result = events[-1]
@@ -207,7 +234,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     assert result["threshold"] == 0.45  # the option, not the weights' level (0.5 here)
     assert result["hole_closing"] == 2 and result["silhouette_carve"] is True and result["visible_fusion"] is True  # likewise
     assert result["primitive"] in ("box", "cylinder", "cone", "torus", "ellipsoid") and result["primitive_snap"] == 0.99  # (so loose a tolerance always snaps)
-    assert result["test_time_mirror"] is True and result["pit_sealing"] == 3
+    assert result["test_time_mirror"] is True and result["pit_sealing"] == 3  # (an option given wins over the quality's set)
     assert result["faces"] == len(trimesh.load(out, force="mesh").faces) > 0
     assert set(result["timings"]) >= {"depth", "refine", "mesh", "write"}
     cam = result["camera"]

@@ -22,7 +22,6 @@ The mesh lives in the view frame of :mod:`genre_backend.frame`.
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -34,14 +33,11 @@ import torch
 
 from ..config import GenreConfig
 from ..io import DEFAULT_WEIGHTS_NAME, named_weights
-from ..validation import check_hole_closing, check_threshold
-from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, CleanReport, clean_mesh
-from ..geometry.mesh_voxels import fill_enclosed, fuse_visible_surface, onto_surface, seal_pits, voxels_to_mesh
-from ..geometry.primitives import snap
-from ..geometry.voxels import silhouette_ramp
+from ..geometry.cleanup import CleanReport, clean_mesh
 from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, resolve_format, resolve_up, short, write_mesh, write_png
 from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
+from .options import MeshOptions, mesh_of_probability
 from .preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess, uncrop
 from .segment import DEFAULT_SEEDING, doubt
 
@@ -77,25 +73,6 @@ ProgressFn = Callable[[str, float], None]
 
 class Cancelled(Exception):
     """The job was cancelled; raised at the next stage boundary."""
-
-
-def mesh_of_probability(prob: torch.Tensor, threshold: float, geometry, hole_closing: int,
-                        keep_fraction: float = DEFAULT_KEEP_FRACTION):
-    """The mesh ``genre reconstruct`` makes of a probability grid (N, N, N), after any carving or fusion.
-
-    For the distance target the enclosed voxels are filled first (:func:`fill_enclosed`, holes up to about
-    ``2·hole_closing`` voxels sealed); marching cubes at ``threshold``; cavity walls and parts smaller than
-    ``keep_fraction`` of the largest dropped (:func:`clean_mesh`); the sheets moved onto the surface
-    (:func:`onto_surface`).  Returns ``(grid as meshed (N, N, N) float32, vertices (V, 3) float32, faces
-    (F, 3) int64, CleanReport)``; the report is None, and the mesh empty, when no voxel reaches ``threshold``.
-    """
-    if geometry.target == "distance":
-        prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
-    vertices, faces = voxels_to_mesh(prob, threshold)
-    if len(faces) == 0:
-        return prob, vertices, faces, None
-    vertices, faces, clean = clean_mesh(vertices, faces, keep_fraction)
-    return prob, onto_surface(vertices, faces, threshold, geometry), faces, clean
 
 
 def error_code(exc: BaseException) -> str:
@@ -155,13 +132,10 @@ class Reconstruction:
     doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
     of the photo or touches most of its border; :func:`~genre_backend.inference.segment.cut_doubt`:
     GrabCut's colours barely separate it, or it runs along the photo's edge), else None.
-    ``threshold``, ``hole_closing``, ``silhouette_carve`` and ``visible_fusion``: the level, the hole
-    sealing (voxels), whether the voxels outside the mask were carved away and whether the holes in the
-    visible face were filled from the depth map, as the mesh was made.  ``pit_sealing``: the widest pit
-    in the visible front sealed (voxels; 0: none).  ``primitive_snap``: the tolerance
-    of the regular-shape stage (0: off); ``primitive``: the family of the fitted shape that replaced the
+    ``options``: the mesh options as the mesh was made (:class:`.options.MeshOptions`, resolved against the weights:
+    no field ``None``); ``threshold``, ``hole_closing``, ``silhouette_carve``, ``visible_fusion``, ``pit_sealing``,
+    ``primitive_snap`` and ``test_time_mirror`` read them.  ``primitive``: the family of the fitted shape that replaced the
     mesh (``"box"``, ``"cylinder"``, ``"cone"``, ``"torus"``, ``"ellipsoid"``), else None.
-    ``test_time_mirror``: whether the output was averaged with the mirror image's.
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -180,7 +154,7 @@ class Reconstruction:
     vertices: np.ndarray
     faces: np.ndarray
     mask_source: str
-    threshold: float
+    options: MeshOptions
     timings: dict[str, float]
     crop_box: tuple[float, float, float, float]
     image_size: tuple[int, int]
@@ -196,14 +170,16 @@ class Reconstruction:
     up: str = "y"
     photo_mask: np.ndarray | None = field(default=None, repr=False)
     mask_warning: str | None = None
-    hole_closing: int = 0
-    silhouette_carve: bool = False
-    visible_fusion: bool = False
-    pit_sealing: int = 0
-    primitive_snap: float = 0.0
     primitive: str | None = None
-    test_time_mirror: bool = False
     _texture: PhotoTexture | None = field(default=None, repr=False)
+
+    threshold = property(lambda self: self.options.threshold, doc="the isosurface level the mesh was made at")
+    hole_closing = property(lambda self: self.options.hole_closing, doc="the hole sealing (voxels) the mesh was made with")
+    silhouette_carve = property(lambda self: self.options.silhouette_carve, doc="whether the grid was carved to the outline")
+    visible_fusion = property(lambda self: self.options.visible_fusion, doc="whether the visible face's holes were filled")
+    pit_sealing = property(lambda self: self.options.pit_sealing, doc="the widest pit sealed (voxels; 0: none)")
+    primitive_snap = property(lambda self: self.options.primitive_snap, doc="the regular-shape tolerance (0: off)")
+    test_time_mirror = property(lambda self: self.options.test_time_mirror, doc="whether the mirror image was averaged in")
 
     @property
     def inputs(self) -> tuple[Path, ...]:
@@ -426,86 +402,32 @@ class Reconstructor:
         self,
         image_path: str | os.PathLike,
         mask_path: str | os.PathLike | None = None,
-        threshold: float | None = None,
+        options: MeshOptions | None = None,
+        *,
         progress: ProgressFn | None = None,
         should_cancel: Callable[[], bool] | None = None,
-        keep_fraction: float = DEFAULT_KEEP_FRACTION,
         refine: bool = True,
         seeding: str = DEFAULT_SEEDING,
-        hole_closing: int | None = None,
-        silhouette_carve: bool | None = None,
-        visible_fusion: bool | None = None,
-        primitive_snap: float | None = None,
-        test_time_mirror: bool | None = None,
-        pit_sealing: int | None = None,
         box: tuple[float, float, float, float] | None = None,
         strokes_path: str | os.PathLike | None = None,
+        **overrides,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
-        ``threshold`` in (0, 1): the isosurface level of sigmoid(logits)
-        (default: the config's ``default_threshold``).  ``progress(stage,
-        fraction)`` is called as each stage starts (fraction of the whole job
-        done so far).  ``should_cancel()`` is polled at every stage boundary;
-        when it returns True, :class:`Cancelled` is raised.
-        ``keep_fraction``: parts of the mesh smaller (in area) than this
-        fraction of the largest are dropped (0 keeps every part; cavity walls
-        inside the object are always dropped).  ``refine`` and ``seeding``:
-        without a mask file or alpha, find the mask by GrabCut
-        (:func:`.preprocess.preprocess`); ``refine=False`` takes the depth
-        net's silhouette as it is.  ``hole_closing`` (voxels, 0-8): gaps in
-        the distance tube up to about twice this across are sealed
-        (:func:`..geometry.mesh_voxels.fill_enclosed`; default: the config's
-        ``hole_closing``; ignored by shell weights).  ``silhouette_carve``: cap the
-        probability by the mask's outline ramp before the mesh is made, so nothing
-        sticks out past the outline
-        (:func:`..geometry.voxels.silhouette_ramp`; default: the config's).  ``visible_fusion``: fill the
-        holes the refiner leaves in the face the camera sees with the depth map's surface
-        (:func:`..geometry.mesh_voxels.fuse_visible_surface`; default: the config's; distance weights only).
-        ``pit_sealing`` (voxels, 0-8; 0: off): fill the narrow wells in the grid's own visible front, up to about
-        twice this across, with the front around them (:func:`..geometry.mesh_voxels.seal_pits`; default: the
-        config's; distance weights only).
-        ``primitive_snap`` (a tolerance in [0, 1); 0: off): replace the mesh by the box, cylinder, cone, torus or
-        ellipsoid whose silhouette matches the mask and which stays on the mesh within this tolerance
-        (:func:`..geometry.primitives.snap`; default: the config's).  ``test_time_mirror``: average the refiner's
-        output with that of the photo's mirror image, reflected back (:func:`..nets.model.mirror_averaged`; twice
-        the nets' time; default: the config's).  ``box`` (x0, y0, x1, y1, the photo's pixels) and
-        ``strokes_path`` (white object and black background strokes on grey, the photo's size): a person's
-        guidance for the mask instead of the automatic one (:func:`.preprocess.preprocess`).  Raises
-        :class:`ImageError` for bad images, masks or images with no object.
+        ``options``: the mesh options (:class:`.options.MeshOptions`; its ``None`` fields, and all of them when it is
+        None, take the weights' settings); ``overrides``: options by name laid over it (``threshold=0.4``), checked
+        alike (:class:`.options.OptionError`, a ValueError naming the option).  ``progress(stage, fraction)`` is
+        called as each stage starts (fraction of the whole job done so far).  ``should_cancel()`` is polled at every
+        stage boundary; when it returns True, :class:`Cancelled` is raised.  ``refine`` and ``seeding``: without a
+        mask file or alpha, find the mask by GrabCut (:func:`.preprocess.preprocess`); ``refine=False`` takes the
+        depth net's silhouette as it is.  ``box`` (x0, y0, x1, y1, the photo's pixels) and ``strokes_path`` (white
+        object and black background strokes on grey, the photo's size): a person's guidance for the mask instead of
+        the automatic one (:func:`.preprocess.preprocess`).  The steps after the networks are the options' own
+        (:meth:`.options.MeshOptions.shape_grid`, :meth:`~.options.MeshOptions.mesh`,
+        :meth:`~.options.MeshOptions.snap_mesh`).  Raises :class:`ImageError` for bad images, masks or images with
+        no object.
         """
-        g = self.config.geometry
-        if threshold is None:
-            threshold = g.default_threshold
-        threshold = check_threshold("threshold", threshold)
-        if hole_closing is None:
-            hole_closing = g.hole_closing
-        check_hole_closing("hole_closing", hole_closing)
-        if silhouette_carve is None:
-            silhouette_carve = g.silhouette_carve
-        if not isinstance(silhouette_carve, bool):
-            raise ValueError(f"silhouette_carve: expected True or False, got {silhouette_carve!r}")
-        if visible_fusion is None:
-            visible_fusion = g.visible_fusion
-        if not isinstance(visible_fusion, bool):
-            raise ValueError(f"visible_fusion: expected True or False, got {visible_fusion!r}")
-        if visible_fusion and g.target != "distance":
-            raise ValueError(f"visible_fusion: these weights predict the {g.target!r} target; only distance grids take the visible surface")
-        if pit_sealing is None:
-            pit_sealing = g.pit_sealing
-        pit_sealing = check_hole_closing("pit_sealing", pit_sealing)
-        if pit_sealing and g.target != "distance":
-            raise ValueError(f"pit_sealing: these weights predict the {g.target!r} target; pits are sealed only in distance grids")
-        if primitive_snap is None:
-            primitive_snap = g.primitive_snap
-        if isinstance(primitive_snap, bool) or not isinstance(primitive_snap, (int, float)) or not (math.isfinite(primitive_snap) and 0.0 <= primitive_snap < 1.0):
-            raise ValueError(f"primitive_snap: expected a share in [0, 1) (0: off), got {primitive_snap!r}")
-        if test_time_mirror is None:
-            test_time_mirror = g.test_time_mirror
-        if not isinstance(test_time_mirror, bool):
-            raise ValueError(f"test_time_mirror: expected True or False, got {test_time_mirror!r}")
-        if isinstance(keep_fraction, bool) or not isinstance(keep_fraction, (int, float)) or not 0.0 <= keep_fraction <= 1.0:
-            raise ValueError(f"keep_fraction: expected a number in [0, 1], got {keep_fraction!r}")
+        opts = MeshOptions.from_mapping(overrides).over(options or MeshOptions()).resolved(self.config.geometry)
         timings: dict[str, float] = {}
         state = {"stage": None, "t0": 0.0}
 
@@ -544,27 +466,21 @@ class Reconstructor:
             vox_depth = model.depth_voxels(masked)
             stage("refine")
             logits = model.refine(vox_sph, vox_depth)
-            if test_time_mirror:  # the mirror image through every net, its output reflected back
+            if opts.test_time_mirror:  # the mirror image through every net, its output reflected back
                 logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k)["logits"], pre.rgb[None].to(self.device), mask,
                                          logits=logits)
             stage("mesh")
             prob = torch.sigmoid(logits[0, 0]).float().cpu()
-            if silhouette_carve:
-                prob = torch.minimum(prob, silhouette_ramp(mask.cpu(), model.config.camera, prob.shape[-1])[0, 0])
-            if visible_fusion:
-                prob = fuse_visible_surface(prob, masked[0], model.config.camera, model.config.geometry, threshold)
-            if pit_sealing:
-                prob = seal_pits(prob, mask[0].cpu(), model.config.camera, model.config.geometry, threshold, pit_sealing)
-            prob, vertices, faces, clean = mesh_of_probability(prob, threshold, model.config.geometry, hole_closing, keep_fraction)
+            prob = opts.shape_grid(prob, mask[0], masked[0], model.config.camera, model.config.geometry)
+            prob, vertices, faces, clean = opts.mesh(prob, model.config.geometry)
             if clean is None:
-                raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {threshold:g})")
+                raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {opts.threshold:g})")
             primitive, notes = None, list(pre.notes)
-            if primitive_snap > 0:
-                vertices, faces, fit = snap(vertices, faces, masked[0], model.config.camera, primitive_snap)
-                if fit is not None and fit.accepted(primitive_snap):
-                    primitive = fit.family
-                    vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
-                    notes.append(f"the mesh is a fitted {fit.describe()}")
+            vertices, faces, fit = opts.snap_mesh(vertices, faces, masked[0], model.config.camera)
+            if fit is not None:
+                primitive = fit.family
+                vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
+                notes.append(f"the mesh is a fitted {fit.describe()}")
             stage("done")
         photo_mask = pre.photo_mask
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
@@ -590,7 +506,7 @@ class Reconstructor:
             vertices=vertices,
             faces=faces,
             mask_source=pre.mask_source,
-            threshold=threshold,
+            options=opts,
             timings=timings,
             crop_box=pre.crop_box,
             image_size=pre.image_size,
@@ -604,11 +520,5 @@ class Reconstructor:
             clean=clean,
             photo_mask=photo_mask,
             mask_warning=warning,
-            hole_closing=int(hole_closing),
-            silhouette_carve=silhouette_carve,
-            visible_fusion=visible_fusion,
-            pit_sealing=pit_sealing,
-            primitive_snap=float(primitive_snap),
-            test_time_mirror=test_time_mirror,
             primitive=primitive,
         )

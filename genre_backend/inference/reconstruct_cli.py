@@ -1,5 +1,8 @@
-"""``genre reconstruct IMAGE… [-o OUT] [--mask M | --box x0,y0,x1,y1 --strokes S] [--threshold T] [--format obj|ply|glb]
-[--up y|z] [--texture] [--all-parts] [--no-refine] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
+"""``genre reconstruct IMAGE… [-o OUT] [--mask M | --box x0,y0,x1,y1 --strokes S] [MESH OPTIONS] [--quality fast|best]
+[--no-refine] [--save-intermediates DIR] [--preview] [--weights W] [--device cpu|cuda]``.
+
+The mesh options (``--threshold T``, ``--hole-closing K``, ``--texture``, ``--format obj|ply|glb``, ``--up y|z``, …)
+are the fields of :class:`.options.MeshOptions`, one flag each (:func:`.options.add_arguments`).
 
 One image or many (a progress bar on stderr for many).  Each mesh is written
 atomically; every bad input gets one line on stderr naming the file and the
@@ -106,36 +109,9 @@ def _main(argv: list[str] | None, prog: str) -> int:
     parser.add_argument("--strokes", metavar="S",
                         help="strokes image for the (single) photo, the photo's size: white (>= 192) on the object, black "
                              "(<= 63) on the background, mid grey (128) or transparent elsewhere; GrabCut keeps them")
-    parser.add_argument("--threshold", type=float, metavar="T", help="isosurface level in (0, 1) (default: the weights' config)")
-    parser.add_argument("--hole-closing", type=int, metavar="K",
-                        help="seal holes in the mesh up to about 2·K voxels across, 0-8 (default: the weights' config; "
-                             "0 seals nothing; more also fills narrow gaps between parts)")
-    parser.add_argument("--silhouette-carve", action=argparse.BooleanOptionalAction, default=None,
-                        help="carve away what falls outside the mask's outline before the mesh is made (default: the "
-                             "weights' config, geometry.silhouette_carve)")
-    parser.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
-                        help="fill the holes the model leaves in the side the photo shows with the estimated depth's "
-                             "surface (default: the weights' config, geometry.visible_fusion)")
-    parser.add_argument("--pit-sealing", type=int, metavar="K",
-                        help="fill the narrow, deep wells the model leaves in the side the photo shows, up to about 2·K "
-                             "voxels across, with the surface around them, 0-8 (default: the weights' config, "
-                             "geometry.pit_sealing; 0 seals nothing)")
-    parser.add_argument("--primitive-snap", type=float, metavar="TOL",
-                        help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette "
-                             "matches the mask (1 - IoU) and it stays on the mesh (twice the mean distance over its size) "
-                             "within TOL, in [0, 1); 0 turns it off; default: the weights' config, geometry.primitive_snap)")
-    parser.add_argument("--test-time-mirror", action=argparse.BooleanOptionalAction, default=None,
-                        help="also run the photo's mirror image and average the two (about twice the nets' time; "
-                             "default: the weights' config, geometry.test_time_mirror)")
-    parser.add_argument("--format", choices=MESH_FORMATS, help="mesh format (default: from -o's extension, else obj)")
-    parser.add_argument("--up", choices=["y", "z"],
-                        help="the mesh file's up axis: z (default for ply: Blender's axes, front toward -y) or y (the view "
-                             "frame: +y up, +z toward the camera; always so for obj and glb, whose importers expect it; "
-                             "--up z is for ply only)")
-    parser.add_argument("--texture", action="store_true",
-                        help="colour the mesh from the photo: obj gets UVs, an .mtl and NAME_texture.png beside it; glb embeds the texture; ply gets vertex colours")
-    parser.add_argument("--all-parts", action="store_true",
-                        help="keep every part of the mesh (default: parts smaller than 5%% of the largest part's area are dropped)")
+    from .options import OptionError, add_arguments, from_arguments
+
+    add_arguments(parser)  # every mesh option (genre_backend/inference/options.py) and --quality
     parser.add_argument("--no-refine", action="store_true",
                         help="without --mask or alpha, use the depth net's silhouette as it is (default: find the object in the photo by GrabCut)")
     parser.add_argument("--save-intermediates", metavar="DIR",
@@ -167,30 +143,11 @@ def _main(argv: list[str] | None, prog: str) -> int:
             box = check_box("--box", args.box)
         except ValueError as exc:
             parser.error(str(exc))
-    if args.threshold is not None:
-        from ..validation import check_threshold  # (torch loads only once a command runs)
-
-        try:
-            check_threshold("--threshold", args.threshold)
-        except ValueError as exc:
-            parser.error(str(exc))
-    if args.hole_closing is not None:
-        from ..validation import check_hole_closing
-
-        try:
-            check_hole_closing("--hole-closing", args.hole_closing)
-        except ValueError as exc:
-            parser.error(str(exc))
-    if args.pit_sealing is not None:
-        from ..validation import check_hole_closing
-
-        try:
-            check_hole_closing("--pit-sealing", args.pit_sealing)
-        except ValueError as exc:
-            parser.error(str(exc))
-    if args.primitive_snap is not None and not (0.0 <= args.primitive_snap < 1.0):
-        parser.error(f"--primitive-snap: expected a number in [0, 1) (0: off), got {args.primitive_snap:g}")
-    fmt = args.format
+    try:
+        options = from_arguments(args)
+    except OptionError as exc:
+        parser.error(str(exc))
+    fmt = options.format
     single_file = len(images) == 1 and args.output and not _is_dir(args.output) and not args.output.endswith(os.sep)
     if single_file:
         ext = Path(args.output).suffix.lower().lstrip(".")
@@ -202,7 +159,7 @@ def _main(argv: list[str] | None, prog: str) -> int:
     from .mesh_export import resolve_up
 
     try:
-        up = resolve_up(fmt, args.up)
+        up = resolve_up(fmt, options.up)
     except ValueError as exc:
         parser.error(f"--{exc}")
     if len(images) > 1 and args.output:
@@ -232,7 +189,6 @@ def _main(argv: list[str] | None, prog: str) -> int:
         )
         return 1
 
-    from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
     from .mesh_export import check_outputs
     from .reconstruct import Reconstructor, error_code
 
@@ -269,27 +225,15 @@ def _main(argv: list[str] | None, prog: str) -> int:
                 if args.save_intermediates:
                     intermediates = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
                 preview = out.with_name(out.stem + "_preview.png") if args.preview else None
-                check_outputs(out, fmt, args.texture, (image, args.mask, args.strokes), intermediates, preview)  # every output, before any work
-                result = rec.run(image, mask_path=args.mask, threshold=args.threshold, keep_fraction=0.0 if args.all_parts else DEFAULT_KEEP_FRACTION,
-                                 refine=not args.no_refine, hole_closing=args.hole_closing,
-                                 silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
-                                 primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror,
-                                 pit_sealing=args.pit_sealing, box=box, strokes_path=args.strokes)
-                path, used = result.save_mesh(out, fmt, texture=args.texture, up=up)
+                check_outputs(out, fmt, bool(options.texture), (image, args.mask, args.strokes), intermediates, preview)  # every output, before any work
+                result = rec.run(image, mask_path=args.mask, options=options, refine=not args.no_refine, box=box,
+                                 strokes_path=args.strokes)
+                path, used = result.save_mesh(out, fmt, texture=bool(options.texture), up=up)
                 if intermediates is not None:
                     result.save_intermediates(intermediates)
                 if preview is not None:
-                    result.save_preview(preview, texture=args.texture)
-                total = sum(result.timings.values())
-                clean = result.clean
-                shape = f"{clean.parts} part{'s' if clean.parts != 1 else ''}{', watertight' if clean.watertight else ', not watertight'}"
-                if clean.parts_before != clean.parts:
-                    shape += f"; {clean.parts_before - clean.parts} small or inner parts dropped"
-                colour = ", coloured from the photo" if args.texture else ""
-                if result.primitive is not None:
-                    shape += f"; a fitted {result.primitive}"
-                axis = ", +z up" if result.up == "z" else ""
-                say(f"{image} -> {path} ({used}{axis}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, mask: {result.mask_source}, {total:.2f} s)")
+                    result.save_preview(preview, texture=bool(options.texture))
+                say(_result_line(image, path, used, result, bool(options.texture)))
                 if result.mask_warning:
                     fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \
                         else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"
@@ -310,6 +254,21 @@ def _main(argv: list[str] | None, prog: str) -> int:
     if failed and many:
         print(f"{prog}: {failed} of {len(images)} images failed", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _result_line(image: Path, path: Path, fmt: str, result, textured: bool) -> str:
+    """The one line ``genre reconstruct`` prints for a written mesh: its file, size, parts, colour, mask and time."""
+    clean = result.clean
+    shape = f"{clean.parts} part{'s' if clean.parts != 1 else ''}{', watertight' if clean.watertight else ', not watertight'}"
+    if clean.parts_before != clean.parts:
+        shape += f"; {clean.parts_before - clean.parts} small or inner parts dropped"
+    if result.primitive is not None:
+        shape += f"; a fitted {result.primitive}"
+    colour = ", coloured from the photo" if textured else ""
+    axis = ", +z up" if result.up == "z" else ""
+    total = sum(result.timings.values())
+    return (f"{image} -> {path} ({fmt}{axis}, {len(result.vertices)} vertices, {len(result.faces)} faces, {shape}{colour}, "
+            f"mask: {result.mask_source}, {total:.2f} s)")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -33,7 +33,18 @@ from .. import __version__
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
 PROTOCOL_VERSION = 1
-_OPTION_KEYS = ("threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror", "format", "up", "save_intermediates", "texture", "all_parts")
+# the option keys of a request: every mesh option of the record (genre_backend/inference/options.py), the named set
+# `quality`, and the intermediates folder (a path, like `mask`, not a mesh option)
+_PATH_OPTIONS = ("save_intermediates",)
+
+
+def _option_keys() -> tuple[str, ...]:
+    from .options import BY_NAME
+
+    return (*BY_NAME, "quality", *_PATH_OPTIONS)
+
+
+_OPTION_KEYS = _option_keys()
 log = logging.getLogger("genre.serve")
 
 
@@ -80,18 +91,8 @@ class Job:
     image: str
     output: str
     mask: str | None
-    threshold: float | None
-    format: str | None
+    options: Any  # options.MeshOptions: the request's, over its quality's set (None fields: the weights')
     save_intermediates: str | None
-    texture: bool = False
-    all_parts: bool = False
-    hole_closing: int | None = None
-    silhouette_carve: bool | None = None
-    visible_fusion: bool | None = None
-    primitive_snap: float | None = None
-    test_time_mirror: bool | None = None
-    pit_sealing: int | None = None
-    up: str | None = None
     box: tuple[float, float, float, float] | None = None  # a person's box and strokes file for GrabCut (mask inputs)
     strokes: str | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
@@ -172,6 +173,8 @@ class Server:
         self.emit({"type": "error", "id": req_id, "code": code, "message": _cap(message)})
 
     def info(self) -> dict:
+        from .options import schema
+
         return {
             "protocol": PROTOCOL_VERSION,
             "version": __version__,
@@ -179,6 +182,7 @@ class Server:
             "preset": self.rec.preset,
             "device": self.device,
             "threshold": self.rec.config.geometry.default_threshold,
+            **schema(self.rec.config.geometry),  # "options" and "qualities": the mesh options' record (options.py)
         }
 
     # ---- requests -----------------------------------------------------------------------
@@ -236,69 +240,23 @@ class Server:
             options = {}
         elif not isinstance(options, dict):  # false, 0, "" and [] included
             raise RequestError("bad_field", f"field 'options' must be an object, got {_show(options, 60)}", rid)
-        unknown = sorted(set(options) - set(_OPTION_KEYS))
-        if unknown:
-            raise RequestError("bad_field", f"unknown option(s) {_cap(', '.join(map(_show, unknown)), 600)}; known: {', '.join(_OPTION_KEYS)}", rid)
-        threshold = options.get("threshold")
-        if threshold is not None:
-            from ..validation import check_threshold
+        from .mesh_export import resolve_format
+        from .options import OptionError, parse_request_options
 
-            try:
-                check_threshold("threshold", threshold)
-            except ValueError:
-                raise RequestError("bad_field", f"option 'threshold' must be a number in (0, 1), got {_show(threshold)}", rid) from None
-        from ..validation import check_hole_closing
-
-        widths = {}
-        for name in ("hole_closing", "pit_sealing"):  # voxel widths, one check for both
-            value = widths[name] = options.get(name)
-            if value is not None:
-                try:
-                    check_hole_closing(name, value)
-                except ValueError:
-                    raise RequestError("bad_field", f"option '{name}' must be an integer in [0, 8] (voxels), got {_show(value)}",
-                                       rid) from None
-        hole_closing, pits = widths["hole_closing"], widths["pit_sealing"]
-        carve = options.get("silhouette_carve")
-        if carve is not None and not isinstance(carve, bool):
-            raise RequestError("bad_field", f"option 'silhouette_carve' must be true or false, got {_show(carve)}", rid)
-        fusion = options.get("visible_fusion")
-        if fusion is not None and not isinstance(fusion, bool):
-            raise RequestError("bad_field", f"option 'visible_fusion' must be true or false, got {_show(fusion)}", rid)
-        mirror = options.get("test_time_mirror")
-        if mirror is not None and not isinstance(mirror, bool):
-            raise RequestError("bad_field", f"option 'test_time_mirror' must be true or false, got {_show(mirror)}", rid)
-        snap = options.get("primitive_snap")
-        if snap is not None and (isinstance(snap, bool) or not isinstance(snap, (int, float)) or not 0.0 <= snap < 1.0):
-            raise RequestError("bad_field", f"option 'primitive_snap' must be a number in [0, 1) (0: off), got {_show(snap)}", rid)
-        fmt = options.get("format")
-        if fmt is not None and fmt not in ("obj", "ply", "glb"):
-            raise RequestError("bad_field", f"option 'format' must be 'obj', 'ply' or 'glb', got {_show(fmt)}", rid)
+        try:
+            record = parse_request_options(options, show=_show, extra=_PATH_OPTIONS)
+        except OptionError as exc:
+            raise RequestError("bad_field", _cap(str(exc)), rid) from None
+        fmt = record.format
         if fmt is not None:
             ext = Path(output).suffix.lower().lstrip(".")
             if ext in ("obj", "ply", "glb") and ext != fmt:  # as the CLI: format and extension agree
                 raise RequestError("bad_field", f"option 'format' {fmt} does not match the output's extension .{ext}", rid)
-        up = options.get("up")
-        if up is not None:
-            from .mesh_export import resolve_format
-
-            if up not in ("y", "z"):
-                raise RequestError("bad_field", f"option 'up' must be 'y' or 'z', got {_show(up)}", rid)
-            written = resolve_format(output, fmt)
-            if up == "z" and written != "ply":
-                raise RequestError("bad_field", f"option 'up' 'z' is for ply only; {written} is always written +y up, as its importers expect", rid)
+        written = resolve_format(output, fmt)
+        if record.up == "z" and written != "ply":
+            raise RequestError("bad_field", f"option 'up' 'z' is for ply only; {written} is always written +y up, as its importers expect", rid)
         inter = self._str(options, "save_intermediates", rid, False, "option")
-        flags = {}
-        for name in ("texture", "all_parts"):
-            value = options.get(name)
-            value = False if value is None else value  # (null counts as absent)
-            if not isinstance(value, bool):
-                raise RequestError("bad_field", f"option '{name}' must be true or false, got {_show(value)}", rid)
-            flags[name] = value
-        return Job(rid, image, output, mask, None if threshold is None else float(threshold), fmt, inter, **flags,
-                   hole_closing=None if hole_closing is None else int(hole_closing), silhouette_carve=carve,
-                   visible_fusion=fusion, primitive_snap=None if snap is None else float(snap), test_time_mirror=mirror,
-                   pit_sealing=None if pits is None else int(pits), up=up, box=box, strokes=strokes)
+        return Job(rid, image, output, mask, record, inter, box=box, strokes=strokes)
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -399,7 +357,6 @@ class Server:
         self.emit(event)
 
     def _run(self, job: Job) -> None:
-        from ..geometry.cleanup import DEFAULT_KEEP_FRACTION
         from .mesh_export import check_outputs
         from .reconstruct import STAGE_START, Cancelled, error_code
 
@@ -409,27 +366,21 @@ class Server:
         log.info("job %s: %s -> %s", _cap(_key(job.id), 300), _cap(job.image, 300), _cap(job.output, 300))
         try:
             # every output (mesh, .mtl, texture, intermediates folder) before any network runs
-            check_outputs(job.output, job.format, job.texture, (job.image, job.mask, job.strokes), job.save_intermediates)
+            opts = job.options
+            check_outputs(job.output, opts.format, bool(opts.texture), (job.image, job.mask, job.strokes), job.save_intermediates)
             result = self.rec.run(
                 job.image,
                 mask_path=job.mask,
-                threshold=job.threshold,
-                hole_closing=job.hole_closing,
-                silhouette_carve=job.silhouette_carve,
-                visible_fusion=job.visible_fusion,
-                primitive_snap=job.primitive_snap,
-                test_time_mirror=job.test_time_mirror,
-                pit_sealing=job.pit_sealing,
+                options=opts,
                 box=job.box,
                 strokes_path=job.strokes,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
-                keep_fraction=0.0 if job.all_parts else DEFAULT_KEEP_FRACTION,
             )
             if job.cancel.is_set():
                 raise Cancelled("cancelled before stage write")
             self.emit({"type": "progress", "id": job.id, "stage": "write", "fraction": STAGE_START["write"]})
-            path, fmt = result.save_mesh(job.output, job.format, texture=job.texture, up=job.up)
+            path, fmt = result.save_mesh(job.output, opts.format, texture=bool(opts.texture), up=opts.up)
             if job.save_intermediates:
                 result.save_intermediates(job.save_intermediates)
         except Cancelled:

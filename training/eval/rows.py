@@ -28,7 +28,8 @@ front (``geometry.pit_sealing``), every learned voxel row does so (after any fus
 regular shape (``geometry.primitive_snap``), every row with a depth map is fitted
 likewise, to its own depth map and its mesh at the weights' level.  When they average each view with its
 mirror image (``geometry.test_time_mirror``), every learned row does so with its own model
-(:func:`genre_backend.nets.model.mirror_averaged`).
+(:func:`genre_backend.nets.model.mirror_averaged`).  These steps are ``genre reconstruct``'s own, in its order
+(:class:`genre_backend.inference.options.MeshOptions`, resolved against the weights).
 """
 
 from __future__ import annotations
@@ -38,9 +39,7 @@ from dataclasses import dataclass
 import torch
 
 from genre_backend.config import GenreConfig
-from genre_backend.geometry.mesh_voxels import fuse_visible_surface, grid_to_surface, seal_pits
-from genre_backend.geometry.primitives import snap
-from genre_backend.geometry.voxels import silhouette_ramp
+from genre_backend.inference.options import MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
 from .protocol import REPRESENTATION, ROWS
@@ -92,7 +91,8 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     full = sample["full_sph"][None].to(device)
     out: dict[str, dict] = {}
     true_depth = torch.where(mask, depth, torch.zeros_like(depth))[0].cpu()
-    mirror = m.config.geometry.test_time_mirror  # every learned row alike
+    opts = MeshOptions().resolved(m.config.geometry)  # the weights' own options, as genre reconstruct takes them by default
+    mirror = opts.test_time_mirror  # every learned row alike
     g = m(rgb, mask=mask, mirror=mirror)
     out["GenRe"] = {"prob": torch.sigmoid(g["logits"])[0, 0].cpu(), "depth": g["masked_depth"][0].cpu()}
     pred_depth = g["masked_depth"]
@@ -121,24 +121,15 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
 
         logits = mirror_averaged(onestep, rgb, mask) if mirror else onestep(rgb, mask, None, None)
         out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu()}
-    if m.config.geometry.silhouette_carve:  # every learned row alike (the truth is left as it is)
-        ramp = silhouette_ramp(mask.cpu(), m.config.camera, m.config.geometry.voxel_size)[0, 0]
-        for row in out.values():
-            if isinstance(row, dict) and "prob" in row:
-                row["prob"] = torch.minimum(row["prob"], ramp)
-    geometry = m.config.geometry
-    for row in out.values():  # the depth maps go either way: no row after this point carries one
-        if isinstance(row, dict) and "depth" in row:
+    camera = m.config.camera
+    for row in out.values():  # the steps after the networks, genre reconstruct's own (options.py), every learned row alike
+        if isinstance(row, dict) and "depth" in row:  # (the depth maps go either way: no row after this point carries one)
             d = row.pop("depth")
-            if geometry.visible_fusion:  # at the weights' level: the one the mesh is made at by genre reconstruct
-                row["prob"] = fuse_visible_surface(row["prob"], d, m.config.camera, geometry, geometry.default_threshold)
-            if geometry.pit_sealing:  # the same level; the pits are the grid's own, seen through the view's mask
-                row["prob"] = seal_pits(row["prob"], mask[0].cpu().bool(), m.config.camera, geometry, geometry.default_threshold,
-                                        geometry.pit_sealing)
-            if geometry.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
-                v, f = grid_to_surface(row["prob"], geometry.default_threshold, geometry)
-                v, f, fit = snap(v, f, d, m.config.camera, geometry.primitive_snap)
-                if fit is not None and fit.accepted(geometry.primitive_snap):
+            row["prob"] = opts.shape_grid(row["prob"], mask[0], d, camera, m.config.geometry)
+            if opts.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
+                _, v, f, _ = opts.mesh(row["prob"], m.config.geometry, clean=False)
+                v, f, fit = opts.snap_mesh(v, f, d, camera)
+                if fit is not None:
                     row["mesh"] = (v, f)
     if REPRESENTATION in models.wanted:
         out[REPRESENTATION] = {"prob": sample["voxels"]}

@@ -1,0 +1,385 @@
+"""The mesh options: one frozen record, and the steps after the networks that they steer.
+
+:class:`MeshOptions` is the one place a mesh option is written down.  Each
+field carries an :class:`Option` in its metadata: its kind (float, int, bool
+or a choice), its range, where its default comes from (a field of the weights'
+``GeometryConfig``, else a plain default), a label and one line of help.
+From it come
+
+* the checks (:meth:`Option.check`: one message style, ``WHERE: expected
+  WHAT, got VALUE``; ``WHERE`` is ``--flag`` for the CLI, ``option 'name'``
+  for ``genre serve`` and the bare name in Python);
+* the merge of overrides onto the weights' defaults (:meth:`MeshOptions.over`,
+  :meth:`MeshOptions.resolved`);
+* ``genre reconstruct``'s flags (:func:`add_arguments`, :func:`from_arguments`),
+  ``genre serve``'s option keys (:func:`parse_request_options`) and the schema
+  its ``ready`` event publishes (:func:`schema`), from which the Blender add-on
+  builds its rows;
+* the named sets behind the add-on's *Quality* choice (:data:`QUALITIES`,
+  ``quality`` in a request, ``--quality`` on the command line);
+* the steps after the networks, in their one order, shared by ``genre
+  reconstruct``, ``genre serve`` and ``genre eval``
+  (:meth:`MeshOptions.shape_grid`: outline carve → visible fusion → pit
+  sealing; :meth:`MeshOptions.mesh`: hole closing, marching cubes, clean-up,
+  the sheets onto the surface; :meth:`MeshOptions.snap_mesh`: a fitted regular shape).
+
+A new option is one field here (plus its tests): the CLI flag, the server's
+key, the schema, the add-on's row and the fuzz test's values follow from it.
+Mask inputs (``mask``, a box, strokes) and output paths are not mesh options
+and stay out of the record.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable
+
+import torch
+
+__all__ = [
+    "Option",
+    "OptionError",
+    "MeshOptions",
+    "OPTIONS",
+    "QUALITIES",
+    "DEFAULT_QUALITY",
+    "schema",
+    "add_arguments",
+    "from_arguments",
+    "parse_request_options",
+    "mesh_of_probability",
+]
+
+
+class OptionError(ValueError):
+    """A mesh option's value outside its kind or range; ``str()`` is the one-line message."""
+
+    def __init__(self, message: str, name: str):
+        super().__init__(message)
+        self.name = name
+
+
+def _shown(value: Any, limit: int = 300) -> str:
+    try:
+        text = repr(value)
+    except ValueError:  # an integer past Python's 4,300-digit conversion limit
+        text = f"<an int of more than 4,300 digits>"
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
+
+
+@dataclass(frozen=True)
+class Option:
+    """What one mesh option may hold and how it is shown.
+
+    ``kind``: ``"float"``, ``"int"``, ``"bool"`` or ``"choice"`` (one of ``choices``).  ``lo``/``hi``: the range of a
+    number, open at an end where ``lo_open``/``hi_open``.  ``weights``: the ``GeometryConfig`` field that gives the
+    default (the weights' own setting), else ``default`` is used.  ``distance_only``: a true or non-zero value needs
+    weights of the distance target.  ``label``: a short title; ``help``: one line.  ``flag``: the CLI spelling.
+    """
+
+    kind: str
+    label: str
+    help: str
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple[str, ...] = ()
+    weights: str | None = None
+    default: Any = None
+    distance_only: bool = False
+    unit: str = ""
+    metavar: str = "X"
+    name: str = ""  # filled in from the field's name
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    def expected(self) -> str:
+        """What a value must be, as the error messages say it (``a number in (0, 1)``)."""
+        unit = f" ({self.unit})" if self.unit else ""
+        if self.kind in ("float", "int"):
+            span = f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+            return f"{'a number' if self.kind == 'float' else 'an integer'} in {span}{unit}"
+        if self.kind == "bool":
+            return "true or false"
+        return "one of " + ", ".join(repr(c) for c in self.choices)
+
+    def check(self, value: Any, where: str | None = None, show: Callable[[Any], str] = _shown) -> Any:
+        """``value`` as the option holds it (an int made float for a float option); :class:`OptionError` otherwise.
+
+        ``where`` names the value in the message (default: the option's name); ``show`` quotes the value.
+        """
+        ok = True
+        if self.kind == "bool":
+            ok = isinstance(value, bool)
+        elif self.kind == "choice":
+            ok = isinstance(value, str) and value in self.choices
+        else:
+            kind = numbers.Real if self.kind == "float" else numbers.Integral
+            # compared as it is: float() of a 400-digit integer raises OverflowError
+            ok = (not isinstance(value, bool) and isinstance(value, kind) and not (isinstance(value, float) and not math.isfinite(value))
+                  and (self.lo < value if self.lo_open else self.lo <= value) and (value < self.hi if self.hi_open else value <= self.hi))
+            if ok:
+                value = float(value) if self.kind == "float" else int(value)
+        if not ok:
+            raise OptionError(f"{where or self.name}: expected {self.expected()}, got {show(value)}", self.name)
+        return value
+
+    def describe(self) -> dict[str, Any]:
+        """The option's entry in the ``ready`` schema (without its default)."""
+        return {"name": self.name, "type": self.kind, "min": self.lo, "max": self.hi, "min_open": self.lo_open,
+                "max_open": self.hi_open, "choices": list(self.choices) or None, "label": self.label, "help": self.help,
+                "weights": self.weights}
+
+
+def _option(**spec) -> Any:
+    return field(default=None, metadata={"option": Option(**spec)})
+
+
+@dataclass(frozen=True)
+class MeshOptions:
+    """Every mesh option of one reconstruction; ``None``: the weights' own setting (or the option's default).
+
+    Constructing one checks every value given (:class:`OptionError`).  :meth:`resolved` fills the ``None`` fields from
+    the weights' ``GeometryConfig``; the steps (:meth:`shape_grid`, :meth:`mesh`, :meth:`snap_mesh`) take a resolved one.
+    """
+
+    threshold: float | None = _option(
+        kind="float", lo=0.0, hi=1.0, lo_open=True, hi_open=True, weights="default_threshold", metavar="T",
+        label="Threshold", help="isosurface level of the voxel grid: lower gives a fuller shape")
+    hole_closing: int | None = _option(
+        kind="int", lo=0, hi=8, unit="voxels", weights="hole_closing", metavar="K", label="Seal Holes",
+        help="seal holes in the mesh up to about twice this many voxels across (0: none; more also fills narrow gaps "
+             "between parts)")
+    silhouette_carve: bool | None = _option(
+        kind="bool", weights="silhouette_carve", label="Trim to Outline",
+        help="cut away what would stick out past the object's outline (the mask) before the mesh is made")
+    visible_fusion: bool | None = _option(
+        kind="bool", weights="visible_fusion", distance_only=True, label="Fill Visible Holes",
+        help="fill the holes the model leaves in the side the photo shows with the estimated depth's surface")
+    pit_sealing: int | None = _option(
+        kind="int", lo=0, hi=8, unit="voxels", weights="pit_sealing", distance_only=True, metavar="K", label="Seal Pits",
+        help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
+             "surface around them (0: none)")
+    primitive_snap: float | None = _option(
+        kind="float", lo=0.0, hi=1.0, hi_open=True, weights="primitive_snap", metavar="TOL", label="Snap Shapes",
+        help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette matches the mask "
+             "and it stays on the mesh within this tolerance (0: never)")
+    test_time_mirror: bool | None = _option(
+        kind="bool", weights="test_time_mirror", label="Mirror Average",
+        help="also run the photo's mirror image and average the two (about twice the networks' time)")
+    all_parts: bool | None = _option(
+        kind="bool", default=False, label="Keep All Parts",
+        help="keep every separate piece of the mesh (off: pieces smaller than Smallest Part are dropped)")
+    # how small a separate piece may be and stay (geometry.cleanup.clean_mesh's keep_fraction, whose default it repeats)
+    min_part_share: float | None = _option(
+        kind="float", lo=0.0, hi=1.0, default=0.05, metavar="SHARE", label="Smallest Part",
+        help="drop separate pieces of the mesh smaller in area than this share of the largest (0 keeps every piece; "
+             "all_parts overrides it)")
+    texture: bool | None = _option(
+        kind="bool", default=False, label="Colour from Photo",
+        help="colour the mesh from the photo (OBJ: UVs, an .mtl and NAME_texture.png; glb: embedded; ply: vertex colours)")
+    format: str | None = _option(
+        kind="choice", choices=("obj", "ply", "glb"), label="Format",
+        help="mesh file format (default: from the output's extension, else obj)")
+    up: str | None = _option(
+        kind="choice", choices=("y", "z"), label="Up Axis",
+        help="the file's up axis: z (default for ply: Blender's axes) or y (the view frame; always so for obj and glb)")
+
+    def __post_init__(self):
+        for spec in OPTIONS:
+            value = getattr(self, spec.name)
+            if value is not None:
+                object.__setattr__(self, spec.name, spec.check(value))
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any], where: Callable[[Option], str] = lambda o: o.name,
+                     show: Callable[[Any], str] = _shown) -> "MeshOptions":
+        """A record of ``{name: value}`` (``None`` values: not given); unknown names and bad values raise :class:`OptionError`,
+        its message naming the option as ``where(option)`` says and quoting the value with ``show``."""
+        unknown = sorted(set(values) - set(BY_NAME), key=str)
+        if unknown:
+            raise OptionError(f"unknown option(s) {', '.join(map(show, unknown))}; known: {', '.join(BY_NAME)}", str(unknown[0]))
+        return cls(**{name: BY_NAME[name].check(v, where(BY_NAME[name]), show) for name, v in values.items() if v is not None})
+
+    def given(self) -> dict[str, Any]:
+        """The options set in this record (not ``None``)."""
+        return {spec.name: getattr(self, spec.name) for spec in OPTIONS if getattr(self, spec.name) is not None}
+
+    def over(self, base: "MeshOptions") -> "MeshOptions":
+        """This record's values laid over ``base``'s (a ``None`` here keeps ``base``'s)."""
+        return dataclasses.replace(base, **self.given())
+
+    def resolved(self, geometry) -> "MeshOptions":
+        """Every ``None`` filled: from the weights' ``geometry`` (a ``GeometryConfig``) where the option follows them, else
+        its default; :class:`OptionError` for an option these weights cannot take (``distance_only`` on shell weights)."""
+        filled = {}
+        for spec in OPTIONS:
+            value = getattr(self, spec.name)
+            if value is None:
+                value = getattr(geometry, spec.weights) if spec.weights else spec.default
+            if spec.distance_only and value and geometry.target != "distance":
+                raise OptionError(f"{spec.name}: these weights predict the {geometry.target!r} target; only distance grids "
+                                  f"take it", spec.name)
+            filled[spec.name] = value
+        return MeshOptions(**filled)
+
+    @property
+    def keep_fraction(self) -> float:
+        """The share of the largest part's area below which a part is dropped: ``min_part_share`` (0 with ``all_parts``)."""
+        return 0.0 if self.all_parts else self.min_part_share
+
+    # ---- the steps after the networks, in their one order --------------------------------------------------
+    def shape_grid(self, prob: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor, camera, geometry) -> torch.Tensor:
+        """The probability grid (N, N, N) float32 on the CPU, steered by the resolved options before a mesh is made.
+
+        In order: capped by the mask's outline ramp (``silhouette_carve``), the holes in the visible face filled from
+        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (``pit_sealing``); the
+        last two at ``threshold``.  ``mask``: (S, S) bool, ``depth``: (S, S) masked depth (0 off the object).
+        """
+        from ..geometry.mesh_voxels import fuse_visible_surface, seal_pits
+        from ..geometry.voxels import silhouette_ramp
+
+        if self.silhouette_carve:
+            prob = torch.minimum(prob, silhouette_ramp(mask[None].cpu(), camera, prob.shape[-1])[0, 0])
+        if self.visible_fusion:
+            prob = fuse_visible_surface(prob, depth, camera, geometry, self.threshold)
+        if self.pit_sealing:
+            prob = seal_pits(prob, mask.cpu().bool(), camera, geometry, self.threshold, self.pit_sealing)
+        return prob
+
+    def mesh(self, prob: torch.Tensor, geometry, clean: bool = True):
+        """The mesh of a shaped grid (N, N, N) at ``threshold``, with ``hole_closing``; see :func:`mesh_of_probability`.
+
+        ``clean=False`` keeps every part and cavity wall (the mesh ``genre eval`` fits a regular shape to).
+        """
+        return mesh_of_probability(prob, self.threshold, geometry, self.hole_closing, self.keep_fraction, clean=clean)
+
+    def snap_mesh(self, vertices, faces, depth: torch.Tensor, camera):
+        """The regular shape that replaces the mesh (``primitive_snap``; 0: off): ``(vertices (V, 3) float32, faces (F, 3)
+        int64, fit)`` of the accepted fit, or the mesh as it was and ``None``.  ``depth``: (S, S) masked depth."""
+        from ..geometry.primitives import snap
+
+        if not self.primitive_snap > 0:
+            return vertices, faces, None
+        v, f, fit = snap(vertices, faces, depth, camera, self.primitive_snap)
+        if fit is not None and fit.accepted(self.primitive_snap):
+            return v, f, fit
+        return v, f, None
+
+
+OPTIONS: tuple[Option, ...] = tuple(dataclasses.replace(f.metadata["option"], name=f.name) for f in dataclasses.fields(MeshOptions))
+BY_NAME: dict[str, Option] = {o.name: o for o in OPTIONS}
+
+# The named sets behind the add-on's Quality choice (and `quality` in a request, `--quality`): laid under the options
+# given one by one.  Best: the weights' own settings, chosen on evaluation views.  Fast: without the mirror image's second
+# pass through the networks (about half their time), the one setting that costs time.
+QUALITIES: dict[str, MeshOptions] = {
+    "best": MeshOptions(),
+    "fast": MeshOptions(test_time_mirror=False),
+}
+QUALITY_LABELS = {"fast": ("Fast", "One pass through the networks (no mirror average): about half the time"),
+                  "best": ("Best", "The weights' own settings, chosen on evaluation views")}
+DEFAULT_QUALITY = "best"
+
+
+def check_quality(value: Any, where: str = "quality", show: Callable[[Any], str] = _shown) -> MeshOptions:
+    """The named set ``value`` (``"fast"``/``"best"``); :class:`OptionError` otherwise."""
+    if not isinstance(value, str) or value not in QUALITIES:
+        raise OptionError(f"{where}: expected one of {', '.join(map(repr, QUALITIES))}, got {show(value)}", "quality")
+    return QUALITIES[value]
+
+
+def schema(geometry=None) -> dict[str, Any]:
+    """The record as ``genre serve``'s ``ready`` publishes it: ``{"options": [{name, type, min, max, min_open, max_open,
+    choices, default, label, help, weights}, …], "qualities": [{name, label, help, options}, …]}``.
+
+    ``default``: the weights' value (``geometry``, a ``GeometryConfig``) where the option follows them, else the
+    option's own default (``null`` for one that depends on the output, as ``format``).
+    """
+    entries = []
+    for spec in OPTIONS:
+        default = getattr(geometry, spec.weights) if (spec.weights and geometry is not None) else spec.default
+        entries.append({**spec.describe(), "default": default})
+    qualities = [{"name": name, "label": QUALITY_LABELS[name][0], "help": QUALITY_LABELS[name][1], "options": q.given()}
+                 for name, q in QUALITIES.items()]
+    return {"options": entries, "qualities": qualities}
+
+
+def mesh_of_probability(prob: torch.Tensor, threshold: float, geometry, hole_closing: int, keep_fraction: float | None = None,
+                        clean: bool = True):
+    """The mesh ``genre reconstruct`` makes of a probability grid (N, N, N), after any carving or fusion.
+
+    For the distance target the enclosed voxels are filled first (:func:`fill_enclosed`, holes up to about
+    ``2·hole_closing`` voxels sealed); marching cubes at ``threshold``; cavity walls and parts smaller than
+    ``keep_fraction`` of the largest dropped (:func:`clean_mesh`; default 5 %; not with ``clean=False``); the sheets moved
+    onto the surface (:func:`onto_surface`).  Returns ``(grid as meshed (N, N, N) float32, vertices (V, 3) float32, faces
+    (F, 3) int64, CleanReport or None)``; the report is None, and the mesh empty, when no voxel reaches ``threshold``
+    (and always with ``clean=False``).
+    """
+    from ..geometry.cleanup import DEFAULT_KEEP_FRACTION, clean_mesh
+    from ..geometry.mesh_voxels import fill_enclosed, onto_surface, voxels_to_mesh
+
+    if geometry.target == "distance":
+        prob = torch.from_numpy(fill_enclosed(prob, threshold, hole_closing))  # the outer sheet only
+    vertices, faces = voxels_to_mesh(prob, threshold)
+    report = None
+    if clean:
+        if len(faces) == 0:
+            return prob, vertices, faces, None
+        vertices, faces, report = clean_mesh(vertices, faces, DEFAULT_KEEP_FRACTION if keep_fraction is None else keep_fraction)
+    return prob, onto_surface(vertices, faces, threshold, geometry), faces, report
+
+
+# ---- the front ends --------------------------------------------------------------------------------------------------
+def add_arguments(parser) -> None:
+    """``genre reconstruct``'s flag of every option (``--threshold T``, ``--silhouette-carve/--no-silhouette-carve``,
+    ``--texture`` …) and ``--quality``; every default ``None`` (not given)."""
+    import argparse
+
+    for spec in OPTIONS:
+        follows = f" (default: the weights' config, geometry.{spec.weights})" if spec.weights else ""
+        text = f"{spec.help}{follows}".replace("%", "%%")
+        if spec.kind == "bool" and spec.weights:
+            parser.add_argument(spec.flag, dest=spec.name, action=argparse.BooleanOptionalAction, default=None, help=text)
+        elif spec.kind == "bool":
+            parser.add_argument(spec.flag, dest=spec.name, action="store_const", const=True, default=None, help=text)
+        elif spec.kind == "choice":
+            parser.add_argument(spec.flag, dest=spec.name, choices=spec.choices, default=None, help=text)
+        else:
+            text += f"; {spec.expected()}"
+            parser.add_argument(spec.flag, dest=spec.name, type=float if spec.kind == "float" else int, metavar=spec.metavar,
+                                default=None, help=text)
+    parser.add_argument("--quality", choices=tuple(QUALITIES), default=None,
+                        help="a named set of the options above, under any given one by one: "
+                             + "; ".join(f"{n}: {QUALITY_LABELS[n][1]}" for n in QUALITIES) + f" (default: {DEFAULT_QUALITY})")
+
+
+def from_arguments(args) -> MeshOptions:
+    """The record of parsed :func:`add_arguments` flags (the quality's set under them); :class:`OptionError` names the
+    flag (``--hole-closing: expected an integer in [0, 8] (voxels), got 9``)."""
+    given = MeshOptions.from_mapping({spec.name: getattr(args, spec.name) for spec in OPTIONS}, where=lambda o: o.flag,
+                                     show=lambda v: f"{v:g}" if isinstance(v, float) else _shown(v))
+    return given.over(QUALITIES[args.quality or DEFAULT_QUALITY])
+
+
+def parse_request_options(options: dict[str, Any], show: Callable[[Any], str], extra: Iterable[str] = ()) -> MeshOptions:
+    """The record of a ``genre serve`` request's ``options`` object (``null`` values: not given; ``quality`` lays its set
+    under the rest); keys in ``extra`` (``save_intermediates``) are the caller's.  :class:`OptionError` names the option
+    (``option 'threshold': expected a number in (0, 1), got 1.5``) or lists the unknown keys."""
+    extra = tuple(extra)
+    known = (*BY_NAME, "quality", *extra)
+    unknown = [k for k in options if k not in known]
+    if unknown:
+        listed = ", ".join(map(show, sorted(unknown)))
+        raise OptionError(f"unknown option(s) {listed}; known: {', '.join(known)}", str(unknown[0]))
+    quality = options.get("quality")
+    base = QUALITIES[DEFAULT_QUALITY] if quality is None else check_quality(quality, "option 'quality'", show)
+    given = MeshOptions.from_mapping({k: v for k, v in options.items() if k in BY_NAME}, where=lambda o: f"option '{o.name}'",
+                                     show=show)
+    return given.over(base)
