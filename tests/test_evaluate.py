@@ -12,7 +12,7 @@ import trimesh
 
 from genre_backend import frame
 from genre_backend.geometry.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
-from tiny_data import TINY, make_tiny_views
+from tiny_data import TINY, copy_tiny_views
 from genre_backend.geometry.metrics import CloudScorer
 from training.eval.cli import main
 from training.eval.protocol import EMPTY_CD, FLOOR, ROWS, EvalView
@@ -72,9 +72,9 @@ def test_a_shifted_shape_gives_the_expected_cd():
 
 # ---- the tiny split and a few-step run -----------------------------------------------------
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tiny_views_rendered, tmp_path_factory):
     root = tmp_path_factory.mktemp("evaltiny")
-    views = make_tiny_views(root)
+    views = copy_tiny_views(tiny_views_rendered, root)
     # a seen class and an unseen one: the box plays a seen-test chair, the table an unseen table
     manifest = {"shapes": [{"id": "box", "class": "chair", "split": "test"}, {"id": "table", "class": "table", "split": "unseen"}]}
     (root / "manifest.json").write_text(json.dumps(manifest))

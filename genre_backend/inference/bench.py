@@ -318,6 +318,162 @@ def _print_inference(summary: dict) -> None:
           f"process peak (getrusage max RSS) {s['max_rss_mb']:.0f} MB")
 
 
+# ----------------------------------------------------------------------------- what a user runs
+
+_REPO = Path(__file__).resolve().parents[2]
+_PROBE = Path(__file__).with_name("bench_probe.py")
+_COLD_ROWS = ("interpreter", "python + cli", "import reconstruct", "weights", "load", "preprocess", "depth", "partial_sph",
+              "inpaint", "voxels", "refine", "mesh", "write", "cli", "exit")
+
+
+def _checkout_env(root: Path) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+def _probe(root: Path, *args: str) -> dict:
+    """Run bench_probe.py (this checkout's) against the code of checkout ``root`` in a fresh process."""
+    import json
+    import subprocess
+
+    code = f"import runpy, sys; sys.argv = ['bench_probe', *{list(args)!r}]; runpy.run_path({str(_PROBE)!r}, run_name='__main__')"
+    launched = time.time()
+    proc = subprocess.run([sys.executable, "-c", code], cwd=root, env=_checkout_env(root), capture_output=True, text=True)
+    ended = time.time()
+    if proc.returncode != 0:
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"bench probe {args[0]} in {root} failed: {tail}")
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["launched"], out["ended"] = launched, ended
+    return out
+
+
+def _cold_wall(root: Path, image: Path, out: Path, weights: str) -> tuple[float, str]:
+    """Wall-clock seconds of a plain ``genre reconstruct IMAGE -o OUT --weights W`` process in checkout ``root``,
+    and the sha256 of the mesh it wrote."""
+    import hashlib
+    import subprocess
+
+    cmd = [sys.executable, "-m", "genre_backend.cli", "reconstruct", str(image), "-o", str(out), "--weights", weights]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=root, env=_checkout_env(root), capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"genre reconstruct in {root} failed: {tail}")
+    return wall, hashlib.sha256(out.read_bytes()).hexdigest()
+
+
+def _cold_parts(probe: dict) -> dict[str, float]:
+    """A cold probe's stamps → seconds per part (``cli``: the command's own work between the timed parts)."""
+    stamps = [("interpreter", probe["launched"]), *probe["stamps"], ("exit", probe["stamps"][-1][1])]
+    stamps = [(name, at) for name, at in stamps if name != "end"] + [("", probe["ended"])]
+    parts: dict[str, float] = {}
+    for (name, at), (_, nxt) in zip(stamps[:-1], stamps[1:]):
+        parts[name] = parts.get(name, 0.0) + (nxt - at)
+    return parts
+
+
+def reconstruct_benchmark(checkouts: dict[str, Path], image: Path, weights: str = "default", repeats: int = 5,
+                          cold_repeats: int = 3) -> dict[str, dict]:
+    """Time ``genre reconstruct IMAGE --weights WEIGHTS`` as a user runs it, in each checkout (label → root).
+
+    Warm: one process per checkout, ``repeats`` runs after a warm-up, median per stage.  Cold: ``cold_repeats``
+    plain ``genre reconstruct`` processes (wall clock, median) and as many instrumented ones (median per part),
+    the checkouts taken in turn within each round so that they share the machine's load alike.
+    """
+    import statistics
+    import tempfile
+
+    cold: dict[str, list] = {k: [] for k in checkouts}
+    walls: dict[str, list] = {k: [] for k in checkouts}
+    shas: dict[str, set] = {k: set() for k in checkouts}
+    warm: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(cold_repeats):
+            order = list(checkouts.items()) if r % 2 == 0 else list(checkouts.items())[::-1]
+            for label, root in order:
+                wall, sha = _cold_wall(root, image, Path(tmp) / f"{label}-{r}.obj", weights)
+                walls[label].append(wall)
+                shas[label].add(sha)
+                probe = _probe(root, "cold", str(image), str(Path(tmp) / f"{label}-{r}-probe.obj"), weights)
+                if probe["rc"] != 0:
+                    raise RuntimeError(f"genre reconstruct in {root} exited {probe['rc']}")
+                cold[label].append(probe)
+        for label, root in checkouts.items():
+            warm[label] = _probe(root, "warm", str(image), weights, str(repeats))
+    out = {}
+    for label, root in checkouts.items():
+        parts = [_cold_parts(p) for p in cold[label]]
+        names = [n for n in _COLD_ROWS if any(n in p for p in parts)]
+        out[label] = {
+            "root": str(root),
+            "warm": warm[label],
+            "cold_wall_s": statistics.median(walls[label]),
+            "cold_walls_s": walls[label],
+            "cold_parts_s": {n: statistics.median(p.get(n, 0.0) for p in parts) for n in names},
+            "cold_modules": cold[label][-1]["modules"],
+            "cold_module_count": cold[label][-1]["module_count"],
+            "mesh_sha256": sorted(shas[label]),
+        }
+    return out
+
+
+_USER_TARGETS_S = {"warm": 1.0, "cold": 3.0}  # issue 41's goals for the shipped weights on the 2-core CPU
+
+
+def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) -> None:
+    labels = list(summaries)
+    first = summaries[labels[0]]["warm"]
+    mirror = "mirror averaging on" if first["test_time_mirror"] else "no mirror averaging"
+    print(f"genre reconstruct {image} --weights {weights}: the weights' own options (threshold {first['threshold']:g}, {mirror}), "
+          f"mask from {first['mask_source']}, mesh {first['vertices']} vertices / {first['faces']} faces, "
+          f"{first['threads']} torch threads")
+    for label in labels:
+        print(f"  {label}: {summaries[label]['root']}")
+    width = max(12, *(len(x) for x in labels))
+    head = "".join(f"{x:>{width + 2}}" for x in labels)
+
+    def row(name: str, values: list[float | None], note: str = "") -> None:
+        cells = "".join(f"{'—' if v is None else f'{1e3 * v:.0f}':>{width + 2}}" for v in values)
+        print(f"  {name:<22}{cells}{'  ' + note if note else ''}")
+
+    reps = first["repeats"]
+    print(f"\nwarm: one process, weights loaded, median of {reps} runs after a warm-up (ms)")
+    print(f"  {'stage':<22}{head}")
+    stages = [k for k in first["median_s"] if k != "total"]
+    for st in stages:
+        note = "(with the mirror image through every net)" if st == "refine" and first["test_time_mirror"] else ""
+        row(st, [summaries[x]["warm"]["median_s"].get(st) for x in labels], note)
+    target = _USER_TARGETS_S["warm"]
+    totals = [summaries[x]["warm"]["median_s"]["total"] for x in labels]
+    row("total", totals, f"(goal ≤ {1e3 * target:.0f}: " + ", ".join(f"{x} {'met' if t <= target else 'missed'}" for x, t in zip(labels, totals)) + ")")
+    row("weights load (once)", [summaries[x]["warm"]["weights_s"] for x in labels])
+
+    n = len(summaries[labels[0]]["cold_walls_s"])
+    print(f"\ncold: a fresh `genre reconstruct` process per run, median of {n} (ms)")
+    print(f"  {'part':<22}{head}")
+    names = [k for k in _COLD_ROWS if any(k in summaries[x]["cold_parts_s"] for x in labels)]
+    notes = {"interpreter": "(Python's start-up, to the first line of the command)",
+             "python + cli": "(the cli module, argument parsing, finding the commands)",
+             "import reconstruct": "(torch and the pipeline's modules)",
+             "cli": "(the command's own work between these parts)",
+             "exit": "(interpreter shut-down)"}
+    for name in names:
+        row(name, [summaries[x]["cold_parts_s"].get(name) for x in labels], notes.get(name, ""))
+    row("sum of the parts", [sum(summaries[x]["cold_parts_s"].values()) for x in labels], "(an instrumented run)")
+    target = _USER_TARGETS_S["cold"]
+    walls = [summaries[x]["cold_wall_s"] for x in labels]
+    row("wall, plain process", walls, f"(goal ≤ {1e3 * target:.0f}: " + ", ".join(f"{x} {'met' if t <= target else 'missed'}" for x, t in zip(labels, walls)) + ")")
+    print(f"\n  heavy modules a cold run imported:")
+    for x in labels:
+        print(f"  {x:<{width}}  {', '.join(summaries[x]['cold_modules'])} ({summaries[x]['cold_module_count']} modules in all)")
+    shas = {x: summaries[x]["mesh_sha256"] for x in labels}
+    same = len({tuple(v) for v in shas.values()}) == 1 and len(shas[labels[0]]) == 1
+    print(f"  mesh sha256: {shas[labels[0]][0][:16]}… " + ("(the same from every checkout and run)" if same else f"DIFFERS: {shas}"))
+
+
 def main(argv: list[str], prog: str = "genre bench") -> int:
     parser = argparse.ArgumentParser(prog=prog, description="Print speed figures of the project's operations.")
     sub = parser.add_subparsers(dest="what", required=True)
@@ -334,6 +490,15 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     inf.add_argument("--test-time-mirror", action="store_true",
                      help="also time each preset with test-time mirroring (the nets run on the mirror image too)")
     inf.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
+    user = sub.add_parser("reconstruct", help="time `genre reconstruct` of a photo with the shipped weights and their own options, warm and cold")
+    user.add_argument("--image", default=str(_REPO / "examples" / "sofa.png"), help="the photo (default: examples/sofa.png)")
+    user.add_argument("--weights", default="default", help="shipped weights' name or a file (default: default)")
+    user.add_argument("--repeats", type=int, default=5, help="warm runs after one warm-up (median reported)")
+    user.add_argument("--cold-repeats", type=int, default=3, help="fresh processes (median reported)")
+    user.add_argument("--against", action="append", default=[], metavar="LABEL=DIR",
+                      help="also time another checkout of this project (e.g. a `git worktree` of an older commit) in the "
+                           "same run, beside this one; repeatable")
+    user.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
     worker = sub.add_parser("_inference-worker")  # internal: one preset in a fresh process
     worker.add_argument("--preset", required=True)
     worker.add_argument("--device", required=True)
@@ -342,10 +507,31 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     worker.add_argument("--threads", type=int, default=None)
     worker.add_argument("--test-time-mirror", action="store_true")
     args = parser.parse_args(argv)
-    if args.threads:
+    if getattr(args, "threads", None):
         torch.set_num_threads(args.threads)
-    if args.repeats < 1:
-        parser.error("--repeats must be at least 1")
+    if args.repeats < 1 or getattr(args, "cold_repeats", 1) < 1:
+        parser.error("--repeats and --cold-repeats must be at least 1")
+    if args.what == "reconstruct":
+        import json
+
+        checkouts = {"this checkout": _REPO}
+        for item in args.against:
+            label, sep, folder = item.partition("=")
+            if not sep or not label or not (Path(folder) / "genre_backend" / "cli.py").is_file():
+                parser.error(f"--against {item!r}: expected LABEL=DIR, DIR a checkout of this project")
+            checkouts[label] = Path(folder).resolve()
+        image = Path(args.image).resolve()
+        if not image.is_file():
+            parser.error(f"--image {args.image}: no such file")
+        try:
+            summaries = reconstruct_benchmark(checkouts, image, args.weights, args.repeats, args.cold_repeats)
+        except RuntimeError as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            return 1
+        _print_reconstruct(summaries, Path(args.image), args.weights)
+        if args.json:
+            print(json.dumps(summaries, indent=2))
+        return 0
     if args.what == "_inference-worker":
         import json
 
