@@ -231,6 +231,7 @@ def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     assert perfect["f2"] > 0.95
 
 
+@pytest.mark.slow
 def test_genre_eval_writes_every_row_and_applies_the_seen_threshold(tiny, tmp_path, capsys):
     root, views, run = tiny
     out = tmp_path / "res"
@@ -270,6 +271,7 @@ def test_genre_eval_writes_every_row_and_applies_the_seen_threshold(tiny, tmp_pa
     assert all(math.isfinite(v) for v in aggregate(records, choice)[2]["seen"]["unseen"].values())
 
 
+@pytest.mark.slow
 def test_eval_resumes_after_an_interruption(tiny, tmp_path):
     root, views, run = tiny
     out = tmp_path / "res"
@@ -394,6 +396,7 @@ def test_score_grid_sweeps_the_configured_range():
     assert score_grid(torch.zeros(8, 8, 8), [0.5], scorer)[0.5]["cd1k"] == EMPTY_CD
 
 
+@pytest.mark.slow
 def test_parallel_workers_write_the_same_rows(tiny, tmp_path):
     root, views, run = tiny
     rows = "GenRe,3D Completion,Truth through the representation"

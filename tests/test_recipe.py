@@ -56,6 +56,7 @@ def test_explicit_options_override_the_recipe(capsys):
     assert (got["lr"], got["steps"], got["surface_weight"]) == (5e-4, 7, 0.1)
 
 
+@pytest.mark.slow
 def test_script_names_the_recipe_and_resolves_to_the_historic_settings(tmp_path):
     env = {**os.environ, "DRY_RUN": "1", "GENRE_HOME": str(tmp_path / "home")}
     proc = subprocess.run(["bash", "scripts/train_default.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
@@ -75,6 +76,7 @@ def test_script_names_the_recipe_and_resolves_to_the_historic_settings(tmp_path)
     assert not (tmp_path / "home").exists()  # a dry run writes nothing, not even the log folder
 
 
+@pytest.mark.slow
 def test_product_script_starts_from_the_shipped_default_weights_under_the_home(tmp_path):
     env = {**os.environ, "DRY_RUN": "1", "GENRE_HOME": str(tmp_path / "home"), "ROUNDS": "2"}
     proc = subprocess.run(["bash", "scripts/train_product.sh"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)

@@ -403,6 +403,7 @@ def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photo
         assert code == 0 and (tmp_path / "f.obj").is_file(), err
 
 
+@pytest.mark.slow
 def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.cleanup import is_watertight
     from genre_backend.geometry.primitives import FAMILIES, snap

@@ -14,6 +14,17 @@ depend on training).  Each preset runs in a fresh subprocess so that its peak
 memory (``getrusage`` max RSS) is its own; per-stage peaks come from sampling
 the process's resident set every 2 ms.  On CUDA, per-stage peaks are
 ``torch.cuda.max_memory_allocated``.
+
+``genre bench reconstruct`` times what a user runs: ``genre reconstruct`` of a
+photo (``examples/sofa.png``) with the shipped weights (``default``) and their
+own options (GrabCut mask, mirror averaging, cleanup …).  Warm: one process,
+the weights loaded, each stage timed from the ``progress`` call that starts it.
+Cold: fresh ``genre reconstruct`` processes, wall clock, and instrumented ones
+that split that time into the interpreter's start, the imports, the weights'
+loading, each stage and the exit (:mod:`.bench_probe`).  ``--against
+LABEL=DIR`` times another checkout (an older commit) in the same run, the
+checkouts taken in turn, and prints the two side by side with the meshes'
+sha256.
 """
 
 from __future__ import annotations
