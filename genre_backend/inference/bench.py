@@ -360,6 +360,47 @@ def _probe(root: Path, *args: str) -> dict:
     return out
 
 
+class _WarmProbe:
+    """A warm bench_probe process in checkout ``root``: weights loaded and one warm-up run done on start;
+    :meth:`run` times one more run."""
+
+    def __init__(self, root: Path, image: Path, weights: str):
+        import subprocess
+
+        code = ("import runpy, sys; sys.argv = ['bench_probe', 'warm', "
+                f"{str(image)!r}, {weights!r}]; runpy.run_path({str(_PROBE)!r}, run_name='__main__')")
+        self.root = root
+        self.proc = subprocess.Popen([sys.executable, "-c", code], cwd=root, env=_checkout_env(root), stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.summary = self._read()
+
+    def _read(self) -> dict:
+        import json
+
+        for line in self.proc.stdout:
+            if line.startswith("{"):
+                return json.loads(line)
+        tail = (self.proc.stderr.read().strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"bench probe warm in {self.root} failed: {tail}")
+
+    def run(self) -> dict:
+        self.proc.stdin.write("run\n")
+        self.proc.stdin.flush()
+        return self._read()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.stdin.write("quit\n")
+                self.proc.stdin.close()
+                self.proc.wait(timeout=60)
+            except (OSError, ValueError):
+                pass
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+
+
 def _cold_wall(root: Path, image: Path, out: Path, weights: str) -> tuple[float, str]:
     """Wall-clock seconds of a plain ``genre reconstruct IMAGE -o OUT --weights W`` process in checkout ``root``,
     and the sha256 of the mesh it wrote."""
@@ -390,9 +431,10 @@ def reconstruct_benchmark(checkouts: dict[str, Path], image: Path, weights: str 
                           cold_repeats: int = 3) -> dict[str, dict]:
     """Time ``genre reconstruct IMAGE --weights WEIGHTS`` as a user runs it, in each checkout (label → root).
 
-    Warm: one process per checkout, ``repeats`` runs after a warm-up, median per stage.  Cold: ``cold_repeats``
-    plain ``genre reconstruct`` processes (wall clock, median) and as many instrumented ones (median per part),
-    the checkouts taken in turn within each round so that they share the machine's load alike.
+    Warm: one process per checkout, all started together, then ``repeats`` rounds of one run each, median per
+    stage.  Cold: ``cold_repeats`` rounds of one plain ``genre reconstruct`` process (wall clock, median) and
+    one instrumented one (median per part) per checkout.  Within each round the checkouts take turns (the order
+    reversed every other round), so that they share the machine's load alike.
     """
     import statistics
     import tempfile
@@ -412,8 +454,22 @@ def reconstruct_benchmark(checkouts: dict[str, Path], image: Path, weights: str 
                 if probe["rc"] != 0:
                     raise RuntimeError(f"genre reconstruct in {root} exited {probe['rc']}")
                 cold[label].append(probe)
-        for label, root in checkouts.items():
-            warm[label] = _probe(root, "warm", str(image), weights, str(repeats))
+        probes: dict[str, _WarmProbe] = {}
+        try:
+            for label, root in checkouts.items():
+                probes[label] = _WarmProbe(root, image, weights)
+            runs: dict[str, list] = {k: [] for k in checkouts}
+            for r in range(repeats):
+                for label in (list(checkouts) if r % 2 == 0 else list(checkouts)[::-1]):
+                    runs[label].append(probes[label].run())
+        finally:
+            for probe in probes.values():
+                probe.close()
+        for label in checkouts:
+            names = list(runs[label][0])
+            warm[label] = {**probes[label].summary, "repeats": repeats,
+                           "median_s": {k: statistics.median(x[k] for x in runs[label]) for k in names},
+                           "totals_s": [x["total"] for x in runs[label]]}
     out = {}
     for label, root in checkouts.items():
         parts = [_cold_parts(p) for p in cold[label]]
@@ -477,7 +533,7 @@ def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) ->
     target = _USER_TARGETS_S["cold"]
     walls = [summaries[x]["cold_wall_s"] for x in labels]
     row("wall, plain process", walls, f"(goal ≤ {1e3 * target:.0f}: " + ", ".join(f"{x} {'met' if t <= target else 'missed'}" for x, t in zip(labels, walls)) + ")")
-    print(f"\n  heavy modules a cold run imported:")
+    print("\n  heavy modules a cold run imported:")
     for x in labels:
         print(f"  {x:<{width}}  {', '.join(summaries[x]['cold_modules'])} ({summaries[x]['cold_module_count']} modules in all)")
     shas = {x: summaries[x]["mesh_sha256"] for x in labels}

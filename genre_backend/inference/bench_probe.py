@@ -3,13 +3,13 @@
 ``genre bench reconstruct`` starts this file (``runpy`` with the timed checkout first on ``sys.path``) so that
 the same probe can time this checkout and an older one side by side; it therefore uses only the API that
 ``genre reconstruct`` itself uses (the ``genre_backend.cli`` module run as ``__main__``,
-``Reconstructor(weights).run(image, progress=…)``, ``Reconstruction.save_mesh``).  Two modes, each printing one JSON line:
+``Reconstructor(weights).run(image, progress=…)``, ``Reconstruction.save_mesh``).  Two modes:
 
-``warm IMAGE WEIGHTS REPEATS``
-    one process: load the weights, run the image once to warm up, then ``REPEATS`` timed runs with the
-    weights' own options (the defaults of ``genre reconstruct``); each stage is timed from the
-    ``progress`` call that starts it to the next one (the last, ``mesh``, ends when ``run`` returns), and
-    ``write`` is ``save_mesh`` of an OBJ.
+``warm IMAGE WEIGHTS``
+    one process: load the weights, run the image once to warm up and print a summary line, then one timed
+    run per ``run`` line on stdin (one JSON line each), with the weights' own options (the defaults of
+    ``genre reconstruct``); each stage is timed from the ``progress`` call that starts it to the next one
+    (the last, ``mesh``, ends when ``run`` returns), and ``write`` is ``save_mesh`` of an OBJ.
 
 ``cold IMAGE OUT WEIGHTS``
     the real ``genre reconstruct IMAGE -o OUT --weights WEIGHTS`` (``python -m genre_backend.cli``) in this
@@ -37,8 +37,10 @@ def _watched_modules() -> list[str]:
     return [m for m in WATCHED if m in sys.modules]
 
 
-def warm(image: str, weights: str, repeats: int) -> dict:
-    import statistics
+def warm(image: str, weights: str) -> None:
+    """Load the weights, run the image once (warm-up), print ``ready``; then one timed run per ``run`` line read
+    from stdin, each printed as one JSON line, until ``quit`` (so that the parent can take turns between
+    checkouts run by run)."""
     import tempfile
     from pathlib import Path
 
@@ -51,36 +53,31 @@ def warm(image: str, weights: str, repeats: int) -> dict:
     t2 = time.perf_counter()
     import torch
 
-    runs = []
+    def one(out: Path) -> tuple[dict, object]:
+        marks: list[tuple[str, float]] = []
+        start = time.perf_counter()
+        result = rec.run(image, progress=lambda stage, fraction: marks.append((stage, time.perf_counter())))
+        end = time.perf_counter()
+        result.save_mesh(out)
+        written = time.perf_counter()
+        stages = {name: (marks[k + 1][1] if k + 1 < len(marks) else end) - at for k, (name, at) in enumerate(marks)}
+        stages["write"] = written - end
+        stages["total"] = written - start
+        return stages, result
+
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "mesh.obj"
-        for i in range(repeats + 1):  # the first run warms up caches and the allocator
-            marks: list[tuple[str, float]] = []
-            start = time.perf_counter()
-            result = rec.run(image, progress=lambda stage, fraction: marks.append((stage, time.perf_counter())))
-            end = time.perf_counter()
-            result.save_mesh(out)
-            written = time.perf_counter()
-            stages = {name: (marks[k + 1][1] if k + 1 < len(marks) else end) - at for k, (name, at) in enumerate(marks)}
-            stages["write"] = written - end
-            stages["total"] = written - start
-            if i:
-                runs.append(stages)
-    names = list(runs[0])
-    return {
-        "mode": "warm",
-        "threads": torch.get_num_threads(),
-        "import_s": t1 - t0,
-        "weights_s": t2 - t1,
-        "repeats": repeats,
-        "median_s": {k: statistics.median(r[k] for r in runs) for k in names},
-        "totals_s": [r["total"] for r in runs],
-        "vertices": int(len(result.vertices)),
-        "faces": int(len(result.faces)),
-        "mask_source": result.mask_source,
-        "test_time_mirror": bool(getattr(result, "test_time_mirror", False)),
-        "threshold": float(result.threshold),
-    }
+        _, result = one(out)  # the first run warms up caches and the allocator
+        print(json.dumps({
+            "mode": "warm", "threads": torch.get_num_threads(), "import_s": t1 - t0, "weights_s": t2 - t1,
+            "vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "mask_source": result.mask_source,
+            "test_time_mirror": bool(getattr(result, "test_time_mirror", False)), "threshold": float(result.threshold),
+        }), flush=True)
+        for line in sys.stdin:
+            if line.strip() != "run":
+                break
+            stages, _ = one(out)
+            print(json.dumps(stages), flush=True)
 
 
 class _StampImport:
@@ -161,8 +158,9 @@ def cold(image: str, out: str, weights: str) -> dict:
 def probe(argv: list[str]) -> int:
     mode, *rest = argv
     if mode == "warm":
-        summary = warm(rest[0], rest[1], int(rest[2]))
-    elif mode == "cold":
+        warm(rest[0], rest[1])
+        return 0
+    if mode == "cold":
         summary = cold(*rest)
     else:
         raise SystemExit(f"bench_probe: unknown mode {mode!r}")
