@@ -401,20 +401,25 @@ class _WarmProbe:
                 self.proc.wait()
 
 
-def _cold_wall(root: Path, image: Path, out: Path, weights: str) -> tuple[float, str]:
+def _cold_wall(root: Path, image: Path, out: Path, weights: str) -> tuple[float, float, str]:
     """Wall-clock seconds of a plain ``genre reconstruct IMAGE -o OUT --weights W`` process in checkout ``root``,
-    and the sha256 of the mesh it wrote."""
+    its processor seconds (user + system, every thread), and the sha256 of the mesh it wrote."""
     import hashlib
     import subprocess
 
+    import resource
+
     cmd = [sys.executable, "-m", "genre_backend.cli", "reconstruct", str(image), "-o", str(out), "--weights", weights]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=root, env=_checkout_env(root), capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
         raise RuntimeError(f"genre reconstruct in {root} failed: {tail}")
-    return wall, hashlib.sha256(out.read_bytes()).hexdigest()
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, hashlib.sha256(out.read_bytes()).hexdigest()
 
 
 def _cold_parts(probe: dict) -> dict[str, float]:
@@ -441,14 +446,16 @@ def reconstruct_benchmark(checkouts: dict[str, Path], image: Path, weights: str 
 
     cold: dict[str, list] = {k: [] for k in checkouts}
     walls: dict[str, list] = {k: [] for k in checkouts}
+    cpus: dict[str, list] = {k: [] for k in checkouts}
     shas: dict[str, set] = {k: set() for k in checkouts}
     warm: dict[str, dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(cold_repeats):
             order = list(checkouts.items()) if r % 2 == 0 else list(checkouts.items())[::-1]
             for label, root in order:
-                wall, sha = _cold_wall(root, image, Path(tmp) / f"{label}-{r}.obj", weights)
+                wall, cpu, sha = _cold_wall(root, image, Path(tmp) / f"{label}-{r}.obj", weights)
                 walls[label].append(wall)
+                cpus[label].append(cpu)
                 shas[label].add(sha)
                 probe = _probe(root, "cold", str(image), str(Path(tmp) / f"{label}-{r}-probe.obj"), weights)
                 if probe["rc"] != 0:
@@ -479,6 +486,8 @@ def reconstruct_benchmark(checkouts: dict[str, Path], image: Path, weights: str 
             "warm": warm[label],
             "cold_wall_s": statistics.median(walls[label]),
             "cold_walls_s": walls[label],
+            "cold_cpu_s": statistics.median(cpus[label]),
+            "cold_cpus_s": cpus[label],
             "cold_parts_s": {n: statistics.median(p.get(n, 0.0) for p in parts) for n in names},
             "cold_modules": cold[label][-1]["modules"],
             "cold_module_count": cold[label][-1]["module_count"],
@@ -533,6 +542,8 @@ def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) ->
     target = _USER_TARGETS_S["cold"]
     walls = [summaries[x]["cold_wall_s"] for x in labels]
     row("wall, plain process", walls, f"(goal ≤ {1e3 * target:.0f}: " + ", ".join(f"{x} {'met' if t <= target else 'missed'}" for x, t in zip(labels, walls)) + ")")
+    row("processor, plain", [summaries[x]["cold_cpu_s"] for x in labels],
+        "(user + system time of that process, all threads: less swayed by other jobs than the wall clock)")
     print("\n  heavy modules a cold run imported:")
     for x in labels:
         print(f"  {x:<{width}}  {', '.join(summaries[x]['cold_modules'])} ({summaries[x]['cold_module_count']} modules in all)")
