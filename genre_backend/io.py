@@ -21,7 +21,6 @@ from typing import Any, BinaryIO, Callable
 
 __all__ = [
     "WeightsError",
-    "all_finite",
     "WEIGHTS_DIR",
     "WEIGHTS_NAMES",
     "DEFAULT_WEIGHTS_NAME",
@@ -376,23 +375,6 @@ def stored_config(path: str | os.PathLike, meta: dict[str, str]):
         raise WeightsError(f"{path}: the stored config is invalid ({_first_line(exc)})") from None
 
 
-# the exponent bits of the 16-bit floats: a value is NaN or ±inf exactly when they are all ones
-_EXPONENT_BITS = {"torch.float16": 0x7C00, "torch.bfloat16": 0x7F80}
-
-
-def all_finite(tensor) -> bool:
-    """``bool(torch.isfinite(tensor).all())``, the same answer; float16 and bfloat16 are checked on their bits
-    (exponent all ones), since torch's ``isfinite`` of a 16-bit float on the CPU is an order of magnitude slower,
-    and the shipped weights are stored in float16 (docs/benchmarks.md)."""
-    import torch
-
-    mask = _EXPONENT_BITS.get(str(tensor.dtype))
-    if mask is None:
-        return bool(torch.isfinite(tensor).all())
-    bits = tensor.contiguous().view(torch.int16) & mask
-    return not bool((bits == mask).any())
-
-
 def check_state(wanted: dict, state: dict, path: str | os.PathLike) -> None:
     """Refuse (:class:`WeightsError`, one line) a file's tensors ``state`` that do not fit a model's ``wanted`` state dict.
 
@@ -416,7 +398,7 @@ def check_state(wanted: dict, state: dict, path: str | os.PathLike) -> None:
             if not got.is_floating_point():
                 raise WeightsError(f"{path}: tensor {name} is {str(got.dtype).replace('torch.', '')} in the file; "
                                    f"the model's weights are floating-point")
-            if not all_finite(got):
+            if not bool(torch.isfinite(got).all()):
                 bad = int((~torch.isfinite(got)).sum())
                 raise WeightsError(f"{path}: tensor {name} holds {bad:,} values that are not finite (NaN or ±inf)")
         elif got.dtype != tensor.dtype:

@@ -107,29 +107,3 @@ def test_serve_loads_the_protocol_weights_by_name():
     ready = json.loads(proc.stdout.splitlines()[0])
     assert ready["type"] == "ready" and ready["weights"] == str(WEIGHTS_DIR / "protocol.safetensors")
     assert ready["threshold"] == json.loads((WEIGHTS_DIR / "protocol.json").read_text())["config"]["geometry"]["default_threshold"]
-
-
-@pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32", "float64"])
-def test_the_finite_check_of_weights_agrees_with_torch_on_every_16_bit_value(dtype):
-    """io.all_finite (the weights check; 16-bit floats on their exponent bits) against torch.isfinite: every
-    16-bit pattern one at a time in a finite tensor, and the wider floats' NaN, ±inf and extremes."""
-    import torch
-
-    from genre_backend.io import all_finite
-
-    dt = getattr(torch, dtype)
-    if dt.itemsize == 2:
-        values = torch.arange(-(2 ** 15), 2 ** 15, dtype=torch.int32).to(torch.int16).view(dt)
-    else:
-        info = torch.finfo(dt)
-        values = torch.tensor([0.0, -0.0, 1.0, info.max, -info.max, info.tiny, float("nan"), float("inf"), -float("inf")], dtype=dt)
-    finite = torch.isfinite(values)
-    assert not bool(finite.all()) and bool(finite.any())
-    one = torch.ones(2, dtype=dt)
-    for k in range(len(values)):
-        one[1] = values[k]
-        assert all_finite(one) is bool(finite[k]), (dtype, float(values[k]))
-    grid = torch.ones(5, 7, dtype=dt)
-    grid[2, 3] = float("nan")
-    assert not all_finite(grid) and not all_finite(grid.t()) and not all_finite(grid[:, 3]) and all_finite(grid[:, 2])
-    assert all_finite(torch.empty(0, dtype=dt))
