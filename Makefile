@@ -1,6 +1,7 @@
 # Quick start: `make demo` (set up, then run the main job) and `make test`
 # (set up, then run the whole test suite).  Set-up happens on first use.
-.PHONY: setup demo demo-geometry test bench clean
+# `make test-fast`: every test not marked slow (pyproject.toml), the loop while working.
+.PHONY: setup demo demo-geometry test test-fast bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -19,9 +20,14 @@ test:
 	@bash scripts/setup.sh --test
 	.venv/bin/python -m pytest
 
+test-fast:
+	@bash scripts/setup.sh --test
+	.venv/bin/python -m pytest -m "not slow"
+
 bench: setup
 	.venv/bin/genre bench geometry
 	.venv/bin/genre bench inference
+	.venv/bin/genre bench reconstruct
 
 clean:
 	rm -rf out .pytest_cache build dist

@@ -74,10 +74,17 @@ def _plugin_commands() -> list[Command]:
 
 
 def commands() -> dict[str, Command]:
-    """Every available subcommand by name: the registered ones (data, train, eval), then the backend's."""
+    """Every available subcommand by name: the registered ones (data, train, eval), then the backend's.  A
+    registered command never replaces one of the backend's (which :func:`main` runs without looking up the
+    registered ones)."""
+    backend = backend_commands()
+    reserved = {cmd.name for cmd in backend}
     out: dict[str, Command] = {}
-    for cmd in _plugin_commands() + backend_commands():
-        out.setdefault(cmd.name, cmd)
+    for cmd in _plugin_commands():
+        if cmd.name not in reserved:
+            out.setdefault(cmd.name, cmd)
+    for cmd in backend:
+        out[cmd.name] = cmd
     return out
 
 
@@ -100,19 +107,22 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] in (["-V"], ["--version"]):
         print(f"genre {__version__}")
         return 0
-    available = commands()
-    if not argv or argv[0] in ("-h", "--help", "help"):
-        print(_usage(available))
-        return 0 if argv else 2
-    name = argv[0]
-    if name not in available:
-        hint = ""
-        if name in ("data", "train", "eval", "chain"):
-            hint = " (the training commands come with the 'training' package: install the project with 'pip install -e .')"
-        print(f"genre: unknown command {name!r}{hint}\n\n{_usage(available)}", file=sys.stderr)
-        return 2
+    name = argv[0] if argv else None
+    command = {cmd.name: cmd for cmd in backend_commands()}.get(name)
+    if command is None:  # (the backend's own commands start without the entry-point look-up and the training package)
+        available = commands()
+        if not argv or name in ("-h", "--help", "help"):
+            print(_usage(available))
+            return 0 if argv else 2
+        if name not in available:
+            hint = ""
+            if name in ("data", "train", "eval", "chain"):
+                hint = " (the training commands come with the 'training' package: install the project with 'pip install -e .')"
+            print(f"genre: unknown command {name!r}{hint}\n\n{_usage(available)}", file=sys.stderr)
+            return 2
+        command = available[name]
     try:
-        return int(available[name].load()(argv[1:], prog=f"genre {name}") or 0)
+        return int(command.load()(argv[1:], prog=f"genre {name}") or 0)
     except KeyboardInterrupt:  # Ctrl-C: one line, no traceback, the shell's 128 + SIGINT (each write is atomic: no half file)
         print(f"genre {name}: interrupted", file=sys.stderr, flush=True)
         return 130

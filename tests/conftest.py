@@ -1,27 +1,30 @@
-"""Fixtures shared by several test files."""
+"""Fixtures shared by several test files.
+
+The tiny views are rendered once per session (Blender) and each file gets a copy; the tiny model is trained on
+them once per session.  ``make test-fast`` skips the tests marked ``slow`` (pyproject.toml)."""
 
 import pytest
 
-from tiny_data import make_tiny_views
+from tiny_data import copy_tiny_views, make_tiny_views, train_tiny_weights
+
+
+@pytest.fixture(scope="session")
+def tiny_views_rendered(tmp_path_factory):
+    """The tiny views, rendered once per session: never used in place (tests may add files to their views), see
+    ``tiny_views``."""
+    return make_tiny_views(tmp_path_factory.mktemp("tiny_rendered"))
 
 
 @pytest.fixture(scope="module")
-def tiny_views(tmp_path_factory):
-    """Rendered views with targets of two tiny shapes (module scope: rendered once per file)."""
-    return make_tiny_views(tmp_path_factory.mktemp("tiny"))
+def tiny_views(tiny_views_rendered, tmp_path_factory):
+    """Rendered views with targets of two tiny shapes: each file's own copy of the session's renders."""
+    return copy_tiny_views(tiny_views_rendered, tmp_path_factory.mktemp("tiny"))
 
 
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    """(weights, views): the tiny model trained stage by stage, once per session (test_reconstruct.trained_weights),
-    on one thread (tiny nets: faster, and far faster on a busy 2-core machine).  test_reconstruct and test_addon
-    have their own."""
-    import torch
-    from test_reconstruct import trained_weights
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return trained_weights(tmp_path_factory)
-    finally:
-        torch.set_num_threads(threads)
+@pytest.fixture(scope="session")
+def trained(tiny_views_rendered, tmp_path_factory):
+    """(weights, views): the tiny model trained stage by stage (tiny_data.train_tiny_weights) on a copy of the
+    tiny views, once per session."""
+    root = tmp_path_factory.mktemp("genre_trained")
+    views = copy_tiny_views(tiny_views_rendered, root)
+    return train_tiny_weights(views, root / "run"), views

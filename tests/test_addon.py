@@ -820,7 +820,8 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
 
 
 def make_weights(root: Path, steps: tuple[int, int, int] = (3, 3, 3), lr: float | None = None) -> Path:
-    """Weights from the project's own training code: tiny rendered views, a few steps of each stage.
+    """Weights from the project's own training code: tiny rendered views, a few steps of each stage (for the GUI
+    end-to-end run, tests/e2e/run_gui_e2e.py; the tests here use the session's model, conftest.py).
 
     ``steps``: (depth, inpaint, refine) training steps; ``lr``: one learning rate for all (None: the stage defaults).
     """
@@ -847,8 +848,8 @@ for stage, steps in zip(("depth", "inpaint", "refine"), {tuple(steps)!r}):
 
 
 def make_photo(root: Path) -> Path:
-    """The photo: a rendered view of make_weights' data with its object mask as alpha (a cut-out product
-    shot), so that the few training steps need not have taught the depth net a silhouette yet."""
+    """The photo: a rendered view of the tiny views under ``root`` (``root/views``) with its object mask as alpha
+    (a cut-out product shot), so that the few training steps need not have taught the depth net a silhouette yet."""
     photo = root / "box.png"
     if not photo.is_file():
         import numpy as np
@@ -861,14 +862,11 @@ def make_photo(root: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
-def trained(tmp_path_factory):
-    """(weights, photo): shared by every add-on test module of the session (built once)."""
-    root = tmp_path_factory.getbasetemp() / "addon-weights"
-    weights = root / "train" / "refine" / "final.safetensors"
-    if not weights.is_file():
-        root.mkdir(exist_ok=True)
-        weights = make_weights(root)
-    return weights, make_photo(root)
+def trained(trained):
+    """(weights, photo): the session's tiny model (conftest.py's ``trained``, trained once) and a cut-out photo of
+    one of its views; shared by every add-on test module of the session."""
+    weights, views = trained
+    return weights, make_photo(views.parent)
 
 
 def test_reconstruct_against_genre_serve(built, trained, tmp_path):

@@ -24,6 +24,7 @@ _spec.loader.exec_module(run_gui_e2e)
 _missing = run_gui_e2e.missing_tools()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(bool(_missing), reason=f"no GUI Blender here: {_missing}")
 def test_gui_blender_runs_the_modal_operator_end_to_end(built, trained, tmp_path):  # noqa: F811
     weights, photo = trained

@@ -18,6 +18,7 @@ from training.learn.train import train
 _cfg = tiny_train_config
 
 
+@pytest.mark.slow
 def test_baseline_stages_overfit_four_samples(tiny_views, tmp_path):
     run = tmp_path / "run"
     train(_cfg("depth", tiny_views, run, steps=10, lr=3e-3), TINY)

@@ -12,7 +12,7 @@ import trimesh
 
 from genre_backend import frame
 from genre_backend.geometry.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
-from tiny_data import TINY, make_tiny_views
+from tiny_data import TINY, copy_tiny_views
 from genre_backend.geometry.metrics import CloudScorer
 from training.eval.cli import main
 from training.eval.protocol import EMPTY_CD, FLOOR, ROWS, EvalView
@@ -72,9 +72,9 @@ def test_a_shifted_shape_gives_the_expected_cd():
 
 # ---- the tiny split and a few-step run -----------------------------------------------------
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tiny_views_rendered, tmp_path_factory):
     root = tmp_path_factory.mktemp("evaltiny")
-    views = make_tiny_views(root)
+    views = copy_tiny_views(tiny_views_rendered, root)
     # a seen class and an unseen one: the box plays a seen-test chair, the table an unseen table
     manifest = {"shapes": [{"id": "box", "class": "chair", "split": "test"}, {"id": "table", "class": "table", "split": "unseen"}]}
     (root / "manifest.json").write_text(json.dumps(manifest))
@@ -231,6 +231,7 @@ def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     assert perfect["f2"] > 0.95
 
 
+@pytest.mark.slow
 def test_genre_eval_writes_every_row_and_applies_the_seen_threshold(tiny, tmp_path, capsys):
     root, views, run = tiny
     out = tmp_path / "res"
@@ -270,6 +271,7 @@ def test_genre_eval_writes_every_row_and_applies_the_seen_threshold(tiny, tmp_pa
     assert all(math.isfinite(v) for v in aggregate(records, choice)[2]["seen"]["unseen"].values())
 
 
+@pytest.mark.slow
 def test_eval_resumes_after_an_interruption(tiny, tmp_path):
     root, views, run = tiny
     out = tmp_path / "res"
@@ -394,6 +396,7 @@ def test_score_grid_sweeps_the_configured_range():
     assert score_grid(torch.zeros(8, 8, 8), [0.5], scorer)[0.5]["cd1k"] == EMPTY_CD
 
 
+@pytest.mark.slow
 def test_parallel_workers_write_the_same_rows(tiny, tmp_path):
     root, views, run = tiny
     rows = "GenRe,3D Completion,Truth through the representation"

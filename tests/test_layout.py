@@ -131,6 +131,44 @@ def test_cli_lists_the_training_commands_without_importing_them():
     assert proc.stdout.strip() == "['data', 'train', 'eval', 'chain', 'reconstruct', 'serve', 'bench'] []"
 
 
+# Modules `genre reconstruct` of a photo has no use for (matplotlib: the --preview sheet and the intermediates'
+# PNGs; trimesh: PLY/GLB files and fitted shapes; training: the data/train/eval commands; …): none may be imported
+# by the command's start or by a whole run; each costs a cold start up to seconds (docs/benchmarks.md).
+NOT_FOR_RECONSTRUCT = ("matplotlib", "training", "bpy", "trimesh", "networkx", "scipy.optimize", "shapely", "manifold3d",
+                       "igl", "tensorboard")
+
+
+def _imported(code: str) -> list[str]:
+    """The modules of NOT_FOR_RECONSTRUCT that a fresh interpreter running ``code`` has imported at its end."""
+    code += f"\nimport sys\nprint([m for m in {NOT_FOR_RECONSTRUCT!r} if m in sys.modules])\n"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+
+
+def test_reconstruct_starts_without_the_modules_it_does_not_use():
+    """What `genre reconstruct` imports before any work: the cli, its dispatch of the command (which finds the
+    backend's commands without looking up the registered ones: no training package), the command,
+    the pipeline (torch)."""
+    code = ("import contextlib, io\n"
+            "from genre_backend.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
+            "    main(['reconstruct', '--help'])\n"
+            "import genre_backend.inference.reconstruct_cli, genre_backend.inference.reconstruct\n"
+            "import genre_backend.inference.mesh_export, genre_backend.geometry.cleanup, genre_backend.geometry.primitives\n")
+    assert _imported(code) == []
+
+
+def test_a_reconstruct_run_imports_none_of_the_modules_it_does_not_use(tmp_path):
+    """A whole `genre reconstruct` of the example photo with the shipped weights and their options (GrabCut mask,
+    mirror averaging, cleanup), run by the command's own entry point in a fresh interpreter."""
+    out = tmp_path / "sofa.obj"
+    code = ("from genre_backend.cli import main\n"
+            f"assert main(['reconstruct', 'examples/sofa.png', '-o', {str(out)!r}, '--weights', 'default']) == 0\n")
+    assert _imported(code) == []
+    assert out.stat().st_size > 0
+
+
 def test_addon_stage_labels_cover_the_backend_stages():
     import importlib.util
 

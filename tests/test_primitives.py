@@ -151,6 +151,7 @@ def test_the_tolerance_is_the_grid_value_with_the_lowest_mean_cd():
     assert script.choose([rec(0.1, 0.2, 0.001)], [0.0, 0.01])[0] == 0.0  # snapping that only hurts stays off
 
 
+@pytest.mark.slow
 def test_the_fit_is_the_same_inside_inference_mode():
     """genre reconstruct runs its stages under torch.inference_mode, where autograd is off and tensors made there
     cannot take part in it: the fit must still run, and give the same shape."""

@@ -21,37 +21,9 @@ from genre_backend.inference import reconstruct_cli
 from genre_backend.nets.model import WEIGHTS_FORMAT, WeightsError, load_model
 from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
 from genre_backend.inference.preprocess import ImageError
-from tiny_data import TINY, make_tiny_views
-from training.learn.train import TrainConfig, train
+from tiny_data import TINY
 
 REPO = Path(__file__).resolve().parents[1]
-
-# The tiny renders' masks span a median 0.66 of the image (measured over make_tiny_views), so
-# the test model frames photos that way; the shipped presets use the config default (0.5).
-TINY_FRAMED = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, object_fraction=0.66))
-
-
-def trained_weights(tmp_path_factory) -> tuple[Path, Path]:
-    """(weights, views): tiny renders and weights trained on them stage by stage (cached per session)."""
-    root = tmp_path_factory.getbasetemp() / "genre_trained"
-    weights = root / "run" / "refine" / "final.safetensors"
-    views = root / "views"
-    if weights.is_file():
-        return weights, views
-    views = make_tiny_views(root)
-    run = root / "run"
-    common = dict(data=str(views), out=str(run), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=50)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny nets: one thread is faster, and 25× faster on a busy 2-core machine (measured)
-    try:
-        train(TrainConfig(stage="depth", steps=60, lr=3e-3, **common), TINY_FRAMED)
-        prev = run / "depth" / "final.safetensors"
-        for stage, steps, lr in (("inpaint", 30, 1e-3), ("refine", 60, 3e-3)):
-            train(TrainConfig(stage=stage, steps=steps, lr=lr, init=str(prev), **common))
-            prev = run / stage / "final.safetensors"
-    finally:
-        torch.set_num_threads(threads)
-    return weights, views
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -61,11 +33,6 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    return trained_weights(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
@@ -436,6 +403,7 @@ def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photo
         assert code == 0 and (tmp_path / "f.obj").is_file(), err
 
 
+@pytest.mark.slow
 def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.cleanup import is_watertight
     from genre_backend.geometry.primitives import FAMILIES, snap

@@ -237,6 +237,7 @@ def _slow_cli(trained, photo, tmp_path, out: Path, *extra: str) -> tuple[subproc
     return proc, mark
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("texture, at, sig", [(False, 1, signal.SIGINT), (False, 1, signal.SIGTERM)]
                          + [(True, at, sig) for at in (1, 2, 3) for sig in (signal.SIGINT, signal.SIGTERM)])
 def test_cli_signal_during_a_write_prints_one_line_and_exits(trained, photo, tmp_path, texture, at, sig):
@@ -269,6 +270,7 @@ def test_cli_sigkill_during_a_textured_write_leaves_no_final_file_and_the_next_r
     assert listing(out) == {"m.obj", "m.mtl", "m_texture.png"}  # the dead run's temporaries removed
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig, status, texture, at", [(signal.SIGTERM, 143, False, 1), (signal.SIGINT, 130, False, 1)]
                          + [(sig, status, True, at) for at in (1, 2, 3)
                             for sig, status in ((signal.SIGINT, 130), (signal.SIGTERM, 143))])

@@ -114,6 +114,7 @@ def test_workbench_depth_and_mask_match_cycles(meshes):
     np.testing.assert_array_equal(workbench_aa[0]["raw_depth"], workbench[0]["raw_depth"])
 
 
+@pytest.mark.slow
 def test_eevee_depth_and_mask_match_cycles(meshes):
     """One view, 2 samples: the RGB render plus EEVEE's one-sample depth pass (background ≈ far clip → 1e10)."""
     paths = [meshes / "sphere.ply"]

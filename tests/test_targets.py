@@ -136,6 +136,7 @@ def test_sphere_full_map_is_one_minus_r(tmp_path):
     assert np.abs(t["partial_sph"][visible] - (1 - r)).max() < 5e-3
 
 
+@pytest.mark.slow
 def test_a_real_sweet_home_3d_model(tmp_path):
     """One real catalogue chair, fetched from Debian's archive (120 MB, cached in the GenRe home: corpus.data_dir())."""
     from training.data import corpus

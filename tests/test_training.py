@@ -19,6 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 _cfg = tiny_train_config
 
 
+@pytest.mark.slow
 def test_every_stage_overfits_four_samples(tiny_views, tmp_path):
     run = tmp_path / "run"
     s = train(_cfg("depth", tiny_views, run, steps=60, lr=3e-3), TINY)
@@ -48,6 +49,7 @@ def test_frozen_nets_stay_frozen(tiny_views, tmp_path):
     assert weights_digest(before.refiner) != weights_digest(after.refiner)
 
 
+@pytest.mark.slow
 def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
     from training.data.dataset import ViewDataset, find_views
 
@@ -216,6 +218,7 @@ def test_a_stage_continued_with_another_learning_rate_trains_with_it(tiny_views,
     assert [float(r["lr"]) for r in rows if r["split"] == "train"] == pytest.approx([1e-3, 1e-3 * 2 ** -0.5, 5e-4, 5e-4 * 2 ** -0.5], rel=1e-5)  # (logged to 6 digits)
 
 
+@pytest.mark.slow
 def test_a_resumed_stage_keeps_the_config_it_was_trained_with(tiny_views, tmp_path):
     """The chain names --init only for a stage's first run: resuming without it keeps the weights' own settings."""
     import dataclasses
@@ -257,6 +260,7 @@ def _last_logged_step(log_csv) -> int:
     return max(steps, default=0)
 
 
+@pytest.mark.slow
 def test_kill_between_checkpoints_and_resume_gives_identical_weights_and_log(tiny_views, tmp_path):
     """Depth stage with augmentation and validation (the table's two views; val_fraction 0.5 puts it there),
     checkpoints every 10 of 30 steps, SIGKILL a few steps after the step-10 checkpoint, the same command
@@ -461,6 +465,7 @@ def test_install_into_a_named_weights_file(tmp_path, monkeypatch, capsys):
     assert _extra(tmp_path / "shipped" / "default.safetensors")["model"] == "default"
 
 
+@pytest.mark.slow
 def test_the_hit_head_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewhere(tiny_views, tmp_path):
     """--inpaint-head hit on weights with the paper's head: the inpaint stage starts a fresh
     inpainting net (the depth net kept) and fits four samples (hit BCE + radius MSE fall ≥ 5×; 15× measured);

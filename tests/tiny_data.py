@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,50 @@ def make_tiny_views(root: Path, config: GenreConfig = TINY, views_per_shape: int
         render_shape(renderer, shape, poses, views, seed=0)
     build_targets(views, config, progress=False)
     return views
+
+
+def copy_tiny_views(views: Path, root: Path) -> Path:
+    """A copy of :func:`make_tiny_views`' output (``views`` and the meshes beside it) under ``root``, as if rendered
+    there (the views' records name the copied meshes); returns ``root/views``.  Rendering takes seconds of
+    Blender, copying milliseconds: the tests render once per session and copy (conftest.py)."""
+    import shutil
+
+    root.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(views.parent / "meshes", root / "meshes")
+    shutil.copytree(views, root / "views")
+    old, new = str(views.parent / "meshes"), str(root / "meshes")
+    for record in (root / "views").rglob("*.json"):
+        text = record.read_text()
+        if old in text:
+            record.write_text(text.replace(old, new))
+    return root / "views"
+
+
+# The tiny renders' masks span a median 0.66 of the image (measured over make_tiny_views), so
+# the test model frames photos that way; the shipped presets use the config default (0.5).
+TINY_FRAMED = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, object_fraction=0.66))
+
+
+def train_tiny_weights(views: Path, run: Path) -> Path:
+    """The tiny model trained stage by stage on ``views`` (depth 60 steps, inpaint 30, refine 60) into ``run``, on
+    one thread (tiny nets: one thread is faster, and 25× faster on a busy 2-core machine, measured); returns the
+    final refine weights.  The tests' shared model (conftest.py's ``trained``, made once per session)."""
+    import torch
+
+    from training.learn.train import TrainConfig, train
+
+    common = dict(data=str(views), out=str(run), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=50)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        train(TrainConfig(stage="depth", steps=60, lr=3e-3, **common), TINY_FRAMED)
+        prev = run / "depth" / "final.safetensors"
+        for stage, steps, lr in (("inpaint", 30, 1e-3), ("refine", 60, 3e-3)):
+            train(TrainConfig(stage=stage, steps=steps, lr=lr, init=str(prev), **common))
+            prev = run / stage / "final.safetensors"
+    finally:
+        torch.set_num_threads(threads)
+    return prev
 
 
 def tiny_train_config(stage: str, views: Path, out: Path, **overrides):

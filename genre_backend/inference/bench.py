@@ -14,6 +14,17 @@ depend on training).  Each preset runs in a fresh subprocess so that its peak
 memory (``getrusage`` max RSS) is its own; per-stage peaks come from sampling
 the process's resident set every 2 ms.  On CUDA, per-stage peaks are
 ``torch.cuda.max_memory_allocated``.
+
+``genre bench reconstruct`` times what a user runs: ``genre reconstruct`` of a
+photo (``examples/sofa.png``) with the shipped weights (``default``) and their
+own options (GrabCut mask, mirror averaging, cleanup …).  Warm: one process,
+the weights loaded, each stage timed from the ``progress`` call that starts it.
+Cold: fresh ``genre reconstruct`` processes, wall clock, and instrumented ones
+that split that time into the interpreter's start, the imports, the weights'
+loading, each stage and the exit (:mod:`.bench_probe`).  ``--against
+LABEL=DIR`` times another checkout (an older commit) in the same run, the
+checkouts taken in turn, and prints the two side by side with the meshes'
+sha256.
 """
 
 from __future__ import annotations
@@ -318,6 +329,229 @@ def _print_inference(summary: dict) -> None:
           f"process peak (getrusage max RSS) {s['max_rss_mb']:.0f} MB")
 
 
+# ----------------------------------------------------------------------------- what a user runs
+
+_REPO = Path(__file__).resolve().parents[2]
+_PROBE = Path(__file__).with_name("bench_probe.py")
+_COLD_ROWS = ("interpreter", "python + cli", "import reconstruct", "weights", "load", "preprocess", "depth", "partial_sph",
+              "inpaint", "voxels", "refine", "mesh", "write", "cli", "exit")
+
+
+def _checkout_env(root: Path) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+def _probe(root: Path, *args: str) -> dict:
+    """Run bench_probe.py (this checkout's) against the code of checkout ``root`` in a fresh process."""
+    import json
+    import subprocess
+
+    code = f"import runpy, sys; sys.argv = ['bench_probe', *{list(args)!r}]; runpy.run_path({str(_PROBE)!r}, run_name='__main__')"
+    launched = time.time()
+    proc = subprocess.run([sys.executable, "-c", code], cwd=root, env=_checkout_env(root), capture_output=True, text=True)
+    ended = time.time()
+    if proc.returncode != 0:
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"bench probe {args[0]} in {root} failed: {tail}")
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["launched"], out["ended"] = launched, ended
+    return out
+
+
+class _WarmProbe:
+    """A warm bench_probe process in checkout ``root``: weights loaded and one warm-up run done on start;
+    :meth:`run` times one more run."""
+
+    def __init__(self, root: Path, image: Path, weights: str):
+        import subprocess
+
+        code = ("import runpy, sys; sys.argv = ['bench_probe', 'warm', "
+                f"{str(image)!r}, {weights!r}]; runpy.run_path({str(_PROBE)!r}, run_name='__main__')")
+        self.root = root
+        self.proc = subprocess.Popen([sys.executable, "-c", code], cwd=root, env=_checkout_env(root), stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.summary = self._read()
+
+    def _read(self) -> dict:
+        import json
+
+        for line in self.proc.stdout:
+            if line.startswith("{"):
+                return json.loads(line)
+        tail = (self.proc.stderr.read().strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"bench probe warm in {self.root} failed: {tail}")
+
+    def run(self) -> dict:
+        self.proc.stdin.write("run\n")
+        self.proc.stdin.flush()
+        return self._read()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.stdin.write("quit\n")
+                self.proc.stdin.close()
+                self.proc.wait(timeout=60)
+            except (OSError, ValueError):
+                pass
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def _cold_wall(root: Path, image: Path, out: Path, weights: str) -> tuple[float, float, str]:
+    """Wall-clock seconds of a plain ``genre reconstruct IMAGE -o OUT --weights W`` process in checkout ``root``,
+    its processor seconds (user + system, every thread), and the sha256 of the mesh it wrote."""
+    import hashlib
+    import subprocess
+
+    import resource
+
+    cmd = [sys.executable, "-m", "genre_backend.cli", "reconstruct", str(image), "-o", str(out), "--weights", weights]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=root, env=_checkout_env(root), capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"genre reconstruct in {root} failed: {tail}")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, hashlib.sha256(out.read_bytes()).hexdigest()
+
+
+def _cold_parts(probe: dict) -> dict[str, float]:
+    """A cold probe's stamps → seconds per part (``cli``: the command's own work between the timed parts)."""
+    stamps = [("interpreter", probe["launched"]), *probe["stamps"], ("exit", probe["stamps"][-1][1])]
+    stamps = [(name, at) for name, at in stamps if name != "end"] + [("", probe["ended"])]
+    parts: dict[str, float] = {}
+    for (name, at), (_, nxt) in zip(stamps[:-1], stamps[1:]):
+        parts[name] = parts.get(name, 0.0) + (nxt - at)
+    return parts
+
+
+def reconstruct_benchmark(checkouts: dict[str, Path], image: Path, weights: str = "default", repeats: int = 5,
+                          cold_repeats: int = 3) -> dict[str, dict]:
+    """Time ``genre reconstruct IMAGE --weights WEIGHTS`` as a user runs it, in each checkout (label → root).
+
+    Warm: one process per checkout, all started together, then ``repeats`` rounds of one run each, median per
+    stage.  Cold: ``cold_repeats`` rounds of one plain ``genre reconstruct`` process (wall clock, median) and
+    one instrumented one (median per part) per checkout.  Within each round the checkouts take turns (the order
+    reversed every other round), so that they share the machine's load alike.
+    """
+    import statistics
+    import tempfile
+
+    cold: dict[str, list] = {k: [] for k in checkouts}
+    walls: dict[str, list] = {k: [] for k in checkouts}
+    cpus: dict[str, list] = {k: [] for k in checkouts}
+    shas: dict[str, set] = {k: set() for k in checkouts}
+    warm: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(cold_repeats):
+            order = list(checkouts.items()) if r % 2 == 0 else list(checkouts.items())[::-1]
+            for label, root in order:
+                wall, cpu, sha = _cold_wall(root, image, Path(tmp) / f"{label}-{r}.obj", weights)
+                walls[label].append(wall)
+                cpus[label].append(cpu)
+                shas[label].add(sha)
+                probe = _probe(root, "cold", str(image), str(Path(tmp) / f"{label}-{r}-probe.obj"), weights)
+                if probe["rc"] != 0:
+                    raise RuntimeError(f"genre reconstruct in {root} exited {probe['rc']}")
+                cold[label].append(probe)
+        probes: dict[str, _WarmProbe] = {}
+        try:
+            for label, root in checkouts.items():
+                probes[label] = _WarmProbe(root, image, weights)
+            runs: dict[str, list] = {k: [] for k in checkouts}
+            for r in range(repeats):
+                for label in (list(checkouts) if r % 2 == 0 else list(checkouts)[::-1]):
+                    runs[label].append(probes[label].run())
+        finally:
+            for probe in probes.values():
+                probe.close()
+        for label in checkouts:
+            names = list(runs[label][0])
+            warm[label] = {**probes[label].summary, "repeats": repeats,
+                           "median_s": {k: statistics.median(x[k] for x in runs[label]) for k in names},
+                           "totals_s": [x["total"] for x in runs[label]]}
+    out = {}
+    for label, root in checkouts.items():
+        parts = [_cold_parts(p) for p in cold[label]]
+        names = [n for n in _COLD_ROWS if any(n in p for p in parts)]
+        out[label] = {
+            "root": str(root),
+            "warm": warm[label],
+            "cold_wall_s": statistics.median(walls[label]),
+            "cold_walls_s": walls[label],
+            "cold_cpu_s": statistics.median(cpus[label]),
+            "cold_cpus_s": cpus[label],
+            "cold_parts_s": {n: statistics.median(p.get(n, 0.0) for p in parts) for n in names},
+            "cold_modules": cold[label][-1]["modules"],
+            "cold_module_count": cold[label][-1]["module_count"],
+            "mesh_sha256": sorted(shas[label]),
+        }
+    return out
+
+
+_USER_TARGETS_S = {"warm": 1.0, "cold": 3.0}  # issue 41's goals for the shipped weights on the 2-core CPU
+
+
+def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) -> None:
+    labels = list(summaries)
+    first = summaries[labels[0]]["warm"]
+    mirror = "mirror averaging on" if first["test_time_mirror"] else "no mirror averaging"
+    print(f"genre reconstruct {image} --weights {weights}: the weights' own options (threshold {first['threshold']:g}, {mirror}), "
+          f"mask from {first['mask_source']}, mesh {first['vertices']} vertices / {first['faces']} faces, "
+          f"{first['threads']} torch threads")
+    for label in labels:
+        print(f"  {label}: {summaries[label]['root']}")
+    width = max(12, *(len(x) for x in labels))
+    head = "".join(f"{x:>{width + 2}}" for x in labels)
+
+    def row(name: str, values: list[float | None], note: str = "") -> None:
+        cells = "".join(f"{'—' if v is None else f'{1e3 * v:.0f}':>{width + 2}}" for v in values)
+        print(f"  {name:<22}{cells}{'  ' + note if note else ''}")
+
+    reps = first["repeats"]
+    print(f"\nwarm: one process, weights loaded, median of {reps} runs after a warm-up (ms)")
+    print(f"  {'stage':<22}{head}")
+    stages = [k for k in first["median_s"] if k != "total"]
+    for st in stages:
+        note = "(with the mirror image through every net)" if st == "refine" and first["test_time_mirror"] else ""
+        row(st, [summaries[x]["warm"]["median_s"].get(st) for x in labels], note)
+    target = _USER_TARGETS_S["warm"]
+    totals = [summaries[x]["warm"]["median_s"]["total"] for x in labels]
+    row("total", totals, f"(goal ≤ {1e3 * target:.0f}: " + ", ".join(f"{x} {'met' if t <= target else 'missed'}" for x, t in zip(labels, totals)) + ")")
+    row("weights load (once)", [summaries[x]["warm"]["weights_s"] for x in labels])
+
+    n = len(summaries[labels[0]]["cold_walls_s"])
+    print(f"\ncold: a fresh `genre reconstruct` process per run, median of {n} (ms)")
+    print(f"  {'part':<22}{head}")
+    names = [k for k in _COLD_ROWS if any(k in summaries[x]["cold_parts_s"] for x in labels)]
+    notes = {"interpreter": "(Python's start-up, to the first line of the command)",
+             "python + cli": "(the cli module, argument parsing, finding the commands)",
+             "import reconstruct": "(torch and the pipeline's modules)",
+             "cli": "(the command's own work between these parts)",
+             "exit": "(interpreter shut-down)"}
+    for name in names:
+        row(name, [summaries[x]["cold_parts_s"].get(name) for x in labels], notes.get(name, ""))
+    row("sum of the parts", [sum(summaries[x]["cold_parts_s"].values()) for x in labels], "(an instrumented run)")
+    target = _USER_TARGETS_S["cold"]
+    walls = [summaries[x]["cold_wall_s"] for x in labels]
+    row("wall, plain process", walls, f"(goal ≤ {1e3 * target:.0f}: " + ", ".join(f"{x} {'met' if t <= target else 'missed'}" for x, t in zip(labels, walls)) + ")")
+    row("processor, plain", [summaries[x]["cold_cpu_s"] for x in labels],
+        "(user + system time of that process, all threads: less swayed by other jobs than the wall clock)")
+    print("\n  heavy modules a cold run imported:")
+    for x in labels:
+        print(f"  {x:<{width}}  {', '.join(summaries[x]['cold_modules'])} ({summaries[x]['cold_module_count']} modules in all)")
+    shas = {x: summaries[x]["mesh_sha256"] for x in labels}
+    same = len({tuple(v) for v in shas.values()}) == 1 and len(shas[labels[0]]) == 1
+    print(f"  mesh sha256: {shas[labels[0]][0][:16]}… " + ("(the same from every checkout and run)" if same else f"DIFFERS: {shas}"))
+
+
 def main(argv: list[str], prog: str = "genre bench") -> int:
     parser = argparse.ArgumentParser(prog=prog, description="Print speed figures of the project's operations.")
     sub = parser.add_subparsers(dest="what", required=True)
@@ -334,6 +568,15 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     inf.add_argument("--test-time-mirror", action="store_true",
                      help="also time each preset with test-time mirroring (the nets run on the mirror image too)")
     inf.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
+    user = sub.add_parser("reconstruct", help="time `genre reconstruct` of a photo with the shipped weights and their own options, warm and cold")
+    user.add_argument("--image", default=str(_REPO / "examples" / "sofa.png"), help="the photo (default: examples/sofa.png)")
+    user.add_argument("--weights", default="default", help="shipped weights' name or a file (default: default)")
+    user.add_argument("--repeats", type=int, default=5, help="warm runs after one warm-up (median reported)")
+    user.add_argument("--cold-repeats", type=int, default=3, help="fresh processes (median reported)")
+    user.add_argument("--against", action="append", default=[], metavar="LABEL=DIR",
+                      help="also time another checkout of this project (e.g. a `git worktree` of an older commit) in the "
+                           "same run, beside this one; repeatable")
+    user.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
     worker = sub.add_parser("_inference-worker")  # internal: one preset in a fresh process
     worker.add_argument("--preset", required=True)
     worker.add_argument("--device", required=True)
@@ -342,10 +585,31 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     worker.add_argument("--threads", type=int, default=None)
     worker.add_argument("--test-time-mirror", action="store_true")
     args = parser.parse_args(argv)
-    if args.threads:
+    if getattr(args, "threads", None):
         torch.set_num_threads(args.threads)
-    if args.repeats < 1:
-        parser.error("--repeats must be at least 1")
+    if args.repeats < 1 or getattr(args, "cold_repeats", 1) < 1:
+        parser.error("--repeats and --cold-repeats must be at least 1")
+    if args.what == "reconstruct":
+        import json
+
+        checkouts = {"this checkout": _REPO}
+        for item in args.against:
+            label, sep, folder = item.partition("=")
+            if not sep or not label or not (Path(folder) / "genre_backend" / "cli.py").is_file():
+                parser.error(f"--against {item!r}: expected LABEL=DIR, DIR a checkout of this project")
+            checkouts[label] = Path(folder).resolve()
+        image = Path(args.image).resolve()
+        if not image.is_file():
+            parser.error(f"--image {args.image}: no such file")
+        try:
+            summaries = reconstruct_benchmark(checkouts, image, args.weights, args.repeats, args.cold_repeats)
+        except RuntimeError as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            return 1
+        _print_reconstruct(summaries, Path(args.image), args.weights)
+        if args.json:
+            print(json.dumps(summaries, indent=2))
+        return 0
     if args.what == "_inference-worker":
         import json
 

@@ -271,8 +271,6 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
     are checked before the first write.  Returns (mesh path, format, every
     file written).
     """
-    import trimesh
-
     path = Path(path)
     fmt = resolve_format(path, fmt)
     up = resolve_up(fmt, up)
@@ -299,6 +297,8 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
             except OSError as exc:
                 raise OutputError(f"{short(path)}: cannot write here: {exc.strerror or exc}") from None
         return path, fmt, files
+    import trimesh  # (ply and glb only: an OBJ is written without importing trimesh)
+
     if up == "z":  # (ply only)
         v = v @ Y_UP_TO_Z_UP.T
     mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
