@@ -424,6 +424,7 @@ def _batch(trained, tmp_path) -> tuple[list[str], Path]:
 _UNIT_A = {"a.obj", "a.mtl", "a_texture.png"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("at", range(1, 7))
 @pytest.mark.parametrize("sig, status, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated"),
                                                (signal.SIGKILL, -9, None)])
