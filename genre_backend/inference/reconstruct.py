@@ -337,6 +337,27 @@ class Reconstruction:
         return images
 
 
+class _StageClock:
+    """Times the stages of one job, reports each as it starts (``progress(stage, fraction)``) and polls
+    ``should_cancel()`` at every boundary (:class:`Cancelled`); ``timings``: stage → seconds."""
+
+    def __init__(self, sync: Callable[[], None], progress: ProgressFn | None, should_cancel: Callable[[], bool] | None):
+        self.sync, self.progress, self.should_cancel = sync, progress, should_cancel
+        self.timings: dict[str, float] = {}
+        self.name: str | None = None
+        self.t0 = 0.0
+
+    def __call__(self, name: str) -> None:
+        if self.name is not None:
+            self.sync()
+            self.timings[self.name] = time.perf_counter() - self.t0
+        if self.should_cancel is not None and self.should_cancel():
+            raise Cancelled(f"cancelled before stage {name}")
+        self.name, self.t0 = name, time.perf_counter()
+        if name != "done" and self.progress is not None:
+            self.progress(name, STAGE_START[name])
+
+
 class Reconstructor:
     """A loaded model that turns photos into meshes; see the module docstring.
 
@@ -427,20 +448,7 @@ class Reconstructor:
         no object.
         """
         opts = MeshOptions.from_mapping(overrides).over(options or MeshOptions()).resolved(self.config.geometry)
-        timings: dict[str, float] = {}
-        state = {"stage": None, "t0": 0.0}
-
-        def stage(name: str) -> None:
-            if state["stage"] is not None:
-                self._sync()
-                timings[state["stage"]] = time.perf_counter() - state["t0"]
-            if should_cancel is not None and should_cancel():
-                raise Cancelled(f"cancelled before stage {name}")
-            state["stage"], state["t0"] = name, time.perf_counter()
-            if name != "done" and progress is not None:
-                progress(name, STAGE_START[name])
-
-        model = self.model
+        stage = _StageClock(self._sync, progress, should_cancel)
         self._first_pass = None
         with torch.inference_mode():
             stage("load")
@@ -448,76 +456,87 @@ class Reconstructor:
             stage("preprocess")
             pre: Preprocessed = preprocess(image, self.config, mask_path=mask_path, silhouette=self._silhouette, refine=refine, seeding=seeding,
                                            box=box, strokes_path=strokes_path)
-            stage("depth")
-            out = self._depth_net(pre.rgb)
-            self._first_pass = None
-            mask = out["silhouette_logits"] > 0 if pre.mask is None else pre.mask[None].to(self.device)
-            masked = model.masked_depth(out["depth"], mask)
-            if int((masked > 0).sum()) < MIN_OBJECT_PIXELS:
-                what = "the depth net's silhouette is empty" if pre.mask is None else "the depth net found no surface inside the mask"
-                raise ImageError("no_object", f"{image.path}: no object found ({what})")
-            stage("partial_sph")
-            partial = model.partial_sph(masked)
-            stage("inpaint")
-            full = model.inpaint_net(partial)
-            stage("voxels")
-            vox_sph = model.sph_voxels(full)
-            vox_depth = model.depth_voxels(masked)
-            stage("refine")
-            logits = model.refine(vox_sph, vox_depth)
-            if opts.test_time_mirror:  # the mirror image through every net, its output reflected back
-                logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k)["logits"], pre.rgb[None].to(self.device), mask,
-                                         logits=logits)
+            nets = self._networks(pre, opts, stage, image.path)
             stage("mesh")
-            prob = torch.sigmoid(logits[0, 0]).float().cpu()
-            prob = opts.shape_grid(prob, mask[0], masked[0], model.config.camera, model.config.geometry)
-            prob, vertices, faces, clean = opts.mesh(prob, model.config.geometry)
-            if clean is None:
-                raise ImageError("no_object", f"{image.path}: no object found (no voxel reaches the threshold {opts.threshold:g})")
-            primitive, notes = None, list(pre.notes)
-            vertices, faces, fit = opts.snap_mesh(vertices, faces, masked[0], model.config.camera)
-            if fit is not None:
-                primitive = fit.family
-                vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
-                notes.append(f"the mesh is a fitted {fit.describe()}")
+            mesh = self._mesh(nets, opts, image.path, list(pre.notes))
             stage("done")
         photo_mask = pre.photo_mask
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
-            box = tuple(v * image.scale for v in pre.crop_box)
-            photo_mask = uncrop(mask[0].cpu().numpy(), box, image.size)
-        warning = "; ".join(w for w in (doubt(photo_mask), pre.mask_doubt) if w) or None
+            crop = tuple(v * image.scale for v in pre.crop_box)
+            photo_mask = uncrop(nets["mask"][0].cpu().numpy(), crop, image.size)
         inter = {
             "rgb": pre.rgb,
-            "depth": out["depth"][0],
-            "silhouette_logits": out["silhouette_logits"][0],
-            "mask": mask[0],
-            "masked_depth": masked[0],
-            "partial_sph": partial[0],
-            "full_sph": full[0],
-            "vox_sph": vox_sph[0, 0],
-            "vox_depth": vox_depth[0, 0],
-            "logits": logits[0, 0],
-            "probability": prob,
+            "depth": nets["depth"][0],
+            "silhouette_logits": nets["silhouette_logits"][0],
+            **{k: nets[k][0] for k in ("mask", "masked_depth", "partial_sph", "full_sph")},
+            **{k: nets[k][0, 0] for k in ("vox_sph", "vox_depth", "logits")},
+            "probability": mesh["probability"],
         }
-        inter = {k: v.detach().cpu() for k, v in inter.items()}
         return Reconstruction(
             image=Path(image_path),
-            vertices=vertices,
-            faces=faces,
+            vertices=mesh["vertices"],
+            faces=mesh["faces"],
             mask_source=pre.mask_source,
             options=opts,
-            timings=timings,
+            timings=stage.timings,
             crop_box=pre.crop_box,
             image_size=pre.image_size,
             config=self.config,
-            intermediates=inter,
-            notes=notes,
+            intermediates={k: v.detach().cpu() for k, v in inter.items()},
+            notes=mesh["notes"],
             mask_path=None if mask_path is None else Path(mask_path),
             strokes_path=None if strokes_path is None else Path(strokes_path),
             photo=image,
             fill=pre.fill,
-            clean=clean,
+            clean=mesh["clean"],
             photo_mask=photo_mask,
-            mask_warning=warning,
-            primitive=primitive,
+            mask_warning="; ".join(w for w in (doubt(photo_mask), pre.mask_doubt) if w) or None,
+            primitive=mesh["primitive"],
         )
+
+    def _networks(self, pre: Preprocessed, opts: MeshOptions, stage: "_StageClock", path) -> dict[str, torch.Tensor]:
+        """The networks on one framed photo (S = image size, H = spherical map size, N = voxel grid size): ``depth``
+        (1, 1, S, S), ``silhouette_logits`` (1, 1, S, S), ``mask`` (1, 1, S, S) bool, ``masked_depth`` (1, 1, S, S),
+        ``partial_sph`` and ``full_sph`` (1, 1, H, H), ``vox_sph``, ``vox_depth`` and ``logits`` (1, 1, N, N, N)."""
+        model = self.model
+        stage("depth")
+        out = self._depth_net(pre.rgb)
+        self._first_pass = None
+        mask = out["silhouette_logits"] > 0 if pre.mask is None else pre.mask[None].to(self.device)
+        masked = model.masked_depth(out["depth"], mask)
+        if int((masked > 0).sum()) < MIN_OBJECT_PIXELS:
+            what = "the depth net's silhouette is empty" if pre.mask is None else "the depth net found no surface inside the mask"
+            raise ImageError("no_object", f"{path}: no object found ({what})")
+        stage("partial_sph")
+        partial = model.partial_sph(masked)
+        stage("inpaint")
+        full = model.inpaint_net(partial)
+        stage("voxels")
+        vox_sph = model.sph_voxels(full)
+        vox_depth = model.depth_voxels(masked)
+        stage("refine")
+        logits = model.refine(vox_sph, vox_depth)
+        if opts.test_time_mirror:  # the mirror image through every net, its output reflected back
+            logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k)["logits"], pre.rgb[None].to(self.device), mask,
+                                     logits=logits)
+        return {"depth": out["depth"], "silhouette_logits": out["silhouette_logits"], "mask": mask, "masked_depth": masked,
+                "partial_sph": partial, "full_sph": full, "vox_sph": vox_sph, "vox_depth": vox_depth, "logits": logits}
+
+    def _mesh(self, nets: dict[str, torch.Tensor], opts: MeshOptions, path, notes: list[str]) -> dict:
+        """The steps after the networks, in the options' one order: ``probability`` (N, N, N) CPU float,
+        ``vertices`` (V, 3), ``faces`` (F, 3), ``clean`` (the cleanup's report), ``primitive`` (a fitted family or
+        None) and ``notes`` (``notes`` with the fit's, when one replaced the mesh)."""
+        model = self.model
+        prob = torch.sigmoid(nets["logits"][0, 0]).float().cpu()
+        prob = opts.shape_grid(prob, nets["mask"][0], nets["masked_depth"][0], model.config.camera, model.config.geometry)
+        prob, vertices, faces, clean = opts.mesh(prob, model.config.geometry)
+        if clean is None:
+            raise ImageError("no_object", f"{path}: no object found (no voxel reaches the threshold {opts.threshold:g})")
+        primitive = None
+        vertices, faces, fit = opts.snap_mesh(vertices, faces, nets["masked_depth"][0], model.config.camera)
+        if fit is not None:
+            primitive = fit.family
+            vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
+            notes = [*notes, f"the mesh is a fitted {fit.describe()}"]
+        return {"probability": prob, "vertices": vertices, "faces": faces, "clean": clean, "primitive": primitive,
+                "notes": notes}

@@ -33,7 +33,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 __all__ = ["main", "output_paths"]
 
@@ -96,8 +99,9 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
-def _main(argv: list[str] | None, prog: str) -> int:
-    from .reconstruct import MESH_FORMATS
+def _parser(prog: str) -> argparse.ArgumentParser:
+    """``genre reconstruct``'s arguments: the photos, their mask inputs, every mesh option of the record, the rest."""
+    from .options import add_arguments
 
     parser = argparse.ArgumentParser(prog=prog, description="Turn photos of objects into meshes (posed as seen, in the view frame).")
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (PNG, JPEG, …); RGBA images use their alpha as the mask")
@@ -109,8 +113,6 @@ def _main(argv: list[str] | None, prog: str) -> int:
     parser.add_argument("--strokes", metavar="S",
                         help="strokes image for the (single) photo, the photo's size: white (>= 192) on the object, black "
                              "(<= 63) on the background, mid grey (128) or transparent elsewhere; GrabCut keeps them")
-    from .options import OptionError, add_arguments, from_arguments
-
     add_arguments(parser)  # every mesh option (genre_backend/inference/options.py) and --quality
     parser.add_argument("--no-refine", action="store_true",
                         help="without --mask or alpha, use the depth net's silhouette as it is (default: find the object in the photo by GrabCut)")
@@ -122,93 +124,147 @@ def _main(argv: list[str] | None, prog: str) -> int:
                         help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
                              "model, seen classes only), or a .safetensors file")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    args = parser.parse_args(argv)
+    return parser
 
-    images = [Path(p) for p in args.images]
-    if args.mask and len(images) > 1:
+
+@dataclass(frozen=True)
+class ReconstructSpec:
+    """One ``genre reconstruct`` call, checked: ``outputs[i]`` is the mesh of ``images[i]``, written as ``fmt`` with
+    ``up`` as its up axis; ``options`` the mesh options (:class:`.options.MeshOptions`, None fields: the weights');
+    ``box`` (x0, y0, x1, y1, the photo's pixels), ``mask`` and ``strokes`` the (single) photo's mask inputs."""
+
+    prog: str
+    images: tuple[Path, ...]
+    outputs: tuple[Path, ...]
+    output: str | None
+    fmt: str
+    up: str
+    options: Any
+    mask: str | None
+    box: tuple[float, float, float, float] | None
+    strokes: str | None
+    refine: bool
+    save_intermediates: str | None
+    preview: bool
+    weights: str | None
+    device: str
+
+    @property
+    def many(self) -> bool:
+        return len(self.images) > 1
+
+
+def _mask_inputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[float, float, float, float] | None:
+    """Check that --mask, --box and --strokes go with one photo and not with each other; the box, checked."""
+    if args.mask and len(args.images) > 1:
         parser.error("--mask applies to one image; give one image per call")
-    box = None
     if args.box is not None or args.strokes is not None:
         used = " and ".join(n for n, v in (("--box", args.box), ("--strokes", args.strokes)) if v is not None)
-        if len(images) > 1:
+        if len(args.images) > 1:
             parser.error(f"{used} apply to one image; give one image per call")
         if args.mask:
             parser.error(f"give either --mask or {used}, not both")
         if args.no_refine:
             parser.error(f"{used} guide GrabCut; --no-refine turns it off")
-    if args.box is not None:
-        from ..validation import check_box
+    if args.box is None:
+        return None
+    from ..validation import check_box
 
-        try:
-            box = check_box("--box", args.box)
-        except ValueError as exc:
-            parser.error(str(exc))
+    try:
+        return check_box("--box", args.box)
+    except ValueError as exc:
+        parser.error(str(exc))
+
+
+def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
+    """The command line as a :class:`ReconstructSpec`; bad arguments exit 2 with argparse's message."""
+    from .mesh_export import resolve_up
+    from .options import OptionError, from_arguments
+    from .reconstruct import MESH_FORMATS
+
+    parser = _parser(prog)
+    args = parser.parse_args(argv)
+    box = _mask_inputs(parser, args)
     try:
         options = from_arguments(args)
     except OptionError as exc:
         parser.error(str(exc))
+    images = [Path(p) for p in args.images]
     fmt = options.format
-    single_file = len(images) == 1 and args.output and not _is_dir(args.output) and not args.output.endswith(os.sep)
-    if single_file:
+    if len(images) == 1 and args.output and not _is_dir(args.output) and not args.output.endswith(os.sep):
         ext = Path(args.output).suffix.lower().lstrip(".")
         if fmt is None:
             fmt = ext if ext in MESH_FORMATS else "obj"
         elif ext in MESH_FORMATS and ext != fmt:
             parser.error(f"--format {fmt} does not match the output's extension .{ext}")
     fmt = fmt or "obj"
-    from .mesh_export import resolve_up
-
     try:
         up = resolve_up(fmt, options.up)
     except ValueError as exc:
         parser.error(f"--{exc}")
-    if len(images) > 1 and args.output:
-        out_dir = Path(args.output)
-        if os.path.exists(out_dir) and not _is_dir(out_dir):
-            print(f"{prog}: error: {out_dir}: with several images, -o must be a folder [output_unwritable]", file=sys.stderr)
-            return 1
-        try:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            print(f"{prog}: error: {out_dir}: cannot create the output folder ({exc.strerror or exc}) [output_unwritable]", file=sys.stderr)
-            return 1
+    return ReconstructSpec(prog, tuple(images), tuple(output_paths(images, args.output, fmt)), args.output, fmt, up,
+                           options, args.mask, box, args.strokes, not args.no_refine, args.save_intermediates,
+                           args.preview, args.weights, args.device)
 
-    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
 
+def _main(argv: list[str] | None, prog: str) -> int:
+    return reconstruct_all(parse_spec(argv, prog))
+
+
+def _fail(prog: str, message: str, code: str) -> int:
+    print(f"{prog}: error: {message} [{code}]", file=sys.stderr)
+    return 1
+
+
+def _output_folder(spec: ReconstructSpec) -> int:
+    """With several photos, make ``-o`` a folder (0), or say why it cannot be one (1)."""
+    if not (spec.many and spec.output):
+        return 0
+    out_dir = Path(spec.output)
+    if os.path.exists(out_dir) and not _is_dir(out_dir):
+        return _fail(spec.prog, f"{out_dir}: with several images, -o must be a folder", "output_unwritable")
     try:
-        weights = resolve_weights(args.weights)
-    except WeightsError as exc:
-        print(f"{prog}: error: --weights: {exc} [bad_weights]", file=sys.stderr)
-        return 1
-    name = args.weights or DEFAULT_WEIGHTS_NAME
-    if name in WEIGHTS_NAMES and not weights.is_file():
-        print(
-            f"{prog}: error: no {name} weights at {weights}: the trained weights are not installed yet; "
-            "train them with 'genre train depth|inpaint|refine …' (see 'genre train --help') and pass --weights RUN/refine/best.safetensors [bad_weights]",
-            file=sys.stderr,
-        )
-        return 1
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return _fail(spec.prog, f"{out_dir}: cannot create the output folder ({exc.strerror or exc})", "output_unwritable")
+    return 0
 
-    from .mesh_export import check_outputs
+
+def _load(spec: ReconstructSpec):
+    """The :class:`.reconstruct.Reconstructor` of ``spec.weights``, or the exit status 1 after one line on stderr."""
+    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
     from .reconstruct import Reconstructor, error_code
 
     try:
-        rec = Reconstructor(weights, args.device)
+        weights = resolve_weights(spec.weights)
+    except WeightsError as exc:
+        return _fail(spec.prog, f"--weights: {exc}", "bad_weights")
+    name = spec.weights or DEFAULT_WEIGHTS_NAME
+    if name in WEIGHTS_NAMES and not weights.is_file():
+        return _fail(spec.prog, f"no {name} weights at {weights}: the trained weights are not installed yet; "
+                     "train them with 'genre train depth|inpaint|refine …' (see 'genre train --help') and pass "
+                     "--weights RUN/refine/best.safetensors", "bad_weights")
+    try:
+        return Reconstructor(weights, spec.device)
     except (WeightsError, ValueError) as exc:
-        print(f"{prog}: error: {_one_line(exc)} [{error_code(exc)}]", file=sys.stderr)
-        return 1
+        return _fail(spec.prog, _one_line(exc), error_code(exc))
     except Exception as exc:  # noqa: BLE001  (load_model turns a bad file into WeightsError; anything else is one line too)
-        print(f"{prog}: error: internal error while loading {weights}: {exc.__class__.__name__}: {_one_line(exc)} [internal]",
-              file=sys.stderr)
-        return 1
+        return _fail(spec.prog, f"internal error while loading {weights}: {exc.__class__.__name__}: {_one_line(exc)}", "internal")
 
-    outputs = output_paths(images, args.output, fmt)
-    many = len(images) > 1
+
+def reconstruct_all(spec: ReconstructSpec) -> int:
+    """Reconstruct every photo of ``spec`` (a progress bar on stderr for several); 0 when all were written, else 1."""
+    status = _output_folder(spec)
+    if status:
+        return status
+    rec = _load(spec)
+    if isinstance(rec, int):
+        return rec
     bar = None
-    if many:
+    if spec.many:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(images), desc="reconstruct", unit="image", file=sys.stderr, dynamic_ncols=True)
+        bar = tqdm(total=len(spec.images), desc="reconstruct", unit="image", file=sys.stderr, dynamic_ncols=True)
 
     def say(text: str, err: bool = False) -> None:
         stream = sys.stderr if err else sys.stdout
@@ -219,41 +275,51 @@ def _main(argv: list[str] | None, prog: str) -> int:
 
     failed = 0
     try:  # (on Ctrl-C or SIGTERM the bar is closed first: the one-line message comes on a line of its own)
-        for image, out in zip(images, outputs):
-            try:
-                intermediates = None
-                if args.save_intermediates:
-                    intermediates = Path(args.save_intermediates) / image.stem if many else Path(args.save_intermediates)
-                preview = out.with_name(out.stem + "_preview.png") if args.preview else None
-                check_outputs(out, fmt, bool(options.texture), (image, args.mask, args.strokes), intermediates, preview)  # every output, before any work
-                result = rec.run(image, mask_path=args.mask, options=options, refine=not args.no_refine, box=box,
-                                 strokes_path=args.strokes)
-                path, used = result.save_mesh(out, fmt, texture=bool(options.texture), up=up)
-                if intermediates is not None:
-                    result.save_intermediates(intermediates)
-                if preview is not None:
-                    result.save_preview(preview, texture=bool(options.texture))
-                say(_result_line(image, path, used, result, bool(options.texture)))
-                if result.mask_warning:
-                    fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if args.save_intermediates \
-                        else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"
-                    fix += ", or guide it with --box and --strokes"
-                    say(f"{prog}: warning: {image}: doubtful mask: {result.mask_warning}; {fix}", err=True)
-            except Exception as exc:  # one bad input must not stop the others
-                failed += 1
-                code = error_code(exc)
-                msg = _one_line(exc) if code != "internal" else f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
-                if str(image) not in msg:
-                    msg = f"{image}: {msg}"
-                say(f"{prog}: error: {msg} [{code}]", err=True)
+        for image, out in zip(spec.images, spec.outputs):
+            failed += not _reconstruct_one(spec, rec, image, out, say)
             if bar is not None:
                 bar.update(1)
     finally:
         if bar is not None:
             bar.close()
-    if failed and many:
-        print(f"{prog}: {failed} of {len(images)} images failed", file=sys.stderr)
+    if failed and spec.many:
+        print(f"{spec.prog}: {failed} of {len(spec.images)} images failed", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _reconstruct_one(spec: ReconstructSpec, rec, image: Path, out: Path, say: Callable[..., None]) -> bool:
+    """Write one photo's mesh (and its intermediates and preview) and say so; a bad input is one line, False."""
+    from .mesh_export import check_outputs
+    from .reconstruct import error_code
+
+    textured = bool(spec.options.texture)
+    try:
+        intermediates = None
+        if spec.save_intermediates:
+            intermediates = Path(spec.save_intermediates) / image.stem if spec.many else Path(spec.save_intermediates)
+        preview = out.with_name(out.stem + "_preview.png") if spec.preview else None
+        check_outputs(out, spec.fmt, textured, (image, spec.mask, spec.strokes), intermediates, preview)  # every output, before any work
+        result = rec.run(image, mask_path=spec.mask, options=spec.options, refine=spec.refine, box=spec.box,
+                         strokes_path=spec.strokes)
+        path, used = result.save_mesh(out, spec.fmt, texture=textured, up=spec.up)
+        if intermediates is not None:
+            result.save_intermediates(intermediates)
+        if preview is not None:
+            result.save_preview(preview, texture=textured)
+        say(_result_line(image, path, used, result, textured))
+        if result.mask_warning:
+            fix = "check mask_in_photo.png in the intermediates folder and give it back corrected with --mask" if spec.save_intermediates \
+                else "look at the mask with --save-intermediates DIR (mask_in_photo.png) and give a corrected one with --mask"
+            fix += ", or guide it with --box and --strokes"
+            say(f"{spec.prog}: warning: {image}: doubtful mask: {result.mask_warning}; {fix}", err=True)
+        return True
+    except Exception as exc:  # one bad input must not stop the others
+        code = error_code(exc)
+        msg = _one_line(exc) if code != "internal" else f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
+        if str(image) not in msg:
+            msg = f"{image}: {msg}"
+        say(f"{spec.prog}: error: {msg} [{code}]", err=True)
+        return False
 
 
 def _result_line(image: Path, path: Path, fmt: str, result, textured: bool) -> str:
