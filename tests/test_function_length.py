@@ -17,10 +17,6 @@ LIMIT = 80
 BACKEND_ALLOWED = {
     "genre_backend/inference/reconstruct_cli.py::_main": 217,
     "genre_backend/inference/reconstruct.py::Reconstructor.run": 190,
-    "genre_backend/inference/bench.py::geometry_benchmark": 94,
-    "genre_backend/inference/preprocess.py::preprocess": 101,
-    "genre_backend/inference/bench.py::_inference_worker": 84,
-    "genre_backend/inference/blender.py::render_views": 81,
 }
 
 
