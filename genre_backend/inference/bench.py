@@ -58,16 +58,6 @@ def _median_time(fn: Callable[[], object], repeats: int) -> float:
 
 def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
     """Time the geometry ops of one preset; returns one row per op."""
-    import dataclasses
-
-    import trimesh
-
-    from ..geometry.mesh_voxels import (depth_to_distance, fuse_visible_surface, mesh_to_distance, mesh_to_shell,
-                                        point_mesh_distance_reference, seal_pits, voxels_to_mesh)
-    from ..geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
-    from ..geometry.spherical import depth_to_sph, depth_to_triangles, mesh_to_sph, raycast_triangles_reference, sph_to_points, sph_to_voxels
-    from ..geometry.voxels import points_to_voxels_reference, ray_first_hit, ray_first_hit_reference
-
     cfg = get_preset(preset)
     g, cam = cfg.geometry, cfg.camera
     r = 0.45
@@ -80,6 +70,18 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
         if ref is not None:
             row["ref_ms"] = 1e3 * _median_time(ref, 1) * ref_scale
         rows.append(row)
+
+    _time_map_ops(add, g, cam, depth, r)
+    _time_visible_face_ops(add, g, cam, depth, r)
+    _time_ground_truth_ops(add, g, r)
+    return rows
+
+
+def _time_map_ops(add: Callable, g, cam, depth: torch.Tensor, r: float) -> None:
+    """Depth (1, N, N) → spherical map → voxels → mesh, and the voxels' first hits: one ``add`` per op."""
+    from ..geometry.mesh_voxels import voxels_to_mesh
+    from ..geometry.spherical import depth_to_sph, depth_to_triangles, raycast_triangles_reference, sph_to_points, sph_to_voxels
+    from ..geometry.voxels import points_to_voxels_reference, ray_first_hit, ray_first_hit_reference
 
     # depth → partial spherical map; the reference ray-casts a few map rows against all triangles
     tris, _ = depth_to_triangles(depth, cam, g.depth_edge_max_ratio)
@@ -106,12 +108,21 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
     # marching cubes of a voxelised sphere
     vox = sph_to_voxels(full, g.voxel_size, g.sph_nohit_min, g.sph_supersample)[0, 0]
     add(f"marching cubes {g.voxel_size}³ → mesh", lambda: voxels_to_mesh(vox, g.default_threshold), note="scikit-image (no reference)")
-    # the holes in the visible face (geometry.visible_fusion): which pixels see the grid; the depth map's own
-    # distance grid; the whole fusion into a grid with a tunnel through the sphere's front
+    # the holes in the visible face (geometry.visible_fusion): which pixels see the grid
     rows_ref = 2
     add(f"first hits {g.voxel_size}³ → {g.image_size}²", lambda: ray_first_hit(vox, g.default_threshold, cam, g.image_size),
         lambda: ray_first_hit_reference(vox, g.default_threshold, cam, g.image_size, rows=rows_ref),
         g.image_size / rows_ref, f"reference timed on {rows_ref} of {g.image_size} rows, scaled")
+
+
+def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float) -> None:
+    """The visible face's holes and pits filled in a sphere's (V, V, V) distance grid: one ``add`` per op."""
+    import dataclasses
+
+    from ..geometry.mesh_voxels import depth_to_distance, fuse_visible_surface, seal_pits
+
+    # the holes in the visible face (geometry.visible_fusion): the depth map's own distance grid; the whole
+    # fusion into a grid with a tunnel through the sphere's front
     dg = dataclasses.replace(g, target="distance")
     add(f"depth {g.image_size}² → distance {g.voxel_size}³", lambda: depth_to_distance(depth[0], cam, dg),
         note="visible_fusion: libigl's AABB tree (its distances: mesh → distance's reference)")
@@ -131,6 +142,16 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
         note="first hits + basin filling (scikit-image) + the lid's distance grid")
     add(f"seal pits {g.voxel_size}³ (no pit)", lambda: seal_pits(tube, obj, cam, dg, g.default_threshold, 2),
         note="first hits + basin filling")
+
+
+def _time_ground_truth_ops(add: Callable, g, r: float) -> None:
+    """Ground truth from a sphere mesh (offline data preparation) and the Chamfer distance: one ``add`` per op."""
+    import trimesh
+
+    from ..geometry.mesh_voxels import mesh_to_distance, mesh_to_shell, point_mesh_distance_reference
+    from ..geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
+    from ..geometry.spherical import mesh_to_sph
+
     # ground truth from a mesh (offline data preparation)
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=r)
     v, f = torch.tensor(sphere.vertices, dtype=torch.float32), torch.tensor(sphere.faces)
@@ -149,7 +170,6 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
         ref_note = f"reference: loop over points, timed on 1/{sub}² of the pairs, scaled" if sub > 1 else "reference: loop over points"
         add(f"chamfer {n} pts (k-d tree)", lambda: chamfer_distance(a, b), lambda: chamfer_distance_reference(a[::sub].numpy(), b[::sub].numpy()), sub * sub, ref_note)
         add(f"chamfer {n} pts (brute, differentiable)", lambda: chamfer_distance(a, b, method="brute"), lambda: chamfer_distance_reference(a[::sub].numpy(), b[::sub].numpy()), sub * sub, ref_note)
-    return rows
 
 
 def _print_rows(rows: list[dict]) -> None:
@@ -245,16 +265,7 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
             if i:
                 runs.append({**result.timings, "total": total})
         # the extra depth-net pass that photos without mask or alpha need (in "preprocess")
-        rgb = result.intermediates["rgb"]
-        sil_times = []
-        with torch.inference_mode():
-            for _ in range(repeats):
-                rec._first_pass = None  # no reuse of the previous pass: time the net
-                t0 = time.perf_counter()
-                rec._silhouette(rgb)
-                if cuda:
-                    torch.cuda.synchronize(rec.device)
-                sil_times.append(time.perf_counter() - t0)
+        sil_times = _time_silhouette_pass(rec, result.intermediates["rgb"], repeats, cuda)
     stop.set()
     if thread:
         thread.join()
@@ -277,6 +288,20 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
         "faces": int(len(result.faces)),
         "mask_source": result.mask_source,
     }
+
+
+def _time_silhouette_pass(rec, rgb: torch.Tensor, repeats: int, cuda: bool) -> list[float]:
+    """Seconds of each of ``repeats`` runs of the depth net's silhouette pass on the (3, S, S) ``rgb``."""
+    sil_times = []
+    with torch.inference_mode():
+        for _ in range(repeats):
+            rec._first_pass = None  # no reuse of the previous pass: time the net
+            t0 = time.perf_counter()
+            rec._silhouette(rgb)
+            if cuda:
+                torch.cuda.synchronize(rec.device)
+            sil_times.append(time.perf_counter() - t0)
+    return sil_times
 
 
 def inference_benchmark(preset: str, device: str = "cpu", repeats: int = 5, threshold: float | None = None, threads: int | None = None,
@@ -552,7 +577,8 @@ def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) ->
     print(f"  mesh sha256: {shas[labels[0]][0][:16]}… " + ("(the same from every checkout and run)" if same else f"DIFFERS: {shas}"))
 
 
-def main(argv: list[str], prog: str = "genre bench") -> int:
+def _parser(prog: str) -> argparse.ArgumentParser:
+    """The command line of ``genre bench``: its ``geometry``, ``inference``, ``reconstruct`` and internal worker commands."""
     parser = argparse.ArgumentParser(prog=prog, description="Print speed figures of the project's operations.")
     sub = parser.add_subparsers(dest="what", required=True)
     geo = sub.add_parser("geometry", help="time the geometry core at the default and paper resolutions")
@@ -584,67 +610,68 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
     worker.add_argument("--threshold", type=float, default=None)
     worker.add_argument("--threads", type=int, default=None)
     worker.add_argument("--test-time-mirror", action="store_true")
-    args = parser.parse_args(argv)
-    if getattr(args, "threads", None):
-        torch.set_num_threads(args.threads)
-    if args.repeats < 1 or getattr(args, "cold_repeats", 1) < 1:
-        parser.error("--repeats and --cold-repeats must be at least 1")
-    if args.what == "reconstruct":
-        import json
+    return parser
 
-        checkouts = {"this checkout": _REPO}
-        for item in args.against:
-            label, sep, folder = item.partition("=")
-            if not sep or not label or not (Path(folder) / "genre_backend" / "cli.py").is_file():
-                parser.error(f"--against {item!r}: expected LABEL=DIR, DIR a checkout of this project")
-            checkouts[label] = Path(folder).resolve()
-        image = Path(args.image).resolve()
-        if not image.is_file():
-            parser.error(f"--image {args.image}: no such file")
+
+def _main_reconstruct(parser: argparse.ArgumentParser, args: argparse.Namespace, prog: str) -> int:
+    """``genre bench reconstruct``: time ``genre reconstruct`` in this checkout and the ``--against`` ones."""
+    import json
+
+    checkouts = {"this checkout": _REPO}
+    for item in args.against:
+        label, sep, folder = item.partition("=")
+        if not sep or not label or not (Path(folder) / "genre_backend" / "cli.py").is_file():
+            parser.error(f"--against {item!r}: expected LABEL=DIR, DIR a checkout of this project")
+        checkouts[label] = Path(folder).resolve()
+    image = Path(args.image).resolve()
+    if not image.is_file():
+        parser.error(f"--image {args.image}: no such file")
+    try:
+        summaries = reconstruct_benchmark(checkouts, image, args.weights, args.repeats, args.cold_repeats)
+    except RuntimeError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 1
+    _print_reconstruct(summaries, Path(args.image), args.weights)
+    if args.json:
+        print(json.dumps(summaries, indent=2))
+    return 0
+
+
+def _main_inference(parser: argparse.ArgumentParser, args: argparse.Namespace, prog: str) -> int:
+    """``genre bench inference``: time the pipeline of each preset on each device, one subprocess each."""
+    import json
+
+    if args.threshold is not None:
         try:
-            summaries = reconstruct_benchmark(checkouts, image, args.weights, args.repeats, args.cold_repeats)
-        except RuntimeError as exc:
-            print(f"{prog}: error: {exc}", file=sys.stderr)
+            check_threshold("--threshold", args.threshold)
+        except ValueError as exc:
+            parser.error(str(exc))
+    devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
+    if "cuda" in devices and not torch.cuda.is_available():
+        if args.device == "cuda":
+            print(f"{prog}: error: no CUDA device is available", file=sys.stderr)
             return 1
-        _print_reconstruct(summaries, Path(args.image), args.weights)
-        if args.json:
-            print(json.dumps(summaries, indent=2))
-        return 0
-    if args.what == "_inference-worker":
-        import json
+        devices.remove("cuda")
+    print(f"torch {torch.__version__}, {args.threads or torch.get_num_threads()} threads, devices: {', '.join(devices)}")
+    presets = list(PRESETS) if args.preset == "all" else [args.preset]
+    summaries = []
+    for device in devices:
+        for preset in presets:
+            for mirror in ((False, True) if args.test_time_mirror else (False,)):
+                try:
+                    summary = inference_benchmark(preset, device, args.repeats, args.threshold, args.threads, mirror)
+                except RuntimeError as exc:
+                    print(f"{prog}: error: {exc}", file=sys.stderr)
+                    return 1
+                summaries.append(summary)
+                _print_inference(summary)
+    if args.json:
+        print(json.dumps(summaries, indent=2))
+    return 0
 
-        print(json.dumps(_inference_worker(args.preset, args.device, args.repeats, args.threshold, args.test_time_mirror)))
-        return 0
-    if args.what == "inference":
-        import json
 
-        if args.threshold is not None:
-            try:
-                check_threshold("--threshold", args.threshold)
-            except ValueError as exc:
-                parser.error(str(exc))
-        devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
-        if "cuda" in devices and not torch.cuda.is_available():
-            if args.device == "cuda":
-                print(f"{prog}: error: no CUDA device is available", file=sys.stderr)
-                return 1
-            devices.remove("cuda")
-        print(f"torch {torch.__version__}, {args.threads or torch.get_num_threads()} threads, devices: {', '.join(devices)}")
-        presets = list(PRESETS) if args.preset == "all" else [args.preset]
-        summaries = []
-        for device in devices:
-            for preset in presets:
-                for mirror in ((False, True) if args.test_time_mirror else (False,)):
-                    try:
-                        summary = inference_benchmark(preset, device, args.repeats, args.threshold, args.threads, mirror)
-                    except RuntimeError as exc:
-                        print(f"{prog}: error: {exc}", file=sys.stderr)
-                        return 1
-                    summaries.append(summary)
-                    _print_inference(summary)
-        if args.json:
-            print(json.dumps(summaries, indent=2))
-        return 0
+def _main_geometry(args: argparse.Namespace) -> int:
+    """``genre bench geometry``: time the geometry ops of each preset."""
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device cpu")
     presets = list(PRESETS) if args.preset == "all" else [args.preset]
     rows = []
@@ -652,3 +679,23 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
         rows += geometry_benchmark(preset, args.repeats)
     _print_rows(rows)
     return 0
+
+
+def main(argv: list[str], prog: str = "genre bench") -> int:
+    """``genre bench``: parse ``argv`` and run the command it names; the exit status."""
+    parser = _parser(prog)
+    args = parser.parse_args(argv)
+    if getattr(args, "threads", None):
+        torch.set_num_threads(args.threads)
+    if args.repeats < 1 or getattr(args, "cold_repeats", 1) < 1:
+        parser.error("--repeats and --cold-repeats must be at least 1")
+    if args.what == "reconstruct":
+        return _main_reconstruct(parser, args, prog)
+    if args.what == "_inference-worker":
+        import json
+
+        print(json.dumps(_inference_worker(args.preset, args.device, args.repeats, args.threshold, args.test_time_mirror)))
+        return 0
+    if args.what == "inference":
+        return _main_inference(parser, args, prog)
+    return _main_geometry(args)

@@ -268,6 +268,32 @@ def _framing(vertices: np.ndarray, cam_cfg: CameraConfig, views: tuple[str, ...]
     return zoom, {name: (zoom * cx / 2.0, zoom * cy / 2.0) for name, (cx, cy) in centres.items()}
 
 
+def _apply_photo_texture(bpy, me, n_vertices: int, uv: np.ndarray, texture: np.ndarray, scratch: Path) -> None:
+    """Give the Blender mesh ``me`` a material showing ``texture`` (T, T, 3) uint8 at the vertices' ``uv`` (V, 2)."""
+    from PIL import Image
+
+    tex = np.asarray(texture)
+    uvs = np.asarray(uv, np.float64)
+    if uvs.shape != (n_vertices, 2) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8:
+        raise ValueError(f"render_views: expected uv (V, 2), texture (T, T, 3) uint8; got {uvs.shape}, {tex.shape} {tex.dtype}")
+    tex_path = scratch / "texture.png"
+    Image.fromarray(tex).save(tex_path)
+    mat = bpy.data.materials.new("photo")
+    if mat.node_tree is None:
+        mat.use_nodes = True
+    node = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    node.image = bpy.data.images.load(str(tex_path))
+    node.interpolation = "Linear"
+    node.extension = "EXTEND"
+    mat.node_tree.nodes.active = node
+    mat.node_tree.links.new(node.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    layer = me.uv_layers.new(name="photo")
+    loops = np.zeros(len(me.loops), np.int64)
+    me.loops.foreach_get("vertex_index", loops)
+    layer.data.foreach_set("uv", uvs[loops].astype(np.float32).ravel())
+    me.materials.append(mat)
+
+
 def render_views(vertices: np.ndarray, faces: np.ndarray, size: int, camera: CameraConfig | None = None,
                  uv: np.ndarray | None = None, texture: np.ndarray | None = None,
                  views: tuple[str, ...] = ("front", "side", "back"), margin: float = 0.04) -> list[np.ndarray]:
@@ -313,26 +339,7 @@ def render_views(vertices: np.ndarray, faces: np.ndarray, size: int, camera: Cam
         me.from_pydata(v.tolist(), [], f.tolist())
         # flat shading: Blender's smooth normals put dark specks on the marching-cubes mesh's small facets
         if texture is not None:
-            tex = np.asarray(texture)
-            uvs = np.asarray(uv, np.float64)
-            if uvs.shape != (len(v), 2) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8:
-                raise ValueError(f"render_views: expected uv (V, 2), texture (T, T, 3) uint8; got {uvs.shape}, {tex.shape} {tex.dtype}")
-            tex_path = scratch / "texture.png"
-            Image.fromarray(tex).save(tex_path)
-            mat = bpy.data.materials.new("photo")
-            if mat.node_tree is None:
-                mat.use_nodes = True
-            node = mat.node_tree.nodes.new("ShaderNodeTexImage")
-            node.image = bpy.data.images.load(str(tex_path))
-            node.interpolation = "Linear"
-            node.extension = "EXTEND"
-            mat.node_tree.nodes.active = node
-            mat.node_tree.links.new(node.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
-            layer = me.uv_layers.new(name="photo")
-            loops = np.zeros(len(me.loops), np.int64)
-            me.loops.foreach_get("vertex_index", loops)
-            layer.data.foreach_set("uv", uvs[loops].astype(np.float32).ravel())
-            me.materials.append(mat)
+            _apply_photo_texture(bpy, me, len(v), uv, texture, scratch)
         me.update()
         obj = bpy.data.objects.new("m", me)
         scene.collection.objects.link(obj)

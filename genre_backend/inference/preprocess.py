@@ -48,7 +48,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..config import GenreConfig
+from ..config import GenreConfig, GeometryConfig
 from .segment import DEFAULT_SEEDING, SEEDINGS, STROKE_BACKGROUND_MAX, STROKE_OBJECT_MIN, doubt, segment
 
 __all__ = [
@@ -489,30 +489,11 @@ def preprocess(
     rgb = composite(image)
     h, w = rgb.shape[:2]
     notes = list(image.notes)
-    inv = 1.0 / image.scale  # decoded pixels → original pixels
-
-    def original_box(box):
-        return tuple(float(v) * inv for v in box)
-
-    def framed(mask: np.ndarray, source: str, network_doubt: str | None = None, mask_doubt: str | None = None) -> Preprocessed:
-        box = square_crop_box(mask_bbox(mask), g.object_fraction)
-        fill = tuple(int(round(255 * c)) for c in NEUTRAL_BACKGROUND) if image.alpha is not None else _border_colour(rgb)
-        crop = crop_resize(rgb, box, size, fill)
-        crop_mask = crop_resize(mask.astype(np.uint8) * 255, box, size, 0) >= 128
-        if int(crop_mask.sum()) < MIN_OBJECT_PIXELS:
-            raise ImageError("no_object", f"{image.path}: no object: the {source} mask is too small to see at {size}² pixels")
-        return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, original_box(box), image.original_size, notes, fill,
-                            photo_mask=mask, network_doubt=network_doubt, mask_doubt=mask_doubt)
 
     if box is not None or strokes_path is not None:
         if mask_path is not None:
             raise ValueError("give either a mask file or a box and strokes, not both")
-        fg, bg = load_strokes(strokes_path, image) if strokes_path is not None else (None, None)
-        found = segment(rgb, box=None if box is None else photo_box(box, image), object_strokes=fg, background_strokes=bg)
-        if int(found.mask.sum()) < MIN_OBJECT_PIXELS:
-            raise ImageError("no_object", f"{image.path}: no object found inside the {found.seeding.replace('+', ' and ')}")
-        notes.append(f"mask: GrabCut seeded by the {found.seeding.replace('+', ' and ')}")
-        return framed(found.mask, found.seeding, mask_doubt=found.doubt)
+        return _guided(image, rgb, g, notes, box, strokes_path)
 
     if mask_path is not None or image.has_transparency():
         if mask_path is not None:
@@ -521,7 +502,7 @@ def preprocess(
             mask, source = image.alpha >= ALPHA_OBJECT_MIN, "alpha"
             if int(mask.sum()) < MIN_OBJECT_PIXELS:
                 raise ImageError("no_object", f"{image.path}: no object: the alpha channel is fully transparent")
-        return framed(mask, source)
+        return _framed(image, rgb, g, notes, mask, source)
 
     if silhouette is None:
         raise ValueError("preprocess: an image without mask file or transparency needs the silhouette function")
@@ -540,8 +521,48 @@ def preprocess(
         found = segment(rgb, photo_prob, seeding)
         if int(found.mask.sum()) >= MIN_OBJECT_PIXELS:
             notes.append(f"mask: GrabCut seeded by the {'photo border' if found.seeding == 'border' else 'depth net silhouette'}")
-            return framed(found.mask, "grabcut", network_doubt, found.doubt)
+            return _framed(image, rgb, g, notes, found.mask, "grabcut", network_doubt, found.doubt)
         notes.append("GrabCut found no object: the depth net's silhouette is used")
+    return _silhouette_framed(image, rgb, g, notes, prob, whole, fill, network_doubt)
+
+
+def _original_box(box: tuple[float, float, float, float], image: LoadedImage) -> tuple[float, ...]:
+    """A crop box in decoded pixels → the same box in the original photo's pixels."""
+    inv = 1.0 / image.scale  # decoded pixels → original pixels
+    return tuple(float(v) * inv for v in box)
+
+
+def _framed(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], mask: np.ndarray, source: str,
+            network_doubt: str | None = None, mask_doubt: str | None = None) -> Preprocessed:
+    """Crop the (H, W, 3) photo ``rgb`` and its (H, W) bool ``mask`` to the canonical framing of the mask's object."""
+    size = g.image_size
+    box = square_crop_box(mask_bbox(mask), g.object_fraction)
+    fill = tuple(int(round(255 * c)) for c in NEUTRAL_BACKGROUND) if image.alpha is not None else _border_colour(rgb)
+    crop = crop_resize(rgb, box, size, fill)
+    crop_mask = crop_resize(mask.astype(np.uint8) * 255, box, size, 0) >= 128
+    if int(crop_mask.sum()) < MIN_OBJECT_PIXELS:
+        raise ImageError("no_object", f"{image.path}: no object: the {source} mask is too small to see at {size}² pixels")
+    return Preprocessed(_to_tensor(crop), torch.from_numpy(crop_mask), source, _original_box(box, image), image.original_size, notes, fill,
+                        photo_mask=mask, network_doubt=network_doubt, mask_doubt=mask_doubt)
+
+
+def _guided(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], box: tuple[float, float, float, float] | None,
+            strokes_path: str | os.PathLike | None) -> Preprocessed:
+    """The mask from GrabCut guided by a person's ``box`` and/or strokes file, framed."""
+    fg, bg = load_strokes(strokes_path, image) if strokes_path is not None else (None, None)
+    found = segment(rgb, box=None if box is None else photo_box(box, image), object_strokes=fg, background_strokes=bg)
+    if int(found.mask.sum()) < MIN_OBJECT_PIXELS:
+        raise ImageError("no_object", f"{image.path}: no object found inside the {found.seeding.replace('+', ' and ')}")
+    notes.append(f"mask: GrabCut seeded by the {found.seeding.replace('+', ' and ')}")
+    return _framed(image, rgb, g, notes, found.mask, found.seeding, mask_doubt=found.doubt)
+
+
+def _silhouette_framed(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], prob: np.ndarray,
+                       whole: tuple[float, float, float, float], fill, network_doubt: str | None) -> Preprocessed:
+    """Frame the photo on the first pass's (S, S) silhouette probability ``prob`` of the square ``whole``; no mask."""
+    size = g.image_size
+    h, w = rgb.shape[:2]
+    side = float(max(w, h))  # the side of ``whole``
     sil = prob > 0.5
     bbox = mask_bbox(sil)
     if bbox is None or int(sil.sum()) < MIN_OBJECT_PIXELS:
@@ -555,7 +576,7 @@ def preprocess(
         box = whole
         notes.append("already framed: first silhouette pass reused")
     crop = crop_resize(rgb, box, size, fill)
-    return Preprocessed(_to_tensor(crop), None, "silhouette", original_box(box), image.original_size, notes, fill,
+    return Preprocessed(_to_tensor(crop), None, "silhouette", _original_box(box, image), image.original_size, notes, fill,
                         network_doubt=network_doubt)
 
 
