@@ -803,10 +803,10 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
         ["operator", "genre.option_help", ""],
         ["prop", "test_time_mirror", "override", "Mirror Average"], ["label", "On (model)"], ["operator", "genre.option_help", ""],
         ["prop", "", "smoothing", None], ["prop", "", "target_faces", None]]
-    # the main panel: source, the photo's name (not its cut-off path), mask, Quality, colour, camera, Reconstruct
+    # the main panel: source, the photo's name (not its cut-off path), mask, annotation, Quality, colour, camera, Reconstruct
     assert [c for c in r["main_drawn"] if c[0] != "label"] == [
         ["prop", "", "source", None], ["operator", "genre.choose_file", "chair.jpg"], ["operator", "genre.choose_file", "Mask (optional)…"],
-        ["prop", "", "quality", None], ["prop", "", "colour_from_photo", None], ["prop", "", "add_camera", None],
+        ["prop", "", "use_annotation", None], ["prop", "", "quality", None], ["prop", "", "colour_from_photo", None], ["prop", "", "add_camera", None],
         ["operator", "genre.reconstruct", None]]
     assert r["model_default"] == "default"
     assert r["model_items"] == [["default", "Product"], ["protocol", "Research protocol"], ["custom", "Custom file"]]
