@@ -286,12 +286,7 @@ def load_mask(path: str | os.PathLike, image: LoadedImage) -> np.ndarray:
     """
     from PIL import Image
 
-    m = load_image(path, code="bad_mask", what="mask")
-    if m.original_size != image.original_size:
-        ow, oh = m.original_size
-        iw, ih = image.original_size
-        raise ImageError("bad_mask", f"{m.path}: mask is {ow}×{oh}, the image is {iw}×{ih}")
-    lum = m.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    m, lum = _same_size_luminance(path, image, "mask", "mask")
     mask = lum >= 127.5
     if m.alpha is not None:
         mask &= m.alpha >= ALPHA_OBJECT_MIN
@@ -301,6 +296,17 @@ def load_mask(path: str | os.PathLike, image: LoadedImage) -> np.ndarray:
     if int(mask.sum()) < MIN_OBJECT_PIXELS:
         raise ImageError("bad_mask", f"{m.path}: empty mask (no object pixels: expected white object on black)")
     return mask
+
+
+def _same_size_luminance(path: str | os.PathLike, image: LoadedImage, what: str, called: str) -> tuple[LoadedImage, np.ndarray]:
+    """A mask-like file for ``image``: (the loaded file, its (H, W) float32 luminance); ``bad_mask`` unless it has the
+    photo's size (``called`` names it in the message)."""
+    m = load_image(path, code="bad_mask", what=what)
+    if m.original_size != image.original_size:
+        ow, oh = m.original_size
+        iw, ih = image.original_size
+        raise ImageError("bad_mask", f"{m.path}: {called} is {ow}×{oh}, the image is {iw}×{ih}")
+    return m, m.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
 
 
 def load_strokes(path: str | os.PathLike, image: LoadedImage) -> tuple[np.ndarray, np.ndarray]:
@@ -315,12 +321,7 @@ def load_strokes(path: str | os.PathLike, image: LoadedImage) -> tuple[np.ndarra
     """
     from PIL import Image
 
-    m = load_image(path, code="bad_mask", what="strokes")
-    if m.original_size != image.original_size:
-        ow, oh = m.original_size
-        iw, ih = image.original_size
-        raise ImageError("bad_mask", f"{m.path}: strokes image is {ow}×{oh}, the image is {iw}×{ih}")
-    lum = m.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    m, lum = _same_size_luminance(path, image, "strokes", "strokes image")
     seen = np.ones(lum.shape, bool) if m.alpha is None else m.alpha >= ALPHA_OBJECT_MIN
     marks = []
     for kind in (lum >= STROKE_OBJECT_MIN - 0.5, lum <= STROKE_BACKGROUND_MAX + 0.5):
