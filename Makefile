@@ -37,4 +37,4 @@ clean:
 # examples/sofa.png with the shipped default (product) weights, saves screenshots to out/e2e/.
 .PHONY: e2e
 e2e: setup
-	.venv/bin/python tests/e2e/run_gui_e2e.py
+	.venv/bin/python tests/addon/e2e/run_gui_e2e.py

@@ -18,7 +18,7 @@ keeps its annotation on the space (``SpaceImageEditor.annotation``, an
 ``co`` is in the editor's view space, where the image spans 0–1 on both
 axes, y up (Blender's ``image_main_region_set_view2d`` normalises the
 view by the image's size; measured in a drawn Blender 3.4.1 editor,
-``tests/test_addon_gui.py``).  Before 4.3 the same data is
+``tests/addon/test_addon_gui.py``).  Before 4.3 the same data is
 ``SpaceImageEditor.grease_pencil``.  Strokes are drawn :data:`STROKE_WIDTH_SHARE`
 of the photo's long side wide into a grey image the photo's size
 (:func:`rasterise`): 255 object, 0 background, 128 elsewhere, the backend's

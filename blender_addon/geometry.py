@@ -26,7 +26,7 @@ __all__ = [
 # A copy of genre_backend.frame.VIEW_TO_BLENDER_FRONT (the add-on cannot import
 # the backend: it runs in Blender's Python, the backend in its own).  Rows are
 # world X, Y, Z; columns are the view frame's x, y, z axes in world
-# coordinates.  tests/test_addon.py asserts that both stay equal.
+# coordinates.  tests/addon/test_addon.py asserts that both stay equal.
 VIEW_TO_BLENDER_FRONT = (
     (1.0, 0.0, 0.0),
     (0.0, 0.0, -1.0),

@@ -27,7 +27,7 @@ mkdir -p "$OUT/burst"
 burst=$?
 echo "burst exit $burst"
 # the CUDA cases of the geometry tests (skipped on machines without a GPU, so CI never runs them)
-timeout 240 "$PY" -m pytest -q -p no:cacheprovider -o addopts="" tests/test_spherical.py tests/test_voxels.py tests/test_burst.py -k cuda
+timeout 240 "$PY" -m pytest -q -p no:cacheprovider -o addopts="" tests/backend/geometry/test_spherical.py tests/backend/geometry/test_voxels.py tests/training/learn/test_burst.py -k cuda
 echo "cuda tests exit $?"
 ls -la "$OUT/burst"
 exit $burst

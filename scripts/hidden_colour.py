@@ -16,7 +16,7 @@ of ``examples/photos`` (hand masks), reconstructs the mesh and its
   blend with the object) — colour taken from the background;
 * ``front MAE``: the textured mesh rendered unlit through the photo's camera
   against the photo inside the mask (``photo_colour_error``, the check of
-  ``scripts/colour_check.py``, held to ≤ 8 by ``tests/test_colour.py``).
+  ``scripts/colour_check.py``, held to ≤ 8 by ``tests/backend/inference/test_colour.py``).
 
 Self-contained (it reads only the texture's ``uv``, ``image`` and ``seen``),
 so the same script scores an older commit's colouring.

@@ -22,7 +22,7 @@ fi
 
 # 2. The X and GL client libraries that 'import bpy' loads even with no screen
 #    (required); with --test also a GUI Blender and Xvfb for the add-on's real
-#    modal run (optional: tests/test_addon_gui.py is skipped without them).
+#    modal run (optional: tests/addon/test_addon_gui.py is skipped without them).
 REQUIRED=(libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libsm6 libice6 libxext6 libgl1 libegl1)
 OPTIONAL=()
 [ "${1:-}" = "--test" ] && OPTIONAL=(blender xvfb xauth)

@@ -4,7 +4,7 @@
 A refiner's grid can have a gap in the face the camera sees: the artist gets a
 mesh with a hole through its front, or a part the photo plainly shows left
 out, and the textured mesh no longer covers the object's mask (the real-photo
-check in ``tests/test_colour.py`` asks for 90 %).  The depth map sees that
+check in ``tests/backend/inference/test_colour.py`` asks for 90 %).  The depth map sees that
 face.  ``visible_fusion`` finds the object's pixels whose ray meets nothing
 (with ``--pit-voxels P`` also those that meet the grid more than P voxels
 behind the depth map: a pit, the front missing) and adds the masked depth

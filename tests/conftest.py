@@ -5,7 +5,7 @@ them once per session.  ``make test-fast`` skips the tests marked ``slow`` (pypr
 
 import pytest
 
-from tiny_data import copy_tiny_views, make_tiny_views, train_tiny_weights
+from support.tiny_data import copy_tiny_views, make_tiny_views, train_tiny_weights
 
 
 @pytest.fixture(scope="session")

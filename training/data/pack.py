@@ -53,7 +53,7 @@ __all__ = ["PACK_FORMAT", "DEVICE_CARRY_MIB", "TREE_BUDGET_MIB", "PACK_BUDGET_MI
 
 PACK_FORMAT = "genre-pack/1"
 # What travels to a device call (64 MiB in all): the tracked tree, the pack and the carried wheels (.whl).
-# tests/test_burst.py holds the tree to its budget; the builder refuses a pack over its own.
+# tests/training/learn/test_burst.py holds the tree to its budget; the builder refuses a pack over its own.
 DEVICE_CARRY_MIB = 64
 TREE_BUDGET_MIB = 40
 PACK_BUDGET_MIB = 20

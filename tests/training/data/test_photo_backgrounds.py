@@ -1,0 +1,120 @@
+"""Real-photo backgrounds (training.data.photo_backgrounds) and photo-like samples (training.data.dataset)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from training.data.dataset import ViewDataset, composite_alpha, find_views, photometric
+from training.data.photo_backgrounds import BackgroundBank, licence_for, prepare_backgrounds, read_index
+from training.data.views import write_view
+from support.tiny_data import TINY, two_colour_backgrounds
+
+DEP5 = """Format: https://www.debian.org/doc/packaging-manuals/copyright-format/1.0/
+
+Files: *
+Copyright: someone
+License: GPL-2+
+
+Files: 16.04/Bridge_by_Someone.jpg
+Copyright: a photographer
+License: CC-BY-SA-4.0
+
+Files: wallpapers/Next/*
+License: LGPL-3
+"""
+
+
+def test_licence_of_each_file_from_a_dep5_copyright_file():
+    assert licence_for("usr/share/backgrounds/Bridge_by_Someone.jpg", DEP5) == "CC-BY-SA-4.0"  # the file's own stanza (last match wins)
+    assert licence_for("usr/share/backgrounds/Other.jpg", DEP5) == "GPL-2+"  # only "*" matches
+    assert licence_for("usr/share/wallpapers/Next/contents/images/1920x1080.png", DEP5) == "LGPL-3"
+    free = "Image Authors:\n - A.jpg:\n   Licensed under Creative Commons Attribution-ShareAlike 3.0 License.\n"
+    assert licence_for("usr/share/backgrounds/A.jpg", free) == "Creative Commons Attribution-ShareAlike 3.0"
+    assert licence_for("x.jpg", "no licence words here") == "unknown"
+
+
+def _image(path, size, seed):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    Image.fromarray(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)).save(path)
+
+
+def test_prepare_keeps_one_image_per_wallpaper_with_its_licence_and_size(tmp_path):
+    root = tmp_path / "data"
+    pkg = root / "cache" / "unpacked" / "fake-wallpapers"
+    (pkg / "usr/share/doc/fake-wallpapers").mkdir(parents=True)
+    (pkg / "usr/share/doc/fake-wallpapers/copyright").write_text(DEP5)
+    (pkg / ".complete").write_text("fake-wallpapers_1.0-1_all.deb\n")  # unpacked already: nothing is downloaded
+    _image(pkg / "usr/share/backgrounds/Bridge_by_Someone.jpg", (1200, 800), 0)
+    _image(pkg / "usr/share/wallpapers/Next/contents/images/1920x1080.png", (960, 540), 1)  # one wallpaper at
+    _image(pkg / "usr/share/wallpapers/Next/contents/images/640x480.png", (640, 480), 2)  # two resolutions
+    _image(pkg / "usr/share/backgrounds/tiny.png", (300, 200), 3)  # too small
+    _image(pkg / "usr/share/icons/x.png", (512, 512), 4)  # an icon, not a wallpaper
+    index = prepare_backgrounds(root, ["fake-wallpapers"], long_side=256)
+    assert [(b.source, b.licence, b.version) for b in index] == [
+        ("usr/share/backgrounds/Bridge_by_Someone.jpg", "CC-BY-SA-4.0", "1.0-1"),
+        ("usr/share/wallpapers/Next/contents/images/1920x1080.png", "LGPL-3", "1.0-1"),
+    ]
+    assert [(b.width, b.height) for b in index] == [(256, 171), (256, 144)]
+    for b in index:
+        with Image.open(root / "backgrounds" / b.file) as im:
+            assert im.size == (b.width, b.height)
+    assert read_index(root / "backgrounds") == index
+    with pytest.raises(ValueError, match="genre data backgrounds"):
+        read_index(tmp_path / "nowhere")
+
+
+@pytest.fixture()
+def bank(tmp_path):
+    return BackgroundBank(two_colour_backgrounds(tmp_path / "bg"))
+
+
+def test_bank_crops_are_seeded_and_in_range(bank):
+    a = bank.sample(torch.Generator().manual_seed(5), 32)
+    b = bank.sample(torch.Generator().manual_seed(5), 32)
+    assert a.shape == (3, 32, 32) and torch.equal(a, b)
+    assert 0.0 <= float(a.min()) and float(a.max()) <= 1.0
+    colours = {tuple((bank.sample(torch.Generator().manual_seed(s), 8)[:, 4, 4] > 0.5).tolist()) for s in range(20)}
+    assert colours == {(True, False, False), (False, True, False)}  # both photos are drawn
+
+
+def test_composite_and_photometric():
+    rgb, bg = torch.full((3, 4, 4), 0.2), torch.full((3, 4, 4), 0.9)
+    alpha = torch.tensor([[1.0, 0.0, 0.5, 0.25]]).expand(4, 4)
+    out = composite_alpha(rgb, alpha, bg)
+    assert torch.allclose(out[:, :, 0], rgb[:, :, 0]) and torch.allclose(out[:, :, 1], bg[:, :, 1])
+    assert torch.allclose(out[:, :, 2], torch.full((3, 4), 0.55)) and torch.allclose(out[:, :, 3], torch.full((3, 4), 0.725))
+    img = torch.rand(3, 32, 32, generator=torch.Generator().manual_seed(0))
+    outs = [photometric(img, torch.Generator().manual_seed(s)) for s in range(12)]
+    assert all(o.shape == img.shape and float(o.min()) >= 0 and float(o.max()) <= 1 for o in outs)
+    assert torch.equal(outs[3], photometric(img, torch.Generator().manual_seed(3)))
+    assert all(not torch.equal(o, img) for o in outs)  # exposure and white balance always act
+
+
+def test_photo_like_samples_keep_the_object_and_change_the_background(tmp_path, bank):
+    cfg = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, image_size=32))
+    s = 32
+    rgb = np.full((s, s, 3), 128, np.uint8)
+    mask = np.zeros((s, s), np.float32)
+    mask[8:24, 8:24] = 1.0
+    depth = np.where(mask > 0, 2.0, 0.0).astype(np.float32)
+    (tmp_path / "v" / "shape").mkdir(parents=True)
+    for k in range(2):
+        write_view(tmp_path / "v" / "shape", k, rgb, depth, mask, {"image_size": s})
+    refs = find_views(tmp_path / "v", None, targets=False)
+    plain = ViewDataset(refs, cfg, augment=True, targets=False)
+    photo = ViewDataset(refs, cfg, augment=True, targets=False, backgrounds=bank, photo_fraction=1.0)
+    a, b = photo.sample(0, 7), photo.sample(0, 7)
+    assert torch.equal(a["rgb"], b["rgb"])  # seeded: a resumed run sees the same pixels
+    assert torch.equal(a["mask"], plain.sample(0, 7)["mask"]) and torch.equal(a["depth"], plain.sample(0, 7)["depth"])
+    # outside the object the photo's colour (pure red or green, before the camera's faults) dominates
+    outside = a["rgb"][:, ~a["mask"]]
+    spread = (outside.max(0).values - outside.min(0).values).mean()
+    assert spread > 0.3, spread
+    with pytest.raises(ValueError, match="backgrounds"):
+        ViewDataset(refs, cfg, augment=True, targets=False, photo_fraction=0.5)

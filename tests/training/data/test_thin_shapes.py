@@ -1,0 +1,81 @@
+"""The procedural flat and thin shapes (training/data/sources/thin.py) and their place in the training pack:
+deterministic, normalised, thin, small, and never a test shape."""
+
+from __future__ import annotations
+
+
+import numpy as np
+import pytest
+import trimesh
+
+from training.data.sources.thin import KINDS, MAX_FACES, thin_shapes
+from support.tiny_data import write_manifest
+
+COUNT = 6  # per kind: every sub-kind at least once (the most sub-kinds of a kind is 4)
+
+
+@pytest.fixture(scope="module")
+def shapes():
+    return thin_shapes(COUNT)
+
+
+def test_thin_shapes_are_deterministic(shapes):
+    again = thin_shapes(COUNT)
+    assert [s[:2] for s in again] == [s[:2] for s in shapes]
+    for (_, _, a), (_, _, b) in zip(shapes, again):
+        assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    # shape k does not depend on the count; another seed gives other shapes
+    assert np.array_equal(thin_shapes(1)[0][2].vertices, shapes[0][2].vertices)
+    assert not np.array_equal(thin_shapes(1, seed=1)[0][2].vertices, shapes[0][2].vertices)
+
+
+def test_thin_shapes_ids_classes_and_counts(shapes):
+    assert len(shapes) == COUNT * len(KINDS)
+    assert [s[0] for s in shapes] == [f"thin-{kind}-{k:03d}" for kind in KINDS for k in range(COUNT)]
+    assert [s[1] for s in shapes] == [f"thin-{kind}" for kind in KINDS for _ in range(COUNT)]
+    assert thin_shapes(0) == []
+    with pytest.raises(ValueError):
+        thin_shapes(-1)
+
+
+def test_thin_shapes_are_normalised_small_and_thin(shapes):
+    ratios = {}
+    for sid, cls, mesh in shapes:
+        assert isinstance(mesh, trimesh.Trimesh) and 0 < len(mesh.faces) <= MAX_FACES, sid
+        lo, hi = mesh.bounds
+        assert abs(np.linalg.norm(hi - lo) - 1.0) < 1e-6, sid
+        assert np.abs(lo + hi).max() < 1e-9, sid
+        extents = np.sort(mesh.bounding_box_oriented.primitive.extents)
+        ratios[sid] = extents[0] / extents[-1]
+        if cls == "thin-bowl":
+            # a bowl is deep; its wall is thin: volume / area is about half the wall (diagonal 1)
+            assert mesh.is_watertight, sid
+            assert 0 < mesh.volume / mesh.area < 0.02, sid
+    flat = [r for sid, r in ratios.items() if not sid.startswith("thin-bowl-")]
+    assert np.mean(np.asarray(flat) < 0.15) >= 0.9, sorted(ratios.items(), key=lambda kv: -kv[1])[:8]
+    assert np.median(flat) < 0.1
+
+
+def test_pack_adds_thin_shapes_and_still_holds_no_test_shape(tmp_path):
+    from training.data.pack import build_pack, read_pack
+
+    box = trimesh.creation.box(extents=(0.6, 0.3, 0.4))
+    held_out = trimesh.creation.cylinder(0.3, 0.5)
+    manifest = write_manifest(tmp_path, {"box": (box, "product-train"), "cyl": (held_out, "product-test")})
+    meta = build_pack(manifest, tmp_path / "pack", thin=2)
+    pack = read_pack(tmp_path / "pack")
+    assert len(pack) == 1 + 2 * len(KINDS) and meta["thin"] == 2
+    assert pack.ids == ["box"] + [f"thin-{kind}-{k:03d}" for kind in KINDS for k in range(2)]
+    assert meta["classes"] == {"primitive": 1, **{f"thin-{kind}": 2 for kind in KINDS}}
+    assert all(s["source"] == "procedural-thin" and s["licence"] == "CC0" for s in meta["shapes"][1:])
+    # the thin shapes come back as they were made, to the quantisation step
+    made = thin_shapes(2)
+    for i, (sid, _, mesh) in enumerate(made, start=1):
+        v, f = pack.mesh(i)
+        assert len(f) <= len(mesh.faces)
+        assert np.abs(v.min(0) - mesh.bounds[0]).max() < 1e-4 and np.abs(v.max(0) - mesh.bounds[1]).max() < 1e-4, sid
+    assert build_pack(manifest, tmp_path / "plain")["thin"] == 0
+    with pytest.raises(ValueError, match="never a test split"):
+        build_pack(manifest, tmp_path / "bad", split="product-test", thin=2)
+    with pytest.raises(ValueError, match="thin"):
+        build_pack(manifest, tmp_path / "bad", thin=-1)

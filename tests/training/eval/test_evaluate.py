@@ -1,0 +1,528 @@
+"""`genre eval` on a tiny split made here: real renders, nets trained for a few steps."""
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from genre_backend import frame
+from genre_backend.geometry.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
+from support.tiny_data import TINY, copy_tiny_views
+from genre_backend.geometry.metrics import CloudScorer
+from training.eval.cli import main
+from training.eval.protocol import EMPTY_CD, FLOOR, ROWS, EvalView
+from training.eval.runner import Truth, mesh_metrics, score_grid
+from training.eval.statistics import aggregate, choose_thresholds
+from training.learn.train import TrainConfig, train
+
+
+# ---- F-score -----------------------------------------------------------------------------
+@pytest.mark.parametrize("method", ["kdtree", "brute"])
+def test_fscore_matches_its_reference_and_is_one_on_identical_clouds(method):
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.rand(300, 3, generator=gen), torch.rand(200, 3, generator=gen)
+    for t in (0.02, 0.05, 0.1):
+        assert float(fscore(a, b, t, method=method)) == pytest.approx(fscore_reference(a.numpy(), b.numpy(), t), abs=1e-6)
+    assert float(fscore(a, a, 0.01, method=method)) == 1.0
+    batched = fscore(torch.stack([a, a + 10]), torch.stack([b[:150], b[:150]]), 0.05, method=method)
+    assert float(batched[1]) == 0.0 and batched.shape == (2,)
+
+
+def test_the_evaluation_metrics_are_the_library_ones():
+    gen = torch.Generator().manual_seed(1)
+    a, b = torch.rand(1024, 3, generator=gen), torch.rand(1024, 3, generator=gen) * torch.tensor([1.0, 0.5, 0.8])
+    A, B = torch.rand(3000, 3, generator=gen), torch.rand(2500, 3, generator=gen) * torch.tensor([1.0, 0.5, 0.8])
+    m = CloudScorer(b, B).metrics(a, A)
+    na, nb, nA, nB = (normalize_points(x) for x in (a, b, A, B))
+    assert m["cd1k"] == pytest.approx(float(chamfer_distance(na, nb)), rel=1e-5)
+    assert m["cd10k"] == pytest.approx(float(chamfer_distance(nA, nB)), rel=1e-5)
+    assert m["f1"] == pytest.approx(float(fscore(nA, nB, 0.01)), abs=1e-6)
+    assert m["f2"] == pytest.approx(float(fscore(nA, nB, 0.02)), abs=1e-6)
+
+
+# ---- the metric on known shapes ------------------------------------------------------------
+def _lattice(n=11):
+    g = torch.linspace(-0.5, 0.5, n)
+    return torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_a_shifted_shape_gives_the_expected_cd():
+    pts = _lattice()  # spacing 0.1
+    d = 0.015  # between the two F-score thresholds (0.01, 0.02)
+    moved = pts + torch.tensor([d, 0.0, 0.0])
+    # before normalisation: every point's nearest neighbour is its own shifted copy → CD = 2d
+    assert float(chamfer_distance(pts, moved)) == pytest.approx(2 * d, rel=1e-5)
+    # normalisation (own bounding box) removes a pure shift
+    assert float(chamfer_distance(normalize_points(pts), normalize_points(moved))) == pytest.approx(0.0, abs=1e-6)
+    # a deformation survives it: move the interior points only (the bounding box stays) → CD = 2 d k / N
+    interior = (pts.abs() < 0.45).all(dim=1)
+    bent = pts.clone()
+    bent[interior, 0] += d
+    expect = 2 * d * int(interior.sum()) / len(pts)
+    m = CloudScorer(pts, pts).metrics(bent, bent)
+    assert m["cd1k"] == pytest.approx(expect, rel=1e-4)
+    assert m["f1"] == pytest.approx(1 - int(interior.sum()) / len(pts), abs=1e-6)  # moved points are 0.015 away: out at 1 %, in at 2 %
+    assert m["f2"] == 1.0
+
+
+# ---- the tiny split and a few-step run -----------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny(tiny_views_rendered, tmp_path_factory):
+    root = tmp_path_factory.mktemp("evaltiny")
+    views = copy_tiny_views(tiny_views_rendered, root)
+    # a seen class and an unseen one: the box plays a seen-test chair, the table an unseen table
+    manifest = {"shapes": [{"id": "box", "class": "chair", "split": "test"}, {"id": "table", "class": "table", "split": "unseen"}]}
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    run = root / "run"
+
+    def cfg(stage, steps, **kw):
+        return TrainConfig(stage=stage, data=str(views), out=str(run), steps=steps, batch_size=2, val_fraction=0.0, augment=False, progress=False, **kw)
+
+    train(cfg("depth", 3), TINY)
+    train(cfg("inpaint", 2, init=str(run / "depth" / "final.safetensors")))
+    train(cfg("refine", 2, init=str(run / "inpaint" / "final.safetensors")))
+    train(cfg("completion", 2, init=str(run / "depth" / "final.safetensors")))
+    train(cfg("onestep", 2), TINY)
+    return root, views, run
+
+
+def _args(root, views, run, out, *extra):
+    return ["--data", str(views), "--run", str(run), "--train-views", str(views), "--manifest", str(root / "manifest.json"),
+            "--out", str(out), "--no-progress", *extra]
+
+
+def _read(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _tiny_genre_completion_and_a_view(tiny):
+    """The tiny run's GenRe and 3D Completion, and one evaluation sample of its table."""
+    from genre_backend.nets.model import load_model
+    from training.data.dataset import ViewDataset, ViewRef
+    from training.learn.baselines import load_baseline
+
+    _, views, run = tiny
+    genre = load_model(run / "refine" / "final.safetensors")
+    completion = load_baseline(run / "completion" / "final.safetensors", "completion")
+    return genre, completion, ViewDataset([ViewRef(views / "table", 0)], genre.config).sample(0, None)
+
+
+def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_one(tiny):
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    out = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
+    with torch.no_grad():
+        expected = {
+            "GenRe": genre(rgb, mask=mask)["logits"],
+            "GenRe-Oracle": genre(rgb, mask=mask, depth=depth)["logits"],
+            "3D Completion": completion(rgb, mask=mask)["logits"],
+            "3D Completion-Oracle": completion(rgb, mask=mask, depth=depth)["logits"],
+        }
+    for row, logits in expected.items():
+        assert torch.allclose(out[row]["prob"], torch.sigmoid(logits)[0, 0]), row
+    # the true depth is not what the depth net predicts, so the oracle row is a different input, not a copy
+    assert not torch.allclose(out["3D Completion-Oracle"]["prob"], out["3D Completion"]["prob"])
+
+
+def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_not_the_truth(tiny):
+    import dataclasses
+
+    from genre_backend.geometry.voxels import silhouette_ramp
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(genre.config.geometry, silhouette_carve=True))
+    carved = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    ramp = silhouette_ramp(sample["mask"][None], genre.config.camera, genre.config.geometry.voxel_size)[0, 0]
+    inside = ramp > 0
+    assert 0 < int(inside.sum()) < inside.numel()
+    rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle"]
+    for row in rows:
+        assert torch.equal(carved[row]["prob"], torch.minimum(plain[row]["prob"], ramp)), row
+    assert any(float(plain[row]["prob"][~inside].max()) > 0.1 for row in rows)  # something was there to carve
+    assert torch.equal(carved[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
+
+
+def test_weights_that_fuse_the_visible_surface_fill_every_depth_row_from_its_own_depth(tiny):
+    import dataclasses
+
+    from genre_backend.geometry.mesh_voxels import fuse_visible_surface
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    geometry = dataclasses.replace(genre.config.geometry, target="distance")
+    genre.config = dataclasses.replace(genre.config, geometry=geometry)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(geometry, visible_fusion=True))
+    fused = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    mask, depth = sample["mask"], sample["depth"]
+    true_depth = torch.where(mask, depth, torch.zeros_like(depth))
+    with torch.no_grad():
+        own = {"GenRe": genre(sample["rgb"][None], mask=mask[None])["masked_depth"][0],
+               "3D Completion": completion(sample["rgb"][None], mask=mask[None])["masked_depth"][0]}
+    depths = {**own, "GenRe-Oracle": true_depth, "GenRe-SphOracle": true_depth, "3D Completion-Oracle": true_depth}
+    level = geometry.default_threshold
+    for row, d in depths.items():
+        want = fuse_visible_surface(plain[row]["prob"], d, genre.config.camera, genre.config.geometry, level)
+        assert torch.equal(fused[row]["prob"], want), row
+        assert "depth" not in fused[row]
+    assert any(not torch.equal(fused[r]["prob"], plain[r]["prob"]) for r in depths)  # the tiny nets leave holes to fill
+    assert torch.equal(fused[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
+
+
+def test_weights_that_seal_pits_seal_every_learned_row_through_the_views_mask(tiny, monkeypatch):
+    import dataclasses
+
+    import genre_backend.geometry.mesh_voxels as mesh_voxels
+    from genre_backend.geometry.mesh_voxels import seal_pits
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    geometry = dataclasses.replace(genre.config.geometry, target="distance")
+    genre.config = dataclasses.replace(genre.config, geometry=geometry)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    calls = []
+
+    def recording(prob, mask, camera, g, level, width):  # the real function, its calls recorded
+        calls.append((prob.clone(), mask.clone(), level, width))
+        return seal_pits(prob, mask, camera, g, level, width)
+
+    monkeypatch.setattr(mesh_voxels, "seal_pits", recording)  # (the options record imports it as each job runs)
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(geometry, pit_sealing=8))
+    sealed = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle"]
+    assert len(calls) == len(rows)  # once per learned voxel row; the truth is not sealed
+    for (prob, mask, level, width), row in zip(calls, rows):
+        assert torch.equal(prob, plain[row]["prob"]), row
+        assert torch.equal(mask, sample["mask"]) and mask.dtype == torch.bool
+        assert (level, width) == (geometry.default_threshold, 8)
+        want = seal_pits(plain[row]["prob"], sample["mask"], genre.config.camera, genre.config.geometry, level, 8)
+        assert torch.equal(sealed[row]["prob"], want), row
+    assert torch.equal(sealed[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
+
+
+def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
+    _, views, _ = tiny
+    meta = json.loads((views / "table" / "view_000.json").read_text())
+    view = EvalView(views / "table", 0, "table", ("unseen",), meta)
+    gt, again = Truth().posed(view)
+    same = CloudScorer(gt[:1024], gt).metrics(gt[:1024], gt)
+    assert same["cd1k"] == 0.0 and same["cd10k"] == 0.0 and same["f1"] == 1.0 and same["f2"] == 1.0
+    floor = CloudScorer(gt[:1024], gt).metrics(again[:1024], again)
+    assert 0.0 < floor["cd1k"] < 0.1 and floor["cd10k"] < floor["cd1k"]
+    # the true mesh itself, posed, scored as a prediction: at the floor
+    mesh = trimesh.load(meta["mesh"], force="mesh", process=False)
+    rot = torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)[None]
+    verts = frame.object_to_view(torch.tensor(mesh.vertices)[None], rot)[0].numpy()
+    perfect = mesh_metrics(verts, np.asarray(mesh.faces), CloudScorer(gt[:1024], gt))
+    assert perfect["cd1k"] == pytest.approx(floor["cd1k"], rel=0.25)
+    assert perfect["f2"] > 0.95
+
+
+@pytest.mark.slow
+def test_genre_eval_writes_every_row_and_applies_the_seen_threshold(tiny, tmp_path, capsys):
+    root, views, run = tiny
+    out = tmp_path / "res"
+    rc = main(_args(root, views, run, out, "--gallery", "1", "--heatmap-shapes", "1", "--heatmap-elevations", "20",
+                    "--heatmap-azimuths", "2", "--render-samples", "2"))
+    assert rc == 0
+    printed = capsys.readouterr().out
+    table = (out / "table.md").read_text()
+    for row in (*ROWS, FLOOR):
+        assert f"| {row} |" in table and f"| {row} |" in printed, row
+    assert "seen-test" in table and "unseen" in table
+    for name in ("per_view.csv", "per_shape.csv", "per_class.csv", "thresholds.json", "bars.png", "depth_vs_dissimilarity.png",
+                 "viewpoint_heatmap.png", "gallery.png"):
+        assert (out / name).is_file(), name
+    records = _read(out / "per_view.csv")
+    assert len(records) == 4 * (len(ROWS) + 1)
+    choice = json.loads((out / "thresholds.json").read_text())
+    thresholds = TINY.geometry.thresholds()
+    per_class = {(r["row"], r["class"]): r for r in _read(out / "per_class.csv")}
+    for row in ROWS:
+        seen = [r for r in records if r["row"] == row and r["groups"] == "test"]
+        unseen = [r for r in records if r["row"] == row and "unseen" in r["groups"].split("|")]
+        means = {t: np.mean([float(r[f"cd1k@{t:.2f}"]) for r in seen]) for t in thresholds}
+        t_star = choice["seen"][row]
+        assert means[t_star] == pytest.approx(min(means.values()))  # chosen on seen-test views …
+        applied = np.mean([float(r[f"cd1k@{t_star:.2f}"]) for r in unseen])
+        assert float(per_class[(row, "table")]["cd1k_seen"]) == pytest.approx(applied, rel=1e-5)  # … and applied to unseen
+        assert float(per_class[(row, "table")]["threshold_seen"]) == t_star
+    # the seen threshold does not look at unseen data: worsen unseen CDs at it, choose again → the same
+    spoiled = [dict(r) for r in records]
+    for r in spoiled:
+        if "unseen" in r["groups"].split("|"):
+            for t in thresholds:
+                r[f"cd1k@{t:.2f}"] = str(float(r[f"cd1k@{t:.2f}"]) + (5.0 if t == choice["seen"][r["row"]] else 0.0))
+    again = choose_thresholds(spoiled, thresholds, 0.5)
+    assert again["seen"] == choice["seen"]
+    assert all(math.isfinite(v) for v in aggregate(records, choice)[2]["seen"]["unseen"].values())
+
+
+@pytest.mark.slow
+def test_eval_resumes_after_an_interruption(tiny, tmp_path):
+    root, views, run = tiny
+    out = tmp_path / "res"
+    base = _args(root, views, run, out, "--no-figures", "--rows", "GenRe,Nearest training shape")
+    assert main(base) == 0
+    full = (out / "per_view.csv").read_text().splitlines()
+    assert len(full) == 1 + 4 * 3
+    # killed while writing the last view: its rows cut off mid-line
+    (out / "per_view.csv").write_text("\n".join(full[:-2]) + "\n" + full[-2][: len(full[-2]) // 2])
+    assert main(base) == 0
+    resumed = (out / "per_view.csv").read_text().splitlines()
+    assert sorted(resumed) == sorted(full)
+    # the gallery of a run resumed from rows scored earlier (or by other processes) still gets its grids
+    assert not (out / "grids").exists()
+    assert main(_args(root, views, run, out, "--rows", "GenRe,Nearest training shape", "--gallery", "1", "--heatmap-shapes", "0",
+                      "--render-samples", "2")) == 0
+    assert len(list((out / "grids").glob("*.npz"))) == 2 and (out / "gallery.png").is_file()
+    assert sorted((out / "per_view.csv").read_text().splitlines()) == sorted(full)
+    # other rows (or weights) in the same folder: refused rather than mixed
+    assert main(_args(root, views, run, out, "--no-figures", "--rows", "GenRe")) == 2
+
+
+def test_missing_weights_or_data_give_a_clear_error(tiny, tmp_path, capsys):
+    root, views, run = tiny
+    assert main(_args(root, views, tmp_path / "nothing", tmp_path / "o")) == 2
+    err = capsys.readouterr().err
+    assert "weights not found" in err and "genre train" in err
+    assert main(_args(root, tmp_path / "no_views", run, tmp_path / "o")) == 2
+    assert "genre data render" in capsys.readouterr().err
+
+
+def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
+    import importlib.util
+
+    root, views, run = tiny
+    spec = importlib.util.spec_from_file_location("stage_errors", Path(__file__).resolve().parents[3] / "scripts" / "stage_errors.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--weights", str(run / "refine" / "final.safetensors"), "--views", str(views),
+                     "--manifest", str(root / "manifest.json"), "--thresholds", "0.5",
+                     "--completion", str(run / "completion" / "final.safetensors")]) == 0
+    out = capsys.readouterr().out
+    lines = {line[:36].strip(): line for line in out.splitlines()[1:]}
+    assert out.startswith("1 seen-test views")  # the box (test split); the unseen table is never looked at
+    assert set(lines) == {"true distance, its surface", "true spherical map, projected", "refiner <- true depth + true map",
+                          "refiner <- true depth", "GenRe spherical map, projected", "GenRe",
+                          "partial map (GenRe depth), projected", "partial map (true depth), projected",
+                          "inpainted from true depth, projected", "GenRe partial map: MSE on its hits",
+                          "inpainted map: MSE on those pixels", "inpainted map: MSE elsewhere",
+                          "inpainted map: std of its hits", "true map: std of its hits", "depth |error| (median)",
+                          "depth |error| less its offset", "depth |error| less its plane",
+                          "depth error vs brightness (corr.)", "inpainted map: hit/no-hit as the tru", "inpainted map: MSE on unseen true hi",
+                          "true map: share of no-hit pixels", "inpainted map: share of hit pixels",
+                          "GenRe, spherical channel emptied", "GenRe, depth offset removed", "GenRe, trimmed to the outline",
+                          "3D Completion <- true depth", "3D Completion, depth offset removed", "3D Completion"}
+    for row in ("GenRe, spherical channel emptied", "GenRe, depth offset removed", "GenRe, trimmed to the outline", "3D Completion <- true depth",
+                "3D Completion, depth offset removed", "3D Completion"):
+        assert 0.0 < float(lines[row].split(": ")[1]) <= EMPTY_CD, row  # scored (an empty grid scores EMPTY_CD)
+    # the representation's own error of a box at the tiny preset's voxel size: a fraction of a voxel, finite
+    shell_cd = float(lines["true distance, its surface"].split(": ")[1])
+    sph_cd = float(lines["true spherical map, projected"].split(": ")[1])
+    assert 0.0 < shell_cd < 0.25 and 0.0 < sph_cd < 0.25
+    parts = [float(lines[k].split()[-1]) for k in ("depth |error| (median)", "depth |error| less its offset", "depth |error| less its plane")]
+    assert parts[0] >= 0 and parts[2] <= parts[1] + 1e-9  # a plane fits at least as well as an offset
+    assert -1.0 <= float(lines["depth error vs brightness (corr.)"].split()[-1]) <= 1.0
+    # the parts of an analytic error: an offset and a tilt are taken out exactly, a bump is not
+    n = 32
+    yy, xx = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
+    true = 2.0 + 0.01 * torch.sin(xx / 3.0)
+    mask = (xx - 16) ** 2 + (yy - 16) ** 2 < 100
+    tilted = mod.depth_error_parts(true + 0.05 + 0.2 * xx / n, true, mask)
+    assert tilted["depth |error| (median)"] == pytest.approx(0.05 + 0.2 * 16 / n, abs=0.01)
+    assert tilted["depth |error| less its offset"] == pytest.approx(float((0.2 * (xx[mask] - 16).abs() / n).median()), abs=1e-6)
+    assert tilted["depth |error| less its plane"] < 1e-6
+    bump = (mask & ((xx - 16) ** 2 + (yy - 16) ** 2 < 30)).double() * 0.1
+    assert 0.01 < mod.depth_error_parts(true + bump, true, mask)["depth |error| less its plane"] < 0.1
+    # an error that follows the brightness (dark pixels put too far) correlates with it negatively, exactly
+    light = 0.2 + 0.6 * xx / n
+    shaded = mod.depth_error_parts(true + 0.3 - 0.1 * light, true, mask, brightness=light)
+    assert shaded["depth error vs brightness (corr.)"] == pytest.approx(-1.0, abs=1e-9)
+    assert abs(mod.depth_error_parts(true + bump, true, mask, brightness=light)["depth error vs brightness (corr.)"]) < 0.1
+    assert "depth error vs brightness (corr.)" not in tilted
+
+
+def test_diagnostics_sample_seen_test_or_product_test_views_only(tiny, tmp_path):
+    from training.eval.protocol import sample_seen_test_views
+
+    root, views, _ = tiny
+    manifest = tmp_path / "manifest.json"  # the box held out of the product's training, the table trained on
+    manifest.write_text(json.dumps({"shapes": [
+        {"id": "box", "class": "chair", "split": "test", "groups": ["test", "product-test"]},
+        {"id": "table", "class": "table", "split": "unseen", "groups": ["unseen", "product-train"]}]}))
+    assert [v.shape_dir.name for v in sample_seen_test_views(views, manifest, 5)] == ["box"]
+    assert [v.shape_dir.name for v in sample_seen_test_views(views, manifest, 5, groups=("product-test",))] == ["box"]
+    manifest.write_text(json.dumps({"shapes": [
+        {"id": "box", "class": "chair", "split": "test", "groups": ["test", "product-train"]},
+        {"id": "table", "class": "table", "split": "unseen", "groups": ["unseen", "product-test"]}]}))
+    assert [v.shape_dir.name for v in sample_seen_test_views(views, manifest, 5, groups=("product-test",))] == ["table"]
+    with pytest.raises(ValueError, match="unseen"):  # the unseen classes stay out of every diagnostic
+        sample_seen_test_views(views, manifest, 5, groups=("unseen",))
+
+
+def test_score_grid_sweeps_the_configured_range():
+    import trimesh
+
+    from genre_backend.config import get_preset
+    from genre_backend.geometry.mesh_voxels import mesh_to_shell
+    from genre_backend.geometry.metrics import sample_surface
+    from training.eval.protocol import EMPTY_CD
+    from training.eval.runner import score_grid
+
+    g = get_preset("default").geometry
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.35)
+    shell = mesh_to_shell(torch.tensor(sphere.vertices), torch.tensor(sphere.faces), 32, 1).float()
+    prob = shell * 0.9 + 0.05  # 0.95 on the shell, 0.05 elsewhere
+    gt = sample_surface(sphere.vertices, sphere.faces, 10_000, seed=3)
+    scorer = CloudScorer(gt[:1024], gt)
+    result = {t: m["cd10k"] for t, m in score_grid(prob, g.thresholds(), scorer).items()}
+    assert list(result) == g.thresholds()
+    # each cloud is normalised on its own, so the shell's two sheets score alike at every level
+    assert all(0.0 < v < 0.1 for v in result.values())
+    assert score_grid(torch.zeros(8, 8, 8), [0.5], scorer)[0.5]["cd1k"] == EMPTY_CD
+
+
+@pytest.mark.slow
+def test_parallel_workers_write_the_same_rows(tiny, tmp_path):
+    root, views, run = tiny
+    rows = "GenRe,3D Completion,Truth through the representation"
+    assert main(_args(root, views, run, tmp_path / "one", "--no-figures", "--rows", rows)) == 0
+    assert main(_args(root, views, run, tmp_path / "two", "--no-figures", "--rows", rows, "--jobs", "2")) == 0
+    one = (tmp_path / "one" / "per_view.csv").read_text().splitlines()
+    two = (tmp_path / "two" / "per_view.csv").read_text().splitlines()
+    assert one[0] == two[0] and sorted(one[1:]) == sorted(two[1:]) and len(one) == 1 + 4 * 4
+    assert "2 processes" in (tmp_path / "two" / "table.md").read_text()
+    assert main(_args(root, views, run, tmp_path / "bad", "--jobs", "0")) == 2
+
+
+def test_the_distance_target_is_nearer_the_truth_than_the_shell(tiny):
+    """Truth through each representation, at its best threshold, against the resampling floor."""
+    import dataclasses
+
+    from genre_backend.geometry.mesh_voxels import mesh_to_target
+
+    _, views, _ = tiny
+    for shape in ("box", "table"):
+        meta = json.loads((views / shape / "view_000.json").read_text())
+        view = EvalView(views / shape, 0, shape, ("unseen",), meta)
+        gt, again = Truth().posed(view)
+        scorer = CloudScorer(gt[:1024], gt)
+        floor = scorer.metrics(again[:1024], again)["cd1k"]
+        mesh = trimesh.load(meta["mesh"], force="mesh", process=False)
+        rot = torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)[None]
+        verts = frame.object_to_view(torch.tensor(mesh.vertices)[None], rot)[0]
+        best = {}
+        for kind in ("shell", "distance"):
+            grid = mesh_to_target(verts, torch.tensor(mesh.faces), dataclasses.replace(TINY.geometry, target=kind))
+            best[kind] = min(m["cd1k"] for m in score_grid(grid, TINY.geometry.thresholds(), scorer).values())
+        assert best["distance"] < 0.8 * best["shell"], (shape, best, floor)
+        assert best["distance"] < 1.6 * floor, (shape, best, floor)
+
+
+def test_closed_meshes_are_told_from_ones_with_holes_or_tunnels():
+    from training.eval.runner import is_closed
+    from training.eval.statistics import product_threshold
+
+    sphere = trimesh.creation.icosphere(2)
+    torus = trimesh.creation.torus(0.3, 0.1)
+    two = trimesh.util.concatenate([sphere, trimesh.creation.icosphere(1).apply_translation([3, 0, 0])])
+    assert is_closed(sphere.faces) and is_closed(two.faces)
+    assert not is_closed(torus.faces)  # a tunnel
+    assert not is_closed(sphere.faces[1:])  # a hole
+    assert not is_closed(np.zeros((0, 3), int))
+    # the product threshold: lowest CD among the thresholds closed in ≥ 90 % of the views
+    recs = [{"shape": f"s{i}", "cd1k@0.30": "0.2", "closed@0.30": "1", "cd1k@0.50": "0.1", "closed@0.50": str(float(i < 5)),
+             "cd1k@0.70": "0.3", "closed@0.70": "1"} for i in range(10)]
+    assert product_threshold(recs, [0.3, 0.5, 0.7], 0.5) == (0.3, 1.0)
+
+
+def test_hole_closing_rule_takes_the_least_sealing_that_closes_enough():
+    from training.eval.statistics import choose_hole_closing
+
+    assert choose_hole_closing({0: 0.74, 1: 0.91, 2: 0.95, 3: 0.97}) == 1
+    assert choose_hole_closing({0: 0.95, 1: 0.97}) == 0
+    assert choose_hole_closing({0: 0.74, 1: 0.84, 2: 0.84, 3: 0.83}) == 1  # none reaches 90 %: the most closed, smaller k
+    assert choose_hole_closing({0: float("nan"), 2: 0.5}) == 2
+    with pytest.raises(ValueError, match="no closed share"):
+        choose_hole_closing({0: float("nan")})
+
+
+def test_representation_floor_scores_the_truth_through_each_representation(tiny, capsys):
+    import importlib.util
+
+    root, views, _ = tiny
+    spec = importlib.util.spec_from_file_location("representation_floor", Path(__file__).resolve().parents[3] / "scripts" / "representation_floor.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--views", str(views), "--manifest", str(root / "manifest.json"), "--thresholds", "0.5"]) == 0
+    lines = {line[:36].strip(): float(line[36:]) for line in capsys.readouterr().out.splitlines()[1:]}
+    assert set(lines) == {"noise floor (truth resampled)", "shell, t=0.50", "distance, plain, t=0.50", "distance, moved, t=0.50",
+                          "distance, shipped, t=0.50", "solid (winding number), t=0.50"}
+    # the box at 64³: the moved distance sheets sit on the floor's scale, the shell well above it
+    assert lines["distance, moved, t=0.50"] < lines["distance, plain, t=0.50"] < lines["shell, t=0.50"]
+    assert lines["distance, shipped, t=0.50"] < 1.5 * lines["noise floor (truth resampled)"]
+
+
+def test_hole_closing_script_scores_each_setting_and_applies_the_rule(tiny, tmp_path, capsys):
+    import importlib.util
+
+    from training.eval.statistics import choose_hole_closing
+
+    root, views, run = tiny
+    spec = importlib.util.spec_from_file_location("hole_closing", Path(__file__).resolve().parents[3] / "scripts" / "hole_closing.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "hc.json"
+    assert mod.main(["--weights", str(run / "refine" / "final.safetensors"), "--views", str(views), "--manifest",
+                     str(root / "manifest.json"), "--groups", "test,unseen", "--closings", "0,2", "--level", "0.5",
+                     "--json", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert got["level"] == 0.5 and set(got["groups"]["all"]) == {"0", "2"}
+    seen = got["groups"]["seen-test (chooses k)"]
+    assert got["chosen"] == choose_hole_closing({int(k): v["closed"] for k, v in seen.items()})
+    assert all(0 <= v["closed"] <= 1 and v["cd"] > 0 for g in got["groups"].values() for v in g.values())
+    assert "hole_closing = " in capsys.readouterr().out
+
+
+def test_weights_that_mirror_average_every_learned_row_with_its_own_model(tiny):
+    import dataclasses
+
+    from genre_backend.geometry.voxels import mirror_voxels
+    from genre_backend.nets.model import mean_probability_logits
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(genre.config.geometry, test_time_mirror=True))
+    both = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
+    flip = {"rgb": rgb.flip(-1), "mask": mask.flip(-1), "depth": depth.flip(-1)}
+    with torch.no_grad():
+        pairs = {
+            "GenRe": (genre(rgb, mask=mask)["logits"], genre(flip["rgb"], mask=flip["mask"])["logits"]),
+            "GenRe-Oracle": (genre(rgb, mask=mask, depth=depth)["logits"],
+                             genre(flip["rgb"], mask=flip["mask"], depth=flip["depth"])["logits"]),
+            "3D Completion": (completion(rgb, mask=mask)["logits"], completion(flip["rgb"], mask=flip["mask"])["logits"]),
+            "3D Completion-Oracle": (completion(rgb, mask=mask, depth=depth)["logits"],
+                                     completion(flip["rgb"], mask=flip["mask"], depth=flip["depth"])["logits"]),
+        }
+    for row, (own, mirrored) in pairs.items():
+        want = torch.sigmoid(mean_probability_logits(own, mirror_voxels(mirrored)))[0, 0]
+        assert torch.allclose(both[row]["prob"], want, atol=1e-5), row
+        assert not torch.allclose(both[row]["prob"], plain[row]["prob"], atol=1e-3), row  # the tiny nets are not symmetric
+    assert torch.equal(both[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])  # the truth is left as it is
