@@ -134,14 +134,13 @@ class GeometryConfig:
     voxel_size: int = 64  # voxels over the cube [-0.5, 0.5]^3
     # Spherical map → points: values ≥ sph_nohit_min count as "no hit"; the map is
     # resampled sph_supersample times finer first so that the points leave no
-    # holes in the voxel grid (measured: 1.0–1.3 → 0.65 voxel Chamfer on a sphere).
+    # holes in the voxel grid (docs/reconstruct-settings.md, "The network levels").
     sph_nohit_min: float = 0.9999
     sph_supersample: int = 2
     # The inpainting net's "hit" head (network.inpaint_head): a ray of the full map hits the
     # surface where the head's hit probability exceeds this.  A dropped part of the back costs
-    # Chamfer far more than a point near the true radius; on 16 seen-test views the projected
-    # map of the true depth scored CD 0.111 at 0.1–0.2, 0.112 at 0.3 and 0.191 at 0.5 (the
-    # protocol weights; scripts/stage_errors.py).  At 0.2 nearly every ray hits.
+    # Chamfer far more than a point near the true radius; at 0.2 nearly every ray hits
+    # (measured: docs/reconstruct-settings.md, "The network levels").
     sph_hit_probability: float = 0.2
     # Depth → surface triangulation: a triangle of neighbouring pixels is kept only
     # if its longest 3D edge is at most this many times the pixel footprint at its
@@ -162,8 +161,7 @@ class GeometryConfig:
     # The distance target's surface (geometry.mesh_voxels.onto_surface): the sheets are moved back
     # toward the surface but stop this many voxels short of it, so that a part thinner than a voxel
     # (a wing, a sheet) keeps a thickness of twice this instead of collapsing into two coincident
-    # sheets with opposite normals.  Costs CD 0.031 → 0.033 at t = 0.5 through the true target (10
-    # seen-test views, scripts/representation_floor.py; resampling floor 0.030).
+    # sheets with opposite normals (its cost: docs/reconstruct-settings.md, "The network levels").
     surface_margin: float = 0.25
     # The distance target's holes (geometry.mesh_voxels.fill_enclosed): a blurry prediction leaves
     # gaps in the tube around the surface, through which the tube's inner sheet joins the outer one
@@ -174,20 +172,14 @@ class GeometryConfig:
     # The one-view visual hull (geometry.voxels.silhouette_ramp): the refiner's output is capped by
     # a ramp that falls from 1 to 0 across the object's outline (one voxel wide, 0.5 on the outline)
     # before the mesh is made, in reconstruction and in evaluation (every learned row alike; never
-    # in training).  The refiner's blur spills past the outline the photo shows.  On 31 seen-test
-    # views (the hit-head protocol weights, true masks) GenRe's CD at t = 0.45 / 0.55 went 0.1012 / 0.0986 →
-    # 0.0959 / 0.0947; emptying the voxels whose centre falls outside the mask did as well (0.0960
-    # / 0.0945) but cut the sides into voxel steps; widening that mask by 1 px kept less (0.0978 at
-    # 0.55), narrowing it by 1 px lost thin parts (0.1033).  Weights stored without the key: off.
+    # in training).  The refiner's blur spills past the outline the photo shows (measured:
+    # docs/reconstruct-settings.md, "Trimmed to the outline").  Weights stored without the key: off.
     silhouette_carve: bool = False
     # Holes in the face the camera sees (geometry.mesh_voxels.fuse_visible_surface): the object's pixels
     # whose ray meets nothing above the level get the masked depth map's own surface (its distance
     # target, max with the refiner's) before the mesh is made, in reconstruction and in evaluation
     # (every row with a depth map alike). Chosen per weights on seen-test views by
-    # scripts/visible_fusion.py (on when it raises their mean CD by at most 1 %): the protocol weights
-    # 0.1020 -> 0.1021 (on, but not yet stored: Table 1 must be re-run with it); the default weights
-    # 0.1065 -> 0.1085 (off). The depth map's surface everywhere cost 2.5 % / 4.4 %, pits filled too
-    # 4.4 % / 4.6 % (default, pits deeper than 10 voxels only: 2.9 %; results/visible_fusion/).
+    # scripts/visible_fusion.py (docs/reconstruct-settings.md, "Holes in the side the photo shows").
     # Weights stored without the key: off.
     visible_fusion: bool = False
     # Pits in the face the camera sees (geometry.mesh_voxels.seal_pits): a blurry front wall whose
@@ -196,9 +188,8 @@ class GeometryConfig:
     # deeper than 2 voxels and at most about twice this many voxels across are filled with the front
     # around them before the mesh is made, in reconstruction and in evaluation (every row with a mask
     # alike, after any fusion).  0: off.  Chosen by the rule in results/decisions.md
-    # (scripts/visible_fusion.py --pit-sealing; at most 1 % more CD): the default weights carry 4
-    # (product test 0.1193 -> 0.1199, primitives 0.1275 -> 0.1280); the protocol weights 0 (their
-    # seen-test CD 0.1020 either way; Table 1 is not re-run for it).  Weights stored without the key: 0 (off).
+    # (scripts/visible_fusion.py --pit-sealing; docs/reconstruct-settings.md, "Pits in the side the
+    # photo shows").  Weights stored without the key: 0 (off).
     pit_sealing: int = 0
     # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
     # ellipsoid fitted to the mask's outline, the mesh and the depth when its disagreement (1 - the IoU of
