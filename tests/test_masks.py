@@ -306,6 +306,10 @@ def test_serve_box_and_strokes(trained, tmp_path):
     strokes = _strokes_file("squirrel", tmp_path / "strokes.png")
     grey = tmp_path / "grey.png"
     Image.new("L", (535, 426), 128).save(grey)
+    with Image.open(photo) as im:  # stored turned 90° anticlockwise, EXIF orientation 6; its scribbles turned alike
+        turned = _stored_copy(im.convert("RGB"), 6, tmp_path / "squirrel_o6.jpg")
+    with Image.open(strokes) as im:
+        im.transpose(_TO_STORED[6]).save(tmp_path / "strokes_o6.png")
     s = ServerProcess("--weights", str(trained[0]))
     try:
         assert s.next(timeout=300)["type"] == "ready"
@@ -321,7 +325,11 @@ def test_serve_box_and_strokes(trained, tmp_path):
                ({"box": [600, 500, 700, 600]}, "bad_mask", "is not inside the 535×426 photo"),
                ({"strokes": str(PHOTOS / "robin.jpg")}, "bad_mask", "strokes image is 380×254"),
                ({"strokes": str(grey)}, "bad_mask", "no strokes"),
-               ({"strokes": str(tmp_path / "missing.png")}, "bad_mask", "no such file")]
+               ({"strokes": str(tmp_path / "missing.png")}, "bad_mask", "no such file"),
+               ({"strokes": str(strokes), "guidance_frame": "sideways"}, "bad_field", "field 'guidance_frame': expected one of 'upright', 'stored'"),
+               ({"strokes": str(strokes), "guidance_frame": 6}, "bad_field", "got 6"),
+               ({"strokes": str(strokes), "guidance_frame": "stored", "image": str(turned)}, "bad_mask",
+                "strokes image is 535×426, the image is 426×535 as stored")]
         for i, (fields, code, text) in enumerate(bad):
             s.send({**base, "id": f"bad{i}", "output": str(tmp_path / f"bad{i}.obj"), **fields})
             events = s.until(lambda e: e["type"] in ("result", "error") and e["id"] == f"bad{i}")
@@ -335,6 +343,13 @@ def test_serve_box_and_strokes(trained, tmp_path):
             s.send({**base, "id": name, "output": str(tmp_path / f"{name}.obj"), **fields})
             ev = s.until(lambda e: e["type"] in ("result", "error") and e["id"] == name)[-1]
             assert ev["type"] == "result" and ev["mask_source"] == name and ev["faces"] > 0, ev
+        # scribbles over the stored pixels of a turned file (as Blender shows it): turned with the photo
+        s.send({**base, "id": "turned", "image": str(turned), "output": str(tmp_path / "turned.obj"), "guidance_frame": "stored",
+                "strokes": str(tmp_path / "strokes_o6.png"), "options": {"save_intermediates": str(tmp_path / "turned")}})
+        ev = s.until(lambda e: e["type"] in ("result", "error") and e["id"] == "turned")[-1]
+        assert ev["type"] == "result" and ev["mask_source"] == "strokes" and ev["camera"]["exif_orientation"] == 6, ev
+        hand = load_mask(PHOTOS / "squirrel_mask.png", load_image(photo))
+        assert _iou(np.asarray(Image.open(tmp_path / "turned" / "mask_in_photo.png")) > 127, hand) > 0.75
         s.send({**base, "id": "auto", "output": str(tmp_path / "auto.obj")})
         ev = s.until(lambda e: e["type"] in ("result", "error") and e["id"] == "auto")[-1]
         assert ev["mask_source"] == "grabcut" and ev["mask_warning"].startswith("the mask runs along the photo's edge")
