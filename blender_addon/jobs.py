@@ -449,24 +449,26 @@ def _photo_image(spec: JobSpec, made: list):
 
 
 def _upright_copy(image, orientation: int, made: list):
-    """A packed copy of ``image`` turned as its file's EXIF ``orientation`` says (Blender shows the stored pixels)."""
-    import numpy as np
+    """A packed copy of ``image`` turned as its file's EXIF ``orientation`` says (Blender shows the stored pixels).
+
+    Plain Python (``array``; Debian's Blender has no numpy)."""
+    from array import array
 
     width, height = image.size
     channels = image.channels
-    pixels = np.empty(width * height * channels, dtype=np.float32)
+    pixels = array("f", bytes(4 * width * height * channels))
     image.pixels.foreach_get(pixels)
-    up = upright_pixels(pixels.reshape(height, width, channels), orientation)
-    copy = bpy.data.images.new(f"{image.name} (upright)", up.shape[1], up.shape[0], alpha=channels == 4,
-                               float_buffer=image.is_float)
+    up, up_w, up_h = upright_pixels(pixels, width, height, channels, orientation)
+    copy = bpy.data.images.new(f"{image.name} (upright)", up_w, up_h, alpha=channels == 4, float_buffer=image.is_float)
     made.append(copy)
     if copy.colorspace_settings.name != image.colorspace_settings.name:  # (before the pixels: it regenerates the image)
         copy.colorspace_settings.name = image.colorspace_settings.name
-    rgba = np.ones(up.shape[:2] + (4,), np.float32)  # a new image holds RGBA; grey (1 or 2 channels) fills R, G, B
-    rgba[..., :3] = up[..., :3] if channels >= 3 else up[..., :1]
+    rgba = array("f", [1.0]) * (up_w * up_h * 4)  # a new image holds RGBA; grey (1 or 2 channels) fills R, G, B
+    for k in range(3):
+        rgba[k::4] = up[k::channels] if channels >= 3 else up[0::channels]
     if channels in (2, 4):
-        rgba[..., 3] = up[..., -1]
-    copy.pixels.foreach_set(rgba.ravel())
+        rgba[3::4] = up[channels - 1::channels]
+    copy.pixels.foreach_set(rgba)
     copy.pack()  # the job's files go when it ends; the .blend keeps the turned photo
     return copy
 
