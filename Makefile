@@ -34,7 +34,9 @@ clean:
 
 # The Blender add-on in a real GUI Blender (system `blender` + `xvfb-run`; Debian:
 # apt-get install blender xvfb xauth): builds dist/, presses Reconstruct on
-# examples/sofa.png with the shipped default (product) weights, saves screenshots to out/e2e/.
+# examples/sofa.png with the shipped default (product) weights, saves screenshots to out/e2e/;
+# then annotates examples/photos/squirrel.jpg (and a copy turned by EXIF) in an Image Editor, presses
+# Reconstruct and checks the mask against the hand mask: out/e2e/annotate/, out/e2e/annotate_exif6/.
 .PHONY: e2e
 e2e: setup
 	.venv/bin/python tests/addon/e2e/run_gui_e2e.py

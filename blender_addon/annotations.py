@@ -22,10 +22,10 @@ view by the image's size; measured in a drawn Blender 3.4.1 editor,
 ``SpaceImageEditor.grease_pencil``.  Strokes are drawn :data:`STROKE_WIDTH_SHARE`
 of the photo's long side wide into a grey image the photo's size
 (:func:`rasterise`): 255 object, 0 background, 128 elsewhere, the backend's
-convention.  Photos whose file carries an EXIF rotation are shown unrotated
-by Blender, so their annotation does not line up with the photo the
-backend decodes; such strokes are refused by the backend when the rotation
-swaps width and height, and misplaced otherwise.
+convention.  Blender shows a photo's pixels as stored in its file, ignoring
+its EXIF orientation, so the annotation is over the stored pixels; the
+request says so (``guidance_frame`` ``"stored"``, ``jobs.annotation_guidance``)
+and the backend turns the strokes image and box as it turns the photo.
 
 The conversion (:func:`layer_lines`, :func:`rasterise`, :func:`write_png_gray`)
 needs no running editor; :func:`find_annotation` looks for the editor.

@@ -135,36 +135,58 @@ class CameraSetup:
     resolution: tuple[int, int]
 
 
-def upright_pixels(pixels, orientation: int):
+def upright_pixels(pixels, width: int, height: int, channels: int, orientation: int):
     """A photo's pixels as stored in its file → as its EXIF ``orientation`` says to show them.
 
-    ``pixels``: (height, width, channels) array in Blender's order (the
-    bottom row first, as ``Image.pixels`` holds them).  ``orientation``: the
-    EXIF tag, 1-8 (TIFF's meaning; the result's ``camera.exif_orientation``).
-    Returns the (height', width', channels) array, bottom row first, that
-    Pillow's ``ImageOps.exif_transpose`` would give (Blender's image loader
-    ignores the tag, the backend applies it).  1 returns ``pixels`` itself.
+    ``pixels``: the flat (height × width × channels) floats in Blender's
+    order (the bottom row first, as ``Image.pixels`` holds them).
+    ``orientation``: the EXIF tag, 1-8 (TIFF's meaning; the result's
+    ``camera.exif_orientation``).  Returns ``(pixels', width', height')``:
+    an ``array('f')``, bottom row first, that Pillow's
+    ``ImageOps.exif_transpose`` would give (Blender's image loader ignores
+    the tag, the backend applies it).  Plain Python (Debian's Blender has no
+    numpy): whole rows and columns move as (extended) slices.
     """
-    import numpy as np
+    from array import array
 
-    a = np.asarray(pixels)
-    if a.ndim != 3:
-        raise ValueError(f"pixels: expected (height, width, channels), got shape {a.shape}")
     if isinstance(orientation, bool) or orientation not in range(1, 9):
         raise ValueError(f"orientation: expected an EXIF orientation 1-8, got {orientation!r}")
-    if orientation == 1:
-        return a
-    top = a[::-1]  # rows top first, as the file and the tag count them
-    up = {
-        2: lambda t: t[:, ::-1],  # mirrored left to right
-        3: lambda t: t[::-1, ::-1],  # turned 180°
-        4: lambda t: t[::-1],  # mirrored top to bottom
-        5: lambda t: t.transpose(1, 0, 2),  # mirrored across the main diagonal
-        6: lambda t: np.rot90(t, -1),  # stored turned 90° anticlockwise: turn it clockwise
-        7: lambda t: t[::-1, ::-1].transpose(1, 0, 2),  # mirrored across the other diagonal
-        8: lambda t: np.rot90(t, 1),  # stored turned 90° clockwise: turn it anticlockwise
-    }[orientation](top)
-    return np.ascontiguousarray(up[::-1])
+    w, h, c = int(width), int(height), int(channels)
+    flat = pixels if isinstance(pixels, array) and pixels.typecode == "f" else array("f", pixels)
+    if w < 1 or h < 1 or c < 1 or len(flat) != w * h * c:
+        raise ValueError(f"pixels: expected width × height × channels = {w}×{h}×{c} values, got {len(flat)}")
+    stride = w * c
+
+    def row(i):  # the stored row i, counted from the top
+        return flat[(h - 1 - i) * stride:(h - i) * stride]
+
+    def mirrored(r):  # a row's pixels right to left (channels kept in order)
+        out = array("f", r)
+        for k in range(c):
+            out[k::c] = r[k::c][::-1]
+        return out
+
+    def column(j, bottom_first):  # the stored column j as a row of pixels
+        out = array("f", bytes(4 * h * c))
+        for k in range(c):
+            values = flat[j * c + k::stride]  # bottom first, as Blender stores them
+            out[k::c] = values if bottom_first else values[::-1]
+        return out
+
+    rows = {  # the shown image's rows, top first
+        1: lambda: [row(i) for i in range(h)],
+        2: lambda: [mirrored(row(i)) for i in range(h)],  # mirrored left to right
+        3: lambda: [mirrored(row(h - 1 - i)) for i in range(h)],  # turned 180°
+        4: lambda: [row(h - 1 - i) for i in range(h)],  # mirrored top to bottom
+        5: lambda: [column(i, False) for i in range(w)],  # mirrored across the main diagonal
+        6: lambda: [column(i, True) for i in range(w)],  # stored turned 90° anticlockwise: turn it clockwise
+        7: lambda: [column(w - 1 - i, True) for i in range(w)],  # mirrored across the other diagonal
+        8: lambda: [column(w - 1 - i, False) for i in range(w)],  # stored turned 90° clockwise: turn it anticlockwise
+    }[orientation]()
+    out = array("f")
+    for r in reversed(rows):  # back to Blender's order: the bottom row first
+        out.extend(r)
+    return (out, w, h) if orientation <= 4 else (out, h, w)
 
 
 def camera_setup(camera: dict, photo_size: tuple[int, int], crop_box=None) -> CameraSetup:

@@ -42,6 +42,9 @@ class JobSpec:
     mask_path: str = ""
     strokes_path: str = ""  # strokes image made from the annotation drawn over the photo (annotations.py)
     box: tuple[float, float, float, float] | None = None  # the annotation's Box layer, the photo's pixels
+    # the pixels strokes and box are drawn over: "stored" (as the file stores them, EXIF orientation ignored: what
+    # Blender's Image Editor shows), so the backend turns them as it turns the photo; '' without them
+    guidance_frame: str = ""
     quality: str = "best"  # the backend's named set of options (schema.QUALITIES)
     options: dict[str, Any] = field(default_factory=dict)  # the Advanced rows ticked: option name → value
     smoothing: int = 0
@@ -66,6 +69,8 @@ class JobSpec:
             payload["strokes"] = self.strokes_path
         if self.box is not None:
             payload["box"] = [float(v) for v in self.box]
+        if self.guidance_frame and (self.strokes_path or self.box is not None):
+            payload["guidance_frame"] = self.guidance_frame
         return payload
 
 
@@ -151,6 +156,10 @@ def annotation_guidance(spec: JobSpec, settings) -> None:
     The photo's Image datablock: the chosen image (source Image), else an
     image whose file is the photo (source File).  Nothing when no Image
     Editor shows it with an annotation, or the annotation has no strokes.
+    Blender shows a file's pixels as stored, ignoring its EXIF orientation
+    (3.4 and 5.0 alike), so the strokes and box are over the stored pixels:
+    the request says so (``guidance_frame`` ``"stored"``) and the backend
+    turns them as it turns the photo (``docs/protocol.md``).
     """
     image = settings.image if settings.source == "IMAGE" else None
     if image is None:
@@ -167,6 +176,7 @@ def annotation_guidance(spec: JobSpec, settings) -> None:
     if width == 0 or height == 0:
         return
     spec.strokes_path, spec.box = guidance_from_annotation(annotation, int(width), int(height), spec.work_dir)
+    spec.guidance_frame = "stored"
 
 
 def prepare_job(settings, work_base: str) -> JobSpec:
@@ -439,24 +449,26 @@ def _photo_image(spec: JobSpec, made: list):
 
 
 def _upright_copy(image, orientation: int, made: list):
-    """A packed copy of ``image`` turned as its file's EXIF ``orientation`` says (Blender shows the stored pixels)."""
-    import numpy as np
+    """A packed copy of ``image`` turned as its file's EXIF ``orientation`` says (Blender shows the stored pixels).
+
+    Plain Python (``array``; Debian's Blender has no numpy)."""
+    from array import array
 
     width, height = image.size
     channels = image.channels
-    pixels = np.empty(width * height * channels, dtype=np.float32)
+    pixels = array("f", bytes(4 * width * height * channels))
     image.pixels.foreach_get(pixels)
-    up = upright_pixels(pixels.reshape(height, width, channels), orientation)
-    copy = bpy.data.images.new(f"{image.name} (upright)", up.shape[1], up.shape[0], alpha=channels == 4,
-                               float_buffer=image.is_float)
+    up, up_w, up_h = upright_pixels(pixels, width, height, channels, orientation)
+    copy = bpy.data.images.new(f"{image.name} (upright)", up_w, up_h, alpha=channels == 4, float_buffer=image.is_float)
     made.append(copy)
     if copy.colorspace_settings.name != image.colorspace_settings.name:  # (before the pixels: it regenerates the image)
         copy.colorspace_settings.name = image.colorspace_settings.name
-    rgba = np.ones(up.shape[:2] + (4,), np.float32)  # a new image holds RGBA; grey (1 or 2 channels) fills R, G, B
-    rgba[..., :3] = up[..., :3] if channels >= 3 else up[..., :1]
+    rgba = array("f", [1.0]) * (up_w * up_h * 4)  # a new image holds RGBA; grey (1 or 2 channels) fills R, G, B
+    for k in range(3):
+        rgba[k::4] = up[k::channels] if channels >= 3 else up[0::channels]
     if channels in (2, 4):
-        rgba[..., 3] = up[..., -1]
-    copy.pixels.foreach_set(rgba.ravel())
+        rgba[3::4] = up[channels - 1::channels]
+    copy.pixels.foreach_set(rgba)
     copy.pack()  # the job's files go when it ends; the .blend keeps the turned photo
     return copy
 

@@ -63,6 +63,10 @@ __all__ = [
     "load_mask",
     "load_strokes",
     "photo_box",
+    "GUIDANCE_FRAMES",
+    "stored_size",
+    "upright_array",
+    "upright_box",
     "mask_bbox",
     "square_crop_box",
     "crop_resize",
@@ -81,6 +85,10 @@ NEUTRAL_BACKGROUND = (0.5, 0.5, 0.5)
 MIN_OBJECT_PIXELS = 4
 # Alpha values (0–255) at or above this count as object.
 ALPHA_OBJECT_MIN = 128
+# The frames a person's box and strokes may be given in: "upright", the photo as shown with its EXIF orientation
+# applied (as every other pixel coordinate here), or "stored", the file's pixels as stored, the tag ignored (what
+# a viewer that ignores the tag shows: Blender's Image Editor).  (docs/protocol.md, ``guidance_frame``.)
+GUIDANCE_FRAMES = ("upright", "stored")
 
 
 class ImageError(ValueError):
@@ -298,21 +306,81 @@ def load_mask(path: str | os.PathLike, image: LoadedImage) -> np.ndarray:
     return mask
 
 
-def _same_size_luminance(path: str | os.PathLike, image: LoadedImage, what: str, called: str) -> tuple[LoadedImage, np.ndarray]:
+def _same_size_luminance(path: str | os.PathLike, image: LoadedImage, what: str, called: str,
+                         stored: bool = False) -> tuple[LoadedImage, np.ndarray]:
     """A mask-like file for ``image``: (the loaded file, its (H, W) float32 luminance); ``bad_mask`` unless it has the
-    photo's size (``called`` names it in the message)."""
+    photo's size (``called`` names it in the message).  ``stored``: the file is drawn over the photo's pixels as
+    stored (:data:`GUIDANCE_FRAMES`): it must have their size, and is turned by the photo's EXIF orientation."""
     m = load_image(path, code="bad_mask", what=what)
-    if m.original_size != image.original_size:
+    want = stored_size(image) if stored else image.original_size
+    if m.original_size != want:
         ow, oh = m.original_size
-        iw, ih = image.original_size
-        raise ImageError("bad_mask", f"{m.path}: {called} is {ow}×{oh}, the image is {iw}×{ih}")
+        raise ImageError("bad_mask", f"{m.path}: {called} is {ow}×{oh}, the image is {want[0]}×{want[1]}"
+                                     f"{' as stored (before its EXIF orientation)' if stored else ''}")
+    if stored and image.exif_orientation != 1:
+        o = image.exif_orientation
+        w, h = m.original_size
+        m = LoadedImage(m.path, upright_array(m.rgb, o), None if m.alpha is None else upright_array(m.alpha, o),
+                        (h, w) if o in (5, 6, 7, 8) else (w, h), m.scale, m.notes, m.exif_orientation)
     return m, m.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
 
 
-def load_strokes(path: str | os.PathLike, image: LoadedImage) -> tuple[np.ndarray, np.ndarray]:
+def stored_size(image: LoadedImage) -> tuple[int, int]:
+    """(width, height) of ``image``'s pixels as stored in its file, before its EXIF orientation turned them."""
+    w, h = image.original_size
+    return (h, w) if image.exif_orientation in (5, 6, 7, 8) else (w, h)
+
+
+def upright_array(a: np.ndarray, orientation: int) -> np.ndarray:
+    """An (H, W, …) array of a file's pixels as stored (top row first) → as its EXIF ``orientation`` (1-8) shows them.
+
+    The same turn or mirror as Pillow's ``ImageOps.exif_transpose`` (which :func:`load_image` applies to the photo).
+    """
+    turn = {
+        1: lambda t: t,
+        2: lambda t: t[:, ::-1],  # mirrored left to right
+        3: lambda t: t[::-1, ::-1],  # turned 180°
+        4: lambda t: t[::-1],  # mirrored top to bottom
+        5: lambda t: t.swapaxes(0, 1),  # mirrored across the main diagonal
+        6: lambda t: np.rot90(t, -1),  # stored turned 90° anticlockwise: turn it clockwise
+        7: lambda t: t[::-1, ::-1].swapaxes(0, 1),  # mirrored across the other diagonal
+        8: lambda t: np.rot90(t, 1),  # stored turned 90° clockwise: turn it anticlockwise
+    }
+    if isinstance(orientation, bool) or orientation not in turn:
+        raise ValueError(f"orientation: expected an EXIF orientation 1-8, got {orientation!r}")
+    return np.ascontiguousarray(turn[orientation](a))
+
+
+def upright_box(box: tuple[float, float, float, float], orientation: int, size: tuple[int, int]) -> tuple[float, float, float, float]:
+    """A box (x0, y0, x1, y1) over a file's pixels as stored → the same pixels once its EXIF ``orientation`` is applied.
+
+    ``size``: (width, height) as stored.  Corners are pixel edges (0 … width), so a box around a pixel
+    stays around that pixel (:func:`upright_array`).
+    """
+    w, h = float(size[0]), float(size[1])
+    to = {
+        1: lambda x, y: (x, y),
+        2: lambda x, y: (w - x, y),
+        3: lambda x, y: (w - x, h - y),
+        4: lambda x, y: (x, h - y),
+        5: lambda x, y: (y, x),
+        6: lambda x, y: (h - y, x),
+        7: lambda x, y: (h - y, w - x),
+        8: lambda x, y: (y, w - x),
+    }
+    if isinstance(orientation, bool) or orientation not in to:
+        raise ValueError(f"orientation: expected an EXIF orientation 1-8, got {orientation!r}")
+    x0, y0, x1, y1 = box
+    (ax, ay), (bx, by) = to[orientation](x0, y0), to[orientation](x1, y1)
+    return min(ax, bx), min(ay, by), max(ax, bx), max(ay, by)
+
+
+def load_strokes(path: str | os.PathLike, image: LoadedImage, frame: str = "upright") -> tuple[np.ndarray, np.ndarray]:
     """A person's strokes file → ((H, W) bool object, (H, W) bool background) at the decoded image's resolution.
 
-    The file has the image's size (after EXIF rotation of both): grey level
+    The file has the image's size (after EXIF rotation of both; with ``frame``
+    ``"stored"``, :data:`GUIDANCE_FRAMES`, the size of the photo's pixels as
+    stored, and it is turned by the photo's EXIF orientation): grey level
     (luminance) ≥ :data:`.segment.STROKE_OBJECT_MIN` (white) is sure object,
     ≤ :data:`.segment.STROKE_BACKGROUND_MAX` (black) sure background, anything
     between (mid grey, 128) says nothing, and so do transparent pixels (alpha
@@ -321,7 +389,7 @@ def load_strokes(path: str | os.PathLike, image: LoadedImage) -> tuple[np.ndarra
     """
     from PIL import Image
 
-    m, lum = _same_size_luminance(path, image, "strokes", "strokes image")
+    m, lum = _same_size_luminance(path, image, "strokes", "strokes image", stored=_stored(frame))
     seen = np.ones(lum.shape, bool) if m.alpha is None else m.alpha >= ALPHA_OBJECT_MIN
     marks = []
     for kind in (lum >= STROKE_OBJECT_MIN - 0.5, lum <= STROKE_BACKGROUND_MAX + 0.5):
@@ -335,19 +403,30 @@ def load_strokes(path: str | os.PathLike, image: LoadedImage) -> tuple[np.ndarra
     return marks[0], marks[1]
 
 
-def photo_box(box: tuple[float, float, float, float], image: LoadedImage) -> tuple[float, float, float, float]:
+def _stored(frame: str) -> bool:
+    """Whether a box or strokes ``frame`` (:data:`GUIDANCE_FRAMES`) is the photo's pixels as stored."""
+    if frame not in GUIDANCE_FRAMES:
+        raise ValueError(f"frame: expected one of {', '.join(GUIDANCE_FRAMES)}, got {frame!r}")
+    return frame == "stored"
+
+
+def photo_box(box: tuple[float, float, float, float], image: LoadedImage, frame: str = "upright") -> tuple[float, float, float, float]:
     """A box (x0, y0, x1, y1) in the photo's pixels (as displayed, after EXIF rotation) → the decoded image's pixels.
 
-    Clipped to the photo; raises :class:`ImageError` ``bad_mask`` when less
-    than a pixel of it is inside the photo.  (Its form is checked before,
-    :func:`genre_backend.validation.check_box`.)
+    With ``frame`` ``"stored"`` (:data:`GUIDANCE_FRAMES`) the box is over the
+    photo's pixels as stored, and is first turned by its EXIF orientation
+    (:func:`upright_box`).  Clipped to the photo; raises :class:`ImageError`
+    ``bad_mask`` when less than a pixel of it is inside the photo.  (Its form
+    is checked before, :func:`genre_backend.validation.check_box`.)
     """
     w, h = image.original_size
-    x0, y0, x1, y1 = box
+    stored = _stored(frame)
+    x0, y0, x1, y1 = upright_box(box, image.exif_orientation, stored_size(image)) if stored else box
     c = (max(0.0, x0), max(0.0, y0), min(float(w), x1), min(float(h), y1))
     if c[2] - c[0] < 1.0 or c[3] - c[1] < 1.0:
-        raise ImageError("bad_mask", f"{image.path}: the box {x0:g},{y0:g},{x1:g},{y1:g} is not inside the {w}×{h} photo "
-                                     f"(less than a pixel of it is)")
+        sw, sh = stored_size(image) if stored else (w, h)
+        raise ImageError("bad_mask", f"{image.path}: the box {','.join(f'{v:g}' for v in box)} is not inside the {sw}×{sh} photo"
+                                     f"{' as stored' if stored else ''} (less than a pixel of it is)")
     return tuple(v * image.scale for v in c)
 
 
@@ -467,6 +546,7 @@ def preprocess(
     seeding: str = DEFAULT_SEEDING,
     box: tuple[float, float, float, float] | None = None,
     strokes_path: str | os.PathLike | None = None,
+    guidance_frame: str = "upright",
 ) -> Preprocessed:
     """Select the mask and bring the image to the canonical framing.
 
@@ -483,7 +563,9 @@ def preprocess(
     ``strokes_path`` (:func:`load_strokes`): a person's guidance for GrabCut
     (:func:`.segment.segment`); they take the place of the alpha channel and
     of the automatic seeding, not of a mask file (giving both is a
-    ``ValueError``).  Raises :class:`ImageError`.
+    ``ValueError``).  ``guidance_frame``: the pixels they are drawn over
+    (:data:`GUIDANCE_FRAMES`: ``"upright"``, the photo with its EXIF
+    orientation applied; ``"stored"``, as stored in its file).  Raises :class:`ImageError`.
     """
     g = config.geometry
     size = g.image_size
@@ -494,7 +576,7 @@ def preprocess(
     if box is not None or strokes_path is not None:
         if mask_path is not None:
             raise ValueError("give either a mask file or a box and strokes, not both")
-        return _guided(image, rgb, g, notes, box, strokes_path)
+        return _guided(image, rgb, g, notes, box, strokes_path, guidance_frame)
 
     if mask_path is not None or image.has_transparency():
         if mask_path is not None:
@@ -548,10 +630,10 @@ def _framed(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[
 
 
 def _guided(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], box: tuple[float, float, float, float] | None,
-            strokes_path: str | os.PathLike | None) -> Preprocessed:
-    """The mask from GrabCut guided by a person's ``box`` and/or strokes file, framed."""
-    fg, bg = load_strokes(strokes_path, image) if strokes_path is not None else (None, None)
-    found = segment(rgb, box=None if box is None else photo_box(box, image), object_strokes=fg, background_strokes=bg)
+            strokes_path: str | os.PathLike | None, frame: str = "upright") -> Preprocessed:
+    """The mask from GrabCut guided by a person's ``box`` and/or strokes file (over the photo's ``frame``), framed."""
+    fg, bg = load_strokes(strokes_path, image, frame) if strokes_path is not None else (None, None)
+    found = segment(rgb, box=None if box is None else photo_box(box, image, frame), object_strokes=fg, background_strokes=bg)
     if int(found.mask.sum()) < MIN_OBJECT_PIXELS:
         raise ImageError("no_object", f"{image.path}: no object found inside the {found.seeding.replace('+', ' and ')}")
     notes.append(f"mask: GrabCut seeded by the {found.seeding.replace('+', ' and ')}")

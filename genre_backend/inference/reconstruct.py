@@ -430,6 +430,7 @@ class Reconstructor:
         seeding: str = DEFAULT_SEEDING,
         box: tuple[float, float, float, float] | None = None,
         strokes_path: str | os.PathLike | None = None,
+        guidance_frame: str = "upright",
         **overrides,
     ) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
@@ -442,7 +443,8 @@ class Reconstructor:
         mask file or alpha, find the mask by GrabCut (:func:`.preprocess.preprocess`); ``refine=False`` takes the
         depth net's silhouette as it is.  ``box`` (x0, y0, x1, y1, the photo's pixels) and ``strokes_path`` (white
         object and black background strokes on grey, the photo's size): a person's guidance for the mask instead of
-        the automatic one (:func:`.preprocess.preprocess`).  The steps after the networks are the options' own
+        the automatic one (:func:`.preprocess.preprocess`), over the photo's pixels as ``guidance_frame`` says
+        (``"upright"``: EXIF orientation applied; ``"stored"``: as stored in the file).  The steps after the networks are the options' own
         (:meth:`.options.MeshOptions.shape_grid`, :meth:`~.options.MeshOptions.mesh`,
         :meth:`~.options.MeshOptions.snap_mesh`).  Raises :class:`ImageError` for bad images, masks or images with
         no object.
@@ -455,7 +457,7 @@ class Reconstructor:
             image = load_image(image_path)
             stage("preprocess")
             pre: Preprocessed = preprocess(image, self.config, mask_path=mask_path, silhouette=self._silhouette, refine=refine, seeding=seeding,
-                                           box=box, strokes_path=strokes_path)
+                                           box=box, strokes_path=strokes_path, guidance_frame=guidance_frame)
             nets = self._networks(pre, opts, stage, image.path)
             stage("mesh")
             mesh = self._mesh(nets, opts, image.path, list(pre.notes))

@@ -95,6 +95,7 @@ class Job:
     save_intermediates: str | None
     box: tuple[float, float, float, float] | None = None  # a person's box and strokes file for GrabCut (mask inputs)
     strokes: str | None = None
+    guidance_frame: str = "upright"  # the pixels box and strokes are over: "upright" (EXIF applied) or "stored"
     cancel: threading.Event = field(default_factory=threading.Event)
     answered: bool = False  # `cancelled` already sent (a job cancelled while still queued)
 
@@ -229,6 +230,19 @@ class Server:
             raise RequestError("bad_field", f"give either 'mask' or {given}, not both", rid)
         return box, strokes
 
+    @staticmethod
+    def _guidance_frame(msg: dict, rid: Any) -> str:
+        """The request's ``guidance_frame`` (the pixels its box and strokes are over), checked; "upright" when absent."""
+        from .preprocess import GUIDANCE_FRAMES
+
+        frame = msg.get("guidance_frame")
+        if frame is None:
+            return "upright"
+        if not isinstance(frame, str) or frame not in GUIDANCE_FRAMES:
+            raise RequestError("bad_field", f"field 'guidance_frame': expected one of {', '.join(map(repr, GUIDANCE_FRAMES))}, "
+                                            f"got {_show(frame, 60)}", rid)
+        return frame
+
     def _parse_job(self, msg: dict) -> Job:
         rid = self._id(msg, required=True)
         image = self._str(msg, "image", rid, True)
@@ -256,7 +270,8 @@ class Server:
         if record.up == "z" and written != "ply":
             raise RequestError("bad_field", f"option 'up' 'z' is for ply only; {written} is always written +y up, as its importers expect", rid)
         inter = self._str(options, "save_intermediates", rid, False, "option")
-        return Job(rid, image, output, mask, record, inter, box=box, strokes=strokes)
+        return Job(rid, image, output, mask, record, inter, box=box, strokes=strokes,
+                   guidance_frame=self._guidance_frame(msg, rid))
 
     def handle(self, line: str) -> bool:
         """Answer one input line; returns False when the server should stop reading."""
@@ -374,6 +389,7 @@ class Server:
                 options=opts,
                 box=job.box,
                 strokes_path=job.strokes,
+                guidance_frame=job.guidance_frame,
                 progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
                 should_cancel=job.cancel.is_set,
             )

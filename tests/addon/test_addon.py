@@ -678,12 +678,17 @@ def test_upright_pixels_is_pillows_exif_transpose(tmp_path, orientation):
     Image.fromarray(stored).save(tmp_path / "p.png", exif=exif.tobytes())
     with Image.open(tmp_path / "p.png") as im:
         want = np.asarray(ImageOps.exif_transpose(im))
-    got = geometry.upright_pixels(stored[::-1], orientation)[::-1]  # Blender's rows in, Blender's rows out
-    np.testing.assert_array_equal(got, want)
+    blender = stored[::-1].astype(np.float32).ravel()  # Blender's order: the bottom row first, flat floats
+    got, w, h = geometry.upright_pixels(blender.tolist(), 9, 5, 4, orientation)  # plain Python: any sequence in
+    assert (w, h) == want.shape[1::-1]
+    np.testing.assert_array_equal(np.asarray(got, np.float32).reshape(h, w, 4)[::-1], want)  # Blender's rows out
+    for c in (1, 3):  # other channel counts move alike
+        got, w, h = geometry.upright_pixels(stored[::-1, :, :c].astype(np.float32).ravel().tolist(), 9, 5, c, orientation)
+        np.testing.assert_array_equal(np.asarray(got, np.float32).reshape(h, w, c)[::-1], want[..., :c])
     with pytest.raises(ValueError, match="orientation"):
-        geometry.upright_pixels(stored, 9)
-    with pytest.raises(ValueError, match="height, width, channels"):
-        geometry.upright_pixels(stored[..., 0], orientation)
+        geometry.upright_pixels(blender.tolist(), 9, 5, 4, 9)
+    with pytest.raises(ValueError, match="width × height × channels"):
+        geometry.upright_pixels(blender.tolist()[:-1], 9, 5, 4, orientation)
 
 
 def test_read_obj(tmp_path):
@@ -956,8 +961,8 @@ def test_annotation_becomes_strokes_and_box(built, tmp_path):
     assert r["default_on"] is True and r["layers"] == ["Note", "Background", "Box", "Hidden"]
     payload = r["payload"]
     assert payload["box"] == pytest.approx([20, 2, 345, 230], abs=0.01)
-    assert "mask" not in payload and payload["strokes"].endswith("strokes.png")
-    assert "strokes" not in r["payload_off"] and "box" not in r["payload_off"]
+    assert "mask" not in payload and payload["strokes"].endswith("strokes.png") and payload["guidance_frame"] == "stored"
+    assert "strokes" not in r["payload_off"] and "box" not in r["payload_off"] and "guidance_frame" not in r["payload_off"]
     assert r["payload_mask"]["mask"] == str(photos / "robin.jpg") and "strokes" not in r["payload_mask"]
     image = load_image(photos / "robin.jpg")
     fg, bg = load_strokes(r["strokes_copy"], image)

@@ -8,10 +8,23 @@ button does), lets the modal operator's timer run the job, notes when the
 mesh appears, frames it, saves screenshots of the window (viewport with the
 panel) and of the view through the matching camera, writes RESULT.json and
 quits.  Any failure is written to RESULT.json too, and Blender exits non-zero.
+
+With ``"scenario": "annotate"`` in ARGS (``run_gui_e2e.py``'s second run) the
+3D view is split and one part turned into an Image Editor showing the
+photo; the object strokes, background strokes and box of ARGS["annotation"]
+(the photo's pixels, x right, y down) are drawn over it with the real
+Annotate operator (``gpencil.annotate``, through the region pixels of each
+point) on layers "Note", "Background" and "Box"; the editor is saved as
+``annotated_photo.png``; Reconstruct is pressed once, and the window with the
+mesh, the panel's result line and the annotated photo is saved as
+``annotate_result.png``.  The request the add-on sent is recorded (with
+``save_intermediates`` added, so that the mask the backend used is kept) and
+its strokes image copied to ``annotation_strokes.png``.
 """
 
 import json
 import os
+import shutil
 import sys
 import time
 import traceback
@@ -22,6 +35,9 @@ ARGS = json.loads(open(sys.argv[sys.argv.index("--") + 1]).read())
 OUT = ARGS["out"]
 RESULT = {"blender": bpy.app.version_string, "python": sys.version.split()[0], "ticks": 0, "log": []}
 T = {}
+ANNOTATE = ARGS.get("scenario") == "annotate"
+# annotation layers: name → colour (the add-on reads the names: docs/masks.md "In Blender")
+LAYERS = {"Note": (0.1, 1.0, 0.2), "Background": (1.0, 0.15, 0.15), "Box": (1.0, 0.85, 0.0)}
 
 
 def log(msg):
@@ -73,12 +89,114 @@ def setup():
     scene.genre.photo_path = ARGS["photo"]
     scene.genre.mask_path = ARGS.get("mask") or ""
     scene.genre.smoothing = 1
+    if ANNOTATE:
+        split_for_photo()
     window, area, region, sidebar = view3d()
     area.spaces.active.show_region_ui = True
     # show what an artist sees with Colour from Photo on: the material's image in solid shading
     area.spaces.active.shading.type = "SOLID"
     area.spaces.active.shading.color_type = "TEXTURE"
     log("add-on installed and enabled")
+    bpy.app.timers.register(fit_photo if ANNOTATE else show_tab, first_interval=0.5)
+
+
+def image_editor():
+    window = bpy.context.window_manager.windows[0]
+    area = next(a for a in window.screen.areas if a.type == "IMAGE_EDITOR")
+    return window, area, next(r for r in area.regions if r.type == "WINDOW")
+
+
+def split_for_photo():
+    """Split the 3D view; one part becomes an Image Editor showing the photo (as an artist would set it up)."""
+    window, area, region, sidebar = view3d()
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.screen.area_split(direction="VERTICAL", factor=0.45)
+    left = min((a for a in window.screen.areas if a.type == "VIEW_3D"), key=lambda a: a.x)
+    left.type = "IMAGE_EDITOR"
+    image = bpy.data.images.load(ARGS["photo"])
+    left.spaces.active.image = image
+    RESULT["image_size"] = list(image.size)  # Blender's own loader: the pixels as stored (EXIF orientation ignored)
+
+
+@guarded
+def fit_photo():
+    window, area, region = image_editor()
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.image.view_all(fit_view=True)
+    bpy.app.timers.register(annotate_photo, first_interval=1.0)  # drawn again: the view space is set
+
+
+def densify(line, step=3.0):
+    """``line`` with points at most ``step`` apart, as a mouse drag gives them (the Annotate tool smooths a stroke's
+    points with their neighbours: a few far-apart points, a rectangle's corners, would be pulled out of place)."""
+    out = [tuple(line[0])]
+    for (ax, ay), (bx, by) in zip(line[:-1], line[1:]):
+        n = max(1, int(((bx - ax) ** 2 + (by - ay) ** 2) ** 0.5 / step + 0.999))
+        out.extend((ax + (bx - ax) * i / n, ay + (by - ay) * i / n) for i in range(1, n + 1))
+    return out
+
+
+def draw_stroke(window, area, region, line, size):
+    """One stroke with the Annotate tool through the region pixels of ``line`` (the photo's pixels, y down)."""
+    width, height = size
+    mouse = [region.view2d.view_to_region(x / width, 1.0 - y / height, clip=False) for x, y in densify(line)]
+    if min(min(m) for m in mouse) < -10000:
+        raise RuntimeError(f"the Image Editor is not drawn yet (view to region gives {mouse[0]})")
+    keys = {p.identifier for p in bpy.types.OperatorStrokeElement.bl_rna.properties}
+    elements = [{k: v for k, v in {"name": "", "mouse": m, "mouse_event": m, "location": (0, 0, 0), "pressure": 1.0, "size": 0.0,
+                                    "pen_flip": False, "x_tilt": 0.0, "y_tilt": 0.0, "time": 0.0, "is_start": i == 0}.items() if k in keys}
+                for i, m in enumerate(mouse)]
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        done = bpy.ops.gpencil.annotate(mode="DRAW", stroke=elements, wait_for_input=False)
+    if done != {"FINISHED"}:
+        raise RuntimeError(f"gpencil.annotate returned {done}")
+
+
+@guarded
+def annotate_photo():
+    window, area, region = image_editor()
+    space = area.spaces.active
+    size = tuple(space.image.size)
+    drawn = ARGS["annotation"]
+    for name, lines in (("Note", drawn["object"]), ("Background", drawn["background"]), ("Box", [drawn["box"]])):
+        annotation = getattr(space, "annotation", None) or getattr(space, "grease_pencil", None)  # (Blender < 4.3)
+        if annotation is not None and name != "Note":
+            annotation.layers.new(name, set_active=True)
+        for line in lines:
+            draw_stroke(window, area, region, line, size)
+        annotation = getattr(space, "annotation", None) or getattr(space, "grease_pencil", None)
+        layer = annotation.layers.active
+        layer.color, layer.thickness = LAYERS[name], 4
+    RESULT["annotation_layers"] = {layer.info: [len(s.points) for s in layer.active_frame.strokes] for layer in annotation.layers}
+    log(f"annotated the photo: {RESULT['annotation_layers']}")
+    record_requests()
+    bpy.app.timers.register(shoot_annotation, first_interval=1.0)
+
+
+def record_requests():
+    """Keep what the add-on sends: the request (with save_intermediates added: the mask the backend used) and its strokes image."""
+    jobs = sys.modules["genre"].jobs
+    original = jobs.JobSpec.request_payload
+
+    def recorded(spec):
+        payload = original(spec)
+        payload["options"]["save_intermediates"] = os.path.join(OUT, "intermediates")
+        RESULT["request"] = payload
+        if spec.strokes_path:
+            shutil.copyfile(spec.strokes_path, os.path.join(OUT, "annotation_strokes.png"))
+        return payload
+
+    jobs.JobSpec.request_payload = recorded
+
+
+@guarded
+def shoot_annotation():
+    window, area, region = image_editor()
+    path = os.path.join(OUT, "annotated_photo.png")
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.screen.screenshot_area(filepath=path)
+    RESULT["annotation_screenshot"] = path
+    log(f"screenshot {path}")
     bpy.app.timers.register(show_tab, first_interval=0.5)
 
 
@@ -146,22 +264,33 @@ def watch():
         RESULT["press_to_mesh_s"] = round(T["mesh"] - T["press"], 3)
         RESULT["first_message"] = status.message
         log(f"mesh in the scene after {RESULT['press_to_mesh_s']} s (backend started): {status.message}")
-        bpy.app.timers.register(press_reconstruct, first_interval=0.5)
-        return None
-    RESULT["warm_press_to_mesh_s"] = round(T["mesh"] - T["press"], 3)
+        if not ANNOTATE:
+            bpy.app.timers.register(press_reconstruct, first_interval=0.5)
+            return None
+    else:
+        RESULT["warm_press_to_mesh_s"] = round(T["mesh"] - T["press"], 3)
+        log(f"mesh in the scene after {RESULT['warm_press_to_mesh_s']} s (backend running): {status.message}")
     obj = meshes[-1]
     RESULT["message"] = status.message
+    RESULT["mask_warning"] = status.mask_warning
     RESULT["mesh"] = {"name": obj.name, "vertices": len(obj.data.vertices), "faces": len(obj.data.polygons),
                       "camera": [c.name for c in obj.children]}
-    log(f"mesh in the scene after {RESULT['warm_press_to_mesh_s']} s (backend running): {status.message}")
     window, area, region, sidebar = view3d()
-    meshes[0].hide_set(True)  # the first result sits at the same place
+    if len(meshes) > 1:
+        meshes[0].hide_set(True)  # the first result sits at the same place
     for o in bpy.context.view_layer.objects:
         o.select_set(o == obj)
     bpy.context.view_layer.objects.active = obj
     with bpy.context.temp_override(window=window, area=area, region=region):
         bpy.ops.view3d.view_selected()
-    bpy.app.timers.register(shoot_panel, first_interval=1.0)
+    bpy.app.timers.register(shoot_result if ANNOTATE else shoot_panel, first_interval=1.0)
+    return None
+
+
+@guarded
+def shoot_result():
+    screenshot("annotate_result.png", "screenshot")  # the annotated photo, the mesh and the panel's result line
+    finish(0)
     return None
 
 
