@@ -1,18 +1,51 @@
 """Fixtures shared by several test files.
 
 The tiny views are rendered once per session (Blender) and each file gets a copy; the tiny model is trained on
-them once per session.  ``make test-fast`` skips the tests marked ``slow`` (pyproject.toml)."""
+them once per session.  ``make test-fast`` skips the tests marked ``slow`` (pyproject.toml).
+
+Under pytest-xdist (``make test`` and ``make test-fast`` run two workers, ``-n 2``) "once per session" means once
+for all the workers: the first worker to ask renders or trains under a file lock in the run's shared temporary
+folder, the others wait and use its files (read-only: every test takes a copy or writes elsewhere).  Each process
+of the run uses one torch thread (``pytest_configure``): two workers on two cores, and tiny nets, which one
+thread runs fastest; subprocesses inherit ``OMP_NUM_THREADS=1``.
+"""
+
+import json
+import os
+from pathlib import Path
 
 import pytest
+from filelock import FileLock
 
 from support.tiny_data import copy_tiny_views, make_tiny_views, train_tiny_weights
 
 
+def pytest_configure(config):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+
+def once_per_run(tmp_path_factory, worker_id: str, name: str, make):
+    """``make(folder)``'s JSON-able result, computed once per test run: once per session without xdist, once for all
+    the workers with it (the first one makes it under a lock, the others read the result it left)."""
+    if worker_id == "master":
+        return make(tmp_path_factory.mktemp(name))
+    shared = tmp_path_factory.getbasetemp().parent / f"shared_{name}"
+    done = shared / "result.json"
+    with FileLock(str(shared) + ".lock"):
+        if not done.is_file():
+            shared.mkdir(exist_ok=True)
+            done.write_text(json.dumps(make(shared)))
+    return json.loads(done.read_text())
+
+
 @pytest.fixture(scope="session")
-def tiny_views_rendered(tmp_path_factory):
+def tiny_views_rendered(tmp_path_factory, worker_id):
     """The tiny views, rendered once per session: never used in place (tests may add files to their views), see
     ``tiny_views``."""
-    return make_tiny_views(tmp_path_factory.mktemp("tiny_rendered"))
+    return Path(once_per_run(tmp_path_factory, worker_id, "tiny_rendered", lambda root: str(make_tiny_views(root))))
 
 
 @pytest.fixture(scope="module")
@@ -22,9 +55,13 @@ def tiny_views(tiny_views_rendered, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def trained(tiny_views_rendered, tmp_path_factory):
+def trained(tiny_views_rendered, tmp_path_factory, worker_id):
     """(weights, views): the tiny model trained stage by stage (tiny_data.train_tiny_weights) on a copy of the
     tiny views, once per session."""
-    root = tmp_path_factory.mktemp("genre_trained")
-    views = copy_tiny_views(tiny_views_rendered, root)
-    return train_tiny_weights(views, root / "run"), views
+
+    def make(root):
+        views = copy_tiny_views(tiny_views_rendered, root)
+        return [str(train_tiny_weights(views, root / "run")), str(views)]
+
+    weights, views = once_per_run(tmp_path_factory, worker_id, "genre_trained", make)
+    return Path(weights), Path(views)

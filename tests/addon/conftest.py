@@ -3,6 +3,7 @@
 import sys
 
 import pytest
+from filelock import FileLock
 
 from support.addon import REPO, make_photo
 
@@ -22,4 +23,5 @@ def trained(trained):
     """(weights, photo): the session's tiny model (conftest.py's ``trained``, trained once) and a cut-out photo of
     one of its views; shared by every add-on test module of the session."""
     weights, views = trained
-    return weights, make_photo(views.parent)
+    with FileLock(str(views.parent / "box.png.lock")):  # the model's folder is shared by the xdist workers
+        return weights, make_photo(views.parent)
