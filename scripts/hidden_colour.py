@@ -13,7 +13,8 @@ of ``examples/photos`` (hand masks), reconstructs the mesh and its
   99th percentile;
 * ``off-mask``: the share of hidden vertices whose UV lands outside the
   object mask shrunk by 2 px (where the photo shows the background or its
-  blend with the object) — colour taken from the background;
+  blend with the object) — colour taken from the background (a texture
+  that is an atlas of squares side by side: the place in its square);
 * ``front MAE``: the textured mesh rendered unlit through the photo's camera
   against the photo inside the mask (``photo_colour_error``, the check of
   ``scripts/colour_check.py``, held to ≤ 8 by ``tests/backend/inference/test_colour.py``).
@@ -56,7 +57,8 @@ def figures(texture, faces: np.ndarray, mask: np.ndarray) -> dict[str, float]:
     jumps = np.abs(rgb[both[:, 0]] - rgb[both[:, 1]]).mean(axis=1)
     size = mask.shape[0]
     shrunk = distance_transform_edt(np.pad(mask, 1, constant_values=True))[1:-1, 1:-1] > SHRINK_PX
-    col = np.clip((uv[:, 0] * size).astype(np.int64), 0, size - 1)
+    squares = texture.image.shape[1] // texture.image.shape[0]  # an atlas of squares side by side (1: the photo alone)
+    col = np.clip((uv[:, 0] * squares % 1.0 * size).astype(np.int64), 0, size - 1)
     row = np.clip(((1.0 - uv[:, 1]) * size).astype(np.int64), 0, size - 1)
     off = ~shrunk[row, col]
     return {"jump": float(jumps.mean()) if len(jumps) else 0.0,

@@ -64,7 +64,7 @@ def main() -> int:
         result = rec.run(path, mask_path=mask)
         tex = result.texture()
         views = render_views(result.vertices, result.faces, tile * 2, camera=result.config.camera,
-                             uv=tex.uv, texture=tex.image, views=("front", "side", "back"))
+                             uv=tex.face_uv, texture=tex.image, views=("front", "side", "back"))
         with Image.open(path) as im:
             pictures = [_fit(np.asarray(im.convert("RGB")), tile)]
         pictures += [Image.fromarray(v).resize((tile, tile), Image.LANCZOS) for v in views]

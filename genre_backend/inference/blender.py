@@ -268,14 +268,28 @@ def _framing(vertices: np.ndarray, cam_cfg: CameraConfig, views: tuple[str, ...]
     return zoom, {name: (zoom * cx / 2.0, zoom * cy / 2.0) for name, (cx, cy) in centres.items()}
 
 
+def _loop_uvs(me, uv: np.ndarray, n_vertices: int, n_faces: int) -> np.ndarray:
+    """The UVs (L, 2) of the Blender mesh ``me``'s loops from ``uv``: one per vertex (V, 2), or one per corner
+    of its triangles (F, 3, 2), as a :class:`~.colour.PhotoTexture`'s ``face_uv``."""
+    uvs = np.asarray(uv, np.float64)
+    if uvs.shape == (n_faces, 3, 2) and len(me.loops) == 3 * n_faces:
+        return uvs.reshape(-1, 2)  # (from_pydata keeps the faces' order and their corners')
+    if uvs.shape != (n_vertices, 2):
+        raise ValueError(f"expected uv (V, 2) or (F, 3, 2) for {n_vertices} vertices and {n_faces} faces, got {uvs.shape}")
+    loops = np.zeros(len(me.loops), np.int64)
+    me.loops.foreach_get("vertex_index", loops)
+    return uvs[loops]
+
+
 def _apply_photo_texture(bpy, me, n_vertices: int, uv: np.ndarray, texture: np.ndarray, scratch: Path) -> None:
-    """Give the Blender mesh ``me`` a material showing ``texture`` (T, T, 3) uint8 at the vertices' ``uv`` (V, 2)."""
+    """Give the Blender mesh ``me`` a material showing ``texture`` (H, W, 3) uint8 at ``uv``: the vertices' (V, 2)
+    or the faces' corners' (F, 3, 2)."""
     from PIL import Image
 
     tex = np.asarray(texture)
-    uvs = np.asarray(uv, np.float64)
-    if uvs.shape != (n_vertices, 2) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8:
-        raise ValueError(f"render_views: expected uv (V, 2), texture (T, T, 3) uint8; got {uvs.shape}, {tex.shape} {tex.dtype}")
+    if tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8:
+        raise ValueError(f"render_views: expected a texture (H, W, 3) uint8; got {tex.shape} {tex.dtype}")
+    loop_uv = _loop_uvs(me, uv, n_vertices, len(me.polygons))
     tex_path = scratch / "texture.png"
     Image.fromarray(tex).save(tex_path)
     mat = bpy.data.materials.new("photo")
@@ -288,9 +302,7 @@ def _apply_photo_texture(bpy, me, n_vertices: int, uv: np.ndarray, texture: np.n
     mat.node_tree.nodes.active = node
     mat.node_tree.links.new(node.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
     layer = me.uv_layers.new(name="photo")
-    loops = np.zeros(len(me.loops), np.int64)
-    me.loops.foreach_get("vertex_index", loops)
-    layer.data.foreach_set("uv", uvs[loops].astype(np.float32).ravel())
+    layer.data.foreach_set("uv", loop_uv.astype(np.float32).ravel())
     me.materials.append(mat)
 
 
@@ -300,8 +312,9 @@ def render_views(vertices: np.ndarray, faces: np.ndarray, size: int, camera: Cam
     """The preview's mesh views: RGB (size, size, 3) uint8 on white, one per name in ``views`` (:data:`PREVIEW_VIEWS`).
 
     Workbench (studio light, flat shading, anti-aliased): about a tenth of
-    a second a view on a CPU.  With ``uv`` (V, 2) and ``texture`` (T, T, 3)
-    uint8 (a :class:`~.colour.PhotoTexture`'s) the mesh shows the photo's
+    a second a view on a CPU.  With ``uv`` (V, 2) or (F, 3, 2) and ``texture``
+    (H, W, 3) uint8 (a :class:`~.colour.PhotoTexture`'s ``face_uv`` and
+    ``image``) the mesh shows the photo's
     colour; otherwise a single clay colour.  Every view keeps the camera's
     position and lens axis (``camera``'s distance; the front view is the
     photo's perspective) but one common zoom and a lens shift per view
@@ -362,9 +375,10 @@ def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, tex
                     camera: CameraConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Render a view-frame mesh with its texture, unlit, through the input camera (Workbench, flat, no anti-aliasing).
 
-    ``vertices`` (V, 3) float, ``faces`` (F, 3) int, ``uv`` (V, 2) float (v
-    up), ``texture`` (T, T, 3) uint8.  Returns ``(rgb (size, size, 3) uint8,
-    covered (size, size) bool)``: the texture colour each pixel shows, as
+    ``vertices`` (V, 3) float, ``faces`` (F, 3) int, ``uv`` (V, 2) or per
+    face corner (F, 3, 2) float (v up), ``texture`` (H, W, 3) uint8.
+    Returns ``(rgb (size, size, 3) uint8, covered (size, size) bool)``: the
+    texture colour each pixel shows, as
     the photo would if the mesh and its UVs were exact, and where the mesh
     covers the image.  The check that colour from the photo lines up with it.
     Resets Blender to an empty factory scene first.
@@ -373,8 +387,9 @@ def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, tex
     f = np.asarray(faces, np.int64)
     uvs = np.asarray(uv, np.float64)
     tex = np.asarray(texture)
-    if uvs.shape != (len(v), 2) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8 or size < 1:
-        raise ValueError(f"render_textured: expected uv (V, 2), texture (T, T, 3) uint8, size ≥ 1; got {uvs.shape}, {tex.shape} {tex.dtype}, {size}")
+    if uvs.shape not in ((len(v), 2), (len(f), 3, 2)) or tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8 or size < 1:
+        raise ValueError(f"render_textured: expected uv (V, 2) or (F, 3, 2), texture (H, W, 3) uint8, size ≥ 1; "
+                         f"got {uvs.shape}, {tex.shape} {tex.dtype}, {size}")
     cam_cfg = camera or CameraConfig()
     bpy, scene = _empty_scene(size)
     scene.render.engine = "BLENDER_WORKBENCH"
@@ -393,26 +408,11 @@ def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, tex
     from PIL import Image
 
     with private_scratch("genre-textured-") as scratch:
-        tex_path, out_path = scratch / "texture.png", scratch / "render.png"
-        Image.fromarray(tex).save(tex_path)
-        image = bpy.data.images.load(str(tex_path))
-        mat = bpy.data.materials.new("photo")
-        if mat.node_tree is None:
-            mat.use_nodes = True
-        node = mat.node_tree.nodes.new("ShaderNodeTexImage")
-        node.image = image
-        node.interpolation = "Linear"
-        node.extension = "EXTEND"
-        mat.node_tree.nodes.active = node
-        mat.node_tree.links.new(node.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+        out_path = scratch / "render.png"
         me = bpy.data.meshes.new("m")
         me.from_pydata(v.tolist(), [], f.tolist())
-        layer = me.uv_layers.new(name="photo")
-        loops = np.zeros(len(me.loops), np.int64)
-        me.loops.foreach_get("vertex_index", loops)
-        layer.data.foreach_set("uv", uvs[loops].astype(np.float32).ravel())
+        _apply_photo_texture(bpy, me, len(v), uvs, tex, scratch)
         me.update()
-        me.materials.append(mat)
         obj = bpy.data.objects.new("m", me)
         scene.collection.objects.link(obj)
         scene.render.filepath = str(out_path)
@@ -437,9 +437,9 @@ def photo_colour_error(result, size: int = 256) -> tuple[float, float]:
     from .preprocess import crop_resize
 
     tex = result.texture()
-    rgb, covered = render_textured(result.vertices, result.faces, tex.uv, tex.image, size, result.config.camera)
-    side = tex.image.shape[0]
-    photo = crop_resize(tex.image, (0, 0, side, side), size, (0, 0, 0))
+    rgb, covered = render_textured(result.vertices, result.faces, tex.face_uv, tex.image, size, result.config.camera)
+    side = tex.photo.shape[0]
+    photo = crop_resize(tex.photo, (0, 0, side, side), size, (0, 0, 0))
     mask = np.asarray(Image.fromarray(result.intermediates["mask"].numpy().astype(np.uint8) * 255).resize((size, size), Image.NEAREST)) > 0
     inside = mask & covered
     if not inside.any():

@@ -6,12 +6,15 @@ Formats (:data:`MESH_FORMATS`), each optionally coloured from the photo
 =======  ==========================  =============================================
 format   plain                       with ``texture``
 =======  ==========================  =============================================
-``obj``  ``NAME.obj``                ``NAME.obj`` with ``vt`` UVs, ``NAME.mtl``
-                                     (``map_Kd``) and ``NAME_texture.png``
+``obj``  ``NAME.obj``                ``NAME.obj`` with ``vt`` UVs per face corner,
+                                     ``NAME.mtl`` (``map_Kd``) and
+                                     ``NAME_texture.png``
 ``ply``  ``NAME.ply``                vertex colours (the texture sampled at each
-                                     vertex)
+                                     vertex's own UV)
 ``glb``  ``NAME.glb``                one file: UVs and the texture embedded as the
-                                     PBR base colour
+                                     PBR base colour; a vertex with two UVs (on
+                                     the outline of what the photo shows) is
+                                     split in two
 =======  ==========================  =============================================
 
 Axes.  The mesh lives in the view frame (:mod:`genre_backend.frame`: +x
@@ -244,15 +247,19 @@ def mesh_files(path: str | os.PathLike, fmt: str | None = None, textured: bool =
     return [path]
 
 
-def _obj_text(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None, mtl_name: str | None) -> str:
+def _obj_text(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None, mtl_name: str | None,
+              face_uv: np.ndarray | None = None) -> str:
+    """An OBJ's text; ``uv`` (N, 2) its ``vt`` lines, ``face_uv`` (F, 3) int the ``vt`` of each face corner
+    (default: the vertex's own, ``f a/a``)."""
     lines = ["# GenRe mesh (view frame: +x right, +y up, +z toward the camera)"]
     if mtl_name:
         lines += [f"mtllib {mtl_name}", "usemtl photo"]
     lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(vertices, np.float64)]
     f = np.asarray(faces, np.int64) + 1
     if uv is not None:
+        t = f if face_uv is None else np.asarray(face_uv, np.int64) + 1
         lines += [f"vt {u:.6f} {v:.6f}" for u, v in np.asarray(uv, np.float64)]
-        lines += [f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in f]
+        lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}" for (a, b, c), (ta, tb, tc) in zip(f, t)]
     else:
         lines += [f"f {a} {b} {c}" for a, b, c in f]
     return "\n".join(lines) + "\n"
@@ -279,18 +286,19 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
         check_output_path(p, inputs)
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
-    if texture is not None and len(texture.uv) != len(v):
-        raise ValueError(f"texture: {len(texture.uv)} UVs for {len(v)} vertices")
+    if texture is not None and (len(texture.uv) != len(v) or len(texture.face_uv) != len(f)):
+        raise ValueError(f"texture: {len(texture.uv)} UVs for {len(v)} vertices, {len(texture.face_uv)} for {len(f)} faces")
     if fmt == "obj":
         # (file names that are not UTF-8 reach Python as lone surrogates: written back as their own bytes)
         if texture is None:
             _write(path, _obj_text(v, f, None, None).encode("utf-8", "surrogateescape"))
         else:
             mtl, png = files[1], files[2]
+            uv, _, corner_uv = texture.corners(f)
             data = {  # everything encoded before the first write
                 png: png_bytes(texture.image),
                 mtl: f"newmtl photo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {png.name}\n".encode("utf-8", "surrogateescape"),
-                path: _obj_text(v, f, texture.uv, mtl.name).encode("utf-8", "surrogateescape"),
+                path: _obj_text(v, f, uv, mtl.name, corner_uv).encode("utf-8", "surrogateescape"),
             }
             try:  # one unit: all three written to temporaries, then renamed together (never an .mtl without its .obj)
                 atomic_write_all([(target, (lambda fh, payload=payload: fh.write(payload))) for target, payload in data.items()])
@@ -301,6 +309,9 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
 
     if up == "z":  # (ply only)
         v = v @ Y_UP_TO_Z_UP.T
+    if texture is not None and fmt == "glb":  # one UV per vertex: a vertex with two (photo and smooth) is split
+        uv, vertex, f = texture.corners(f)
+        v = v[vertex]
     mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
     if texture is not None and fmt == "ply":
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=texture.vertex_colours())
@@ -310,7 +321,7 @@ def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
         material = trimesh.visual.material.PBRMaterial(
             name="photo", baseColorTexture=Image.fromarray(texture.image), metallicFactor=0.0, roughnessFactor=1.0,
         )
-        mesh.visual = trimesh.visual.TextureVisuals(uv=np.asarray(texture.uv, np.float64), material=material)
+        mesh.visual = trimesh.visual.TextureVisuals(uv=np.asarray(uv, np.float64), material=material)
     data = mesh.export(file_type=fmt)
     data = data.encode() if isinstance(data, str) else data
     if fmt == "ply":

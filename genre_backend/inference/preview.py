@@ -73,7 +73,7 @@ def preview_image(result, samples: int = 16, textured: bool = False) -> np.ndarr
         uv = tex = None
         if textured:
             t = result.texture()
-            uv, tex = t.uv, t.image
+            uv, tex = t.face_uv, t.image
         views = render_views(result.vertices, result.faces, big, camera=result.config.camera, uv=uv, texture=tex,
                              views=tuple(name for name, _ in MESH_VIEWS))
     else:  # nothing above the threshold: say so instead of rendering an empty scene

@@ -225,7 +225,8 @@ class Reconstruction:
         return mask
 
     def texture(self) -> PhotoTexture:
-        """The mesh's colour from the photo (:mod:`.colour`): UVs into the photo's crop and the crop at up to 2,048 px.
+        """The mesh's colour from the photo (:mod:`.colour`): corner UVs into an atlas of the photo's crop (at up to
+        2,048 px) and its smooth copy.
 
         Needs the decoded photo (``photo``); computed once and kept.
         """
@@ -236,8 +237,7 @@ class Reconstruction:
             side = int(np.clip(round(x1 - x0), self.config.geometry.image_size, MAX_TEXTURE_SIDE))
             image = crop_resize(composite(self.photo), (x0, y0, x1, y1), side, self.fill)
             mask = self.intermediates["mask"].numpy().astype(bool)  # (photo_texture shrinks it)
-            tolerance = 1.5 / self.config.geometry.voxel_size  # a voxel and a half (the mesh is cut from voxels)
-            self._texture = photo_texture(self.vertices, self.faces, self.config.camera, mask, image, tolerance)
+            self._texture = photo_texture(self.vertices, self.faces, self.config.camera, mask, image)
         return self._texture
 
     def save_mesh(self, path: str | os.PathLike, fmt: str | None = None, texture: bool = False,

@@ -862,17 +862,19 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert cam["background"] == ["box.png"] and cam["shows_background"]
     assert r["added"] == {"objects": ["box", "box camera"], "meshes": ["box"], "cameras": ["box camera"],
                           "collections": ["GenRe"], "images": ["box photo", "box.png"], "materials": ["box photo"]}
-    # Colour from Photo (default on): the photo's texture packed into the file, UVs that are the vertices'
-    # own projections through the backend's camera for the part the photo sees
+    # Colour from Photo (default on): the photo's texture packed into the file (an atlas: the photo's square, then
+    # its smooth copy), UVs that are the vertices' own projections through the backend's camera, into the left
+    # square, for the part the photo sees
     mat = mesh["material"]
-    assert mat["image"] == "box photo" and mat["packed"] and mat["image_size"][0] == mat["image_size"][1] > 0
+    assert mat["image"] == "box photo" and mat["packed"] and mat["image_size"][0] == 2 * mat["image_size"][1] > 0
     k = ev["camera"]["lens_mm"] / ev["camera"]["sensor_mm"]  # focal length in units of the image side
     co = np.array([c for c, _ in mat["loops"]])  # mesh coordinates (the object sits at the cursor)
     uv = np.array([t for _, t in mat["loops"]])
     x, y, z = co[:, 0], co[:, 2], -co[:, 1]  # Blender (Z up, camera on −Y) → view frame
-    proj = np.stack([0.5 + k * x / (dist - z), 0.5 + k * y / (dist - z)], axis=1)
+    proj = np.stack([(0.5 + k * x / (dist - z)) / 2, 0.5 + k * y / (dist - z)], axis=1)
     own = np.abs(uv - proj).max(axis=1) < 1e-4
-    assert 0.1 < own.mean() < 0.9, own.mean()  # the front is projected, the back borrows
+    assert 0.1 < own.mean() < 0.9, own.mean()  # the front is projected, the back reads the smooth copy
+    assert (uv[~own, 0] >= 0.5 - 1e-6).all()
     assert ((uv > -0.05) & (uv < 1.05)).all()
     assert r["status_after"]["running"] is False and not r["status_after"]["error"]
     assert f"{ev['vertices']:,} vertices" in r["status_after"]["message"]
