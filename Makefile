@@ -1,6 +1,8 @@
 # Quick start: `make demo` (set up, then run the main job) and `make test`
 # (set up, then run the whole test suite).  Set-up happens on first use.
 # `make test-fast`: every test not marked slow (pyproject.toml), the loop while working.
+# Both run two pytest-xdist workers, a test file each at a time (docs/testing.md).
+PYTEST = .venv/bin/python -m pytest -n 2 --dist loadfile
 .PHONY: setup demo demo-geometry test test-fast bench clean
 
 setup:
@@ -18,11 +20,11 @@ demo-geometry: setup
 
 test:
 	@bash scripts/setup.sh --test
-	.venv/bin/python -m pytest
+	$(PYTEST)
 
 test-fast:
 	@bash scripts/setup.sh --test
-	.venv/bin/python -m pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
 bench: setup
 	.venv/bin/genre bench geometry
