@@ -270,16 +270,22 @@ def test_cli_sigkill_during_a_textured_write_leaves_no_final_file_and_the_next_r
     assert listing(out) == {"m.obj", "m.mtl", "m_texture.png"}  # the dead run's temporaries removed
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("sig, status, texture, at", [(signal.SIGTERM, 143, False, 1), (signal.SIGINT, 130, False, 1)]
-                         + [(sig, status, True, at) for at in (1, 2, 3)
-                            for sig, status in ((signal.SIGINT, 130), (signal.SIGTERM, 143))])
-def test_serve_signal_during_a_write_finishes_it_says_bye_and_exits(trained, photo, tmp_path, sig, status, texture, at):
+def _slow_writing_server(trained, tmp_path):
+    """A ready ``genre serve`` whose writes wait at the mark file (``_SLOW_WRITES``): (server, output folder, mark)."""
     out = tmp_path / "out"
     out.mkdir()
     mark = tmp_path / "mark"
     s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=_SLOW_WRITES)
     assert s.next(timeout=300)["type"] == "ready"
+    return s, out, mark
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig, status, texture, at", [(signal.SIGTERM, 143, False, 1), (signal.SIGINT, 130, False, 1)]
+                         + [(sig, status, True, at) for at in (1, 2, 3)
+                            for sig, status in ((signal.SIGINT, 130), (signal.SIGTERM, 143))])
+def test_serve_signal_during_a_write_finishes_it_says_bye_and_exits(trained, photo, tmp_path, sig, status, texture, at):
+    s, out, mark = _slow_writing_server(trained, tmp_path)
     s.send(_job("j", photo, str(out / "m.obj"), texture=texture))
     s.send(_job("queued", photo, str(out / "q.obj")))
     _wait_for_mark(mark, s.proc, writes=at)
@@ -307,11 +313,7 @@ def test_serve_sigterm_when_idle(trained, tmp_path):
 
 @pytest.mark.parametrize("at", [1, 2, 3])
 def test_serve_sigkill_during_a_write_then_the_next_job_cleans_up(trained, photo, tmp_path, at):
-    out = tmp_path / "out"
-    out.mkdir()
-    mark = tmp_path / "mark"
-    s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=_SLOW_WRITES)
-    assert s.next(timeout=300)["type"] == "ready"
+    s, out, mark = _slow_writing_server(trained, tmp_path)
     s.send(_job("j", photo, str(out / "m.obj"), texture=True))
     _wait_for_mark(mark, s.proc, writes=at)
     s.proc.kill()
