@@ -26,10 +26,14 @@ image the photo's size, mark sure object (white, grey level ≥
 :data:`STROKE_OBJECT_MIN`) and sure background (black, ≤
 :data:`STROKE_BACKGROUND_MAX`); anything between (mid grey, 128) and
 transparent pixels say nothing.  Strokes alone correct the ``"border"``
-seeding; with a box they correct the box's.  On the 9 photos a box alone
-(the hand mask's bounding box grown by 5 %) reached a mean IoU of 0.870
-against the hand masks, the automatic mask 0.812 (``scripts/mask_box.py``,
-``docs/masks.md``).
+seeding; with a box they correct the box's.  With a box the cut is
+:func:`feature_grabcut`: GrabCut whose colour models also see the photo's
+local sharpness (:func:`sharpness`, a defocus cue: an object in focus before
+a blurred background), run as our own graph cut (PyMaxflow), since OpenCV's
+GrabCut takes 3 colour channels only.  On the 9 photos a box alone (the hand
+mask's bounding box grown by 5 %) reached a mean IoU of 0.890 against the
+hand masks (0.870 with OpenCV's GrabCut), the automatic mask 0.812
+(``scripts/mask_box.py``, ``docs/masks.md``; fitted on those photos).
 
 On our 9 real photos with hand masks (``examples/photos``,
 ``scripts/eval_photos.py --seedings``) the mean IoU was 0.81 with the border
@@ -88,6 +92,9 @@ __all__ = [
     "box_seeds",
     "box_prior",
     "MIN_BOX_PRIOR",
+    "SHARPNESS_WEIGHT",
+    "sharpness",
+    "feature_grabcut",
     "guided_seeds",
     "segment",
 ]
@@ -118,6 +125,11 @@ MAX_MODEL_OVERLAP = 0.12
 MAX_EDGE_RUN = 0.01
 # a box keeps its plain start (all of it probable object) when the automatic cut finds less than this share of it
 MIN_BOX_PRIOR = 0.05
+# a box's cut sees the photo's sharpness (:func:`sharpness`, about 0–6) times this beside its colours (0–255)
+SHARPNESS_WEIGHT = 20.0
+# the graph cut's smoothness weight (GrabCut's gamma) and the number of components of each colour mixture
+SMOOTHNESS = 50.0
+MIXTURE_COMPONENTS = 5
 
 
 def _cv2():
@@ -332,7 +344,8 @@ def box_prior(rgb: np.ndarray, labels: np.ndarray) -> np.ndarray:
     ``"border"`` seeding's cut of the (H, W, 3) uint8 ``rgb`` finds no object, probable background.
 
     Left as they are when that cut holds less than :data:`MIN_BOX_PRIOR` of the box.  On the 9 photos
-    (boxes: the hand masks' grown by 5 %) this raised the mean IoU from 0.82 to 0.87 (``docs/masks.md``).
+    (boxes: the hand masks' grown by 5 %) this raised the mean IoU of OpenCV's GrabCut from 0.82 to 0.87
+    (``docs/masks.md``).
     """
     cv2 = _cv2()
     inside = labels == cv2.GC_PR_FGD
@@ -342,6 +355,136 @@ def box_prior(rgb: np.ndarray, labels: np.ndarray) -> np.ndarray:
     out = labels.copy()
     out[inside & ~auto] = cv2.GC_PR_BGD
     return out
+
+
+# ---------------------------------------------------------------------------- the box's cut: colours and sharpness
+def sharpness(rgb: np.ndarray) -> np.ndarray:
+    """(H, W) float32 local detail of a (H, W, 3) uint8 image (at :data:`WORK_SIDE`): a defocus cue.
+
+    log(1 + |Laplacian of the grey image|, Gaussian-smoothed with sigma 3 px), then its minimum over a
+    7 px disc, so that the halo the smoothing spreads around a sharp outline does not reach the blurred
+    background beside it.  High on an object in focus (its texture and outline), low on a blurred
+    background; low too inside a smooth object, so it is one more feature for the colour models, not a seed.
+    """
+    cv2 = _cv2()
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    detail = np.log1p(cv2.GaussianBlur(np.abs(cv2.Laplacian(grey, cv2.CV_32F, ksize=3)), (0, 0), 3.0))
+    return cv2.erode(detail, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7)))
+
+
+def _mixture(features: np.ndarray, assignment: np.ndarray) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """A Gaussian mixture (weight, mean, covariance) per component from (N, D) features and (N,) component numbers."""
+    d, parts = features.shape[1], []
+    for k in range(MIXTURE_COMPONENTS):
+        chosen = features[assignment == k]
+        if len(chosen) > d:
+            parts.append((len(chosen) / len(features), chosen.mean(0), np.cov(chosen.T) + np.eye(d) * 0.01))
+    return parts
+
+
+def _component_log_likelihoods(mixture, features: np.ndarray) -> np.ndarray:
+    """(K, N) log(weight × density) of (N, D) features under each component of a :func:`_mixture`."""
+    terms = []
+    for weight, mean, cov in mixture:
+        d = features - mean
+        q = np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d)
+        terms.append(np.log(weight) - 0.5 * (q + np.log(np.linalg.det(cov)) + features.shape[1] * np.log(2.0 * np.pi)))
+    return np.stack(terms)
+
+
+def _fit_mixture(features: np.ndarray, mixture=None):
+    """GrabCut's learning step: each of the (N, D) features to its likeliest component of ``mixture``, then refit.
+
+    Without a mixture: the first one, its components from k-means (OpenCV's, seeded: deterministic).
+    """
+    cv2 = _cv2()
+    if mixture is not None:
+        return _mixture(features, np.argmax(_component_log_likelihoods(mixture, features), axis=0))
+    cv2.setRNGSeed(0)
+    criteria = (cv2.TERM_CRITERIA_MAX_ITER, 10, 0.0)
+    _, assignment, _ = cv2.kmeans(features.astype(np.float32), MIXTURE_COMPONENTS, None, criteria, 1,
+                                  cv2.KMEANS_PP_CENTERS)
+    return _mixture(features, assignment.ravel())
+
+
+def _smoothness_edges(rgb: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """GrabCut's contrast-sensitive smoothness over 8 neighbours: (3×3 structure, (H, W) weights) per direction.
+
+    Weight :data:`SMOOTHNESS` / distance × exp(-beta ‖colour difference‖²), beta = 1 / (2 × its mean).
+    """
+    image, (h, w) = rgb.astype(np.float64), rgb.shape[:2]
+    pairs = []
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = image[:h - dy, max(0, -dx):w - max(0, dx)]
+        b = image[dy:, max(0, dx):w - max(0, -dx)]
+        pairs.append((dy, dx, ((a - b) ** 2).sum(-1)))
+    beta = 1.0 / (2.0 * np.mean(np.concatenate([p[2].ravel() for p in pairs])) + 1e-9)
+    edges = []
+    for dy, dx, squared in pairs:
+        weights = np.zeros((h, w))
+        weights[:h - dy, max(0, -dx):w - max(0, dx)] = SMOOTHNESS / np.hypot(dy, dx) * np.exp(-beta * squared)
+        structure = np.zeros((3, 3))
+        structure[1 + dy, 1 + dx] = 1.0
+        edges.append((structure, weights))
+    return edges
+
+
+def _min_cut(object_cost: np.ndarray, background_cost: np.ndarray, edges, sure_object: np.ndarray,
+             sure_background: np.ndarray) -> np.ndarray:
+    """The (H, W) bool labelling of least cost (PyMaxflow's graph cut): per-pixel costs plus the smoothness edges."""
+    import maxflow  # noqa: PLC0415  (PyMaxflow loads only when a box is cut)
+
+    graph = maxflow.Graph[float]()
+    nodes = graph.add_grid_nodes(object_cost.shape)
+    for structure, weights in edges:
+        graph.add_grid_edges(nodes, weights=weights, structure=structure, symmetric=True)
+    big = 1e9
+    to_source = np.where(sure_object, big, np.where(sure_background, 0.0, background_cost))  # paid when cut off: background
+    to_sink = np.where(sure_background, big, np.where(sure_object, 0.0, object_cost))
+    graph.add_grid_tedges(nodes, to_source, to_sink)
+    graph.maxflow()
+    return ~graph.get_grid_segments(nodes)
+
+
+def _opencv_model(mixture) -> np.ndarray:
+    """A :func:`_mixture`'s colour part (its first 3 features, BGR) as OpenCV's (1, 65) GrabCut model."""
+    model = np.zeros((1, 65), np.float64)
+    for k, (weight, mean, cov) in enumerate(mixture):
+        model[0, k] = weight
+        model[0, 5 + 3 * k:8 + 3 * k] = mean[:3]
+        model[0, 20 + 9 * k:29 + 9 * k] = cov[:3, :3].ravel()
+    return model
+
+
+def feature_grabcut(rgb: np.ndarray, labels: np.ndarray, iterations: int | None = None
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """GrabCut whose colour models also see the photo's sharpness: :func:`grabcut_models`' answer.
+
+    The same algorithm as OpenCV's (5-component Gaussian mixtures, learnt by assigning each pixel to
+    its likeliest component; the same contrast-sensitive smoothness; a graph cut per iteration), with
+    each pixel's features BGR and :data:`SHARPNESS_WEIGHT` × :func:`sharpness`, so that an object in
+    focus parts from a blurred background of its colours.  The models returned are their colour part,
+    in OpenCV's form, for :func:`model_overlap`.
+    """
+    cv2 = _cv2()
+    iterations = GRABCUT_ITERATIONS if iterations is None else iterations
+    fg = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+    if not fg.any() or fg.all():
+        return fg, None, None
+    features = np.concatenate([rgb[:, :, ::-1].astype(np.float64), SHARPNESS_WEIGHT * sharpness(rgb)[..., None]], -1)
+    features = features.reshape(-1, 4)
+    edges = _smoothness_edges(rgb)
+    try:
+        objects, backgrounds = _fit_mixture(features[fg.ravel()]), _fit_mixture(features[~fg.ravel()])
+        for _ in range(iterations):
+            objects = _fit_mixture(features[fg.ravel()], objects)
+            backgrounds = _fit_mixture(features[~fg.ravel()], backgrounds)
+            cost = [-np.logaddexp.reduce(_component_log_likelihoods(m, features), axis=0).reshape(fg.shape)
+                    for m in (objects, backgrounds)]
+            fg = _min_cut(cost[0], cost[1], edges, labels == cv2.GC_FGD, labels == cv2.GC_BGD)
+    except (cv2.error, ValueError):  # too few pixels of one kind for its mixture
+        return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD), None, None
+    return fg, _opencv_model(objects), _opencv_model(backgrounds)
 
 
 def guided_seeds(labels: np.ndarray, object_strokes: np.ndarray | None, background_strokes: np.ndarray | None) -> np.ndarray:
@@ -435,7 +578,7 @@ def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str
         p = cv2.resize(probability.astype(np.float32), (sw, sh), interpolation=cv2.INTER_AREA) if k < 1.0 else probability
         labels = network_seeds(p)
         band = 1
-    cut, fgd, bgd = grabcut_models(small, labels)
+    cut, fgd, bgd = (feature_grabcut if box is not None else grabcut_models)(small, labels)
     mask = largest_part(cut, fg_small)
     warning = cut_doubt(small, mask, fgd, bgd, band) if mask.any() else None
     if k < 1.0:

@@ -255,14 +255,17 @@ def test_real_photos_box_and_doubt_figures():
     assert len(rows) == 9
     auto = np.mean([r["auto_iou"] for r in rows.values()])
     box = np.mean([r["box_iou"] for r in rows.values()])
-    assert auto == pytest.approx(0.812, abs=0.005) and box == pytest.approx(0.870, abs=0.005)
+    assert auto == pytest.approx(0.812, abs=0.005) and box == pytest.approx(0.890, abs=0.005)
     assert rows["robin"]["box_iou"] > rows["robin"]["auto_iou"] + 0.05 and rows["squirrel"]["box_iou"] > rows["squirrel"]["auto_iou"] + 0.2
     wrong = {n for n, r in rows.items() if r["auto_iou"] < 0.8}
     warned = {n for n, r in rows.items() if r["auto_warning"]}
     assert wrong == {"robin", "squirrel"} and wrong <= warned and warned - wrong == {"hand", "quokka"}
     assert "colours that barely separate" in rows["robin"]["auto_warning"]
     assert "runs along the photo's edge" in rows["squirrel"]["auto_warning"]
-    assert not any(r["box_warning"] for r in rows.values())
+    # the box's cut sees sharpness too (segment.feature_grabcut): the robin's box mask, still wrong, is warned by its colours
+    assert {n for n, r in rows.items() if r["box_warning"]} == {"robin"} and rows["robin"]["box_iou"] < 0.8
+    assert "colours that barely separate" in rows["robin"]["box_warning"]
+    assert rows["quokka"]["box_iou"] > 0.9 and rows["robin"]["box_iou"] > 0.75
 
 
 def test_cli_box_and_strokes_on_a_real_photo(trained, tmp_path, capsys):
