@@ -814,6 +814,7 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
 # ------------------------------------------------------------------ against a real `genre serve`
 
 
+@pytest.mark.slow
 def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     weights, photo = trained
     r = run_scenario("reconstruct", {"zip": str(built["legacy"]), "weights": str(weights), "photo": str(photo)}, tmp_path)
@@ -902,6 +903,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert exif["background"] == "turned.png (upright)" and "turned.png" not in exif["new_images"]
 
 
+@pytest.mark.slow
 def test_failures_leave_nothing_behind_and_say_why(built, trained, tmp_path):
     weights, photo = trained
     corrupt = tmp_path / "corrupt.png"

@@ -41,6 +41,7 @@ def test_gui_blender_runs_the_modal_operator_end_to_end(built, trained, tmp_path
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(bool(_missing), reason=f"no GUI Blender here: {_missing}")
 def test_annotation_points_are_image_view_space_in_a_drawn_editor(tmp_path):
     """The Annotate tool in a drawn Image Editor stores points 0-1 over the image, y up: what the add-on assumes."""

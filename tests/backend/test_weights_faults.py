@@ -238,6 +238,7 @@ def test_reconstruct_prints_one_line_and_exits_1(good, tmp_path, name):
     assert proc.stdout == "" and not (tmp_path / "m.obj").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["config_nested_100000", "refiner_fc_1e9", "nan_tensor"])
 def test_serve_writes_the_error_as_its_first_and_only_line(good, tmp_path, name):
     damage = dict((c[0], c[1]) for c in CASES)[name]

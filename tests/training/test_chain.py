@@ -97,6 +97,7 @@ def _tiny_chain(views, home, config_json, steps: int) -> Chain:
     ))
 
 
+@pytest.mark.slow
 def test_resume_skips_the_finished_steps_and_runs_the_rest(tiny_views, tmp_path, monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     home = tmp_path / "home"

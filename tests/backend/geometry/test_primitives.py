@@ -84,6 +84,7 @@ def _traced(family, params, rot, centre):
     return P.trace_depth(P.PrimitiveFit(family, params, rot, centre, 0.0, 0.0, 0.0), CAMERA, 128)
 
 
+@pytest.mark.slow
 def test_snap_replaces_a_cylinder_and_keeps_an_l_shaped_block():
     import trimesh
 

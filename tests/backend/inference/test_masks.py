@@ -242,6 +242,7 @@ def _strokes_file(name: str, path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_real_photos_box_and_doubt_figures():
     """The figures of docs/masks.md (scripts/mask_box.py): automatic vs box-alone masks against the hand masks, and the doubt."""
     import sys
@@ -268,6 +269,7 @@ def test_real_photos_box_and_doubt_figures():
     assert rows["quokka"]["box_iou"] > 0.9 and rows["robin"]["box_iou"] > 0.75
 
 
+@pytest.mark.slow
 def test_cli_box_and_strokes_on_a_real_photo(trained, tmp_path, capsys):
     from genre_backend.inference.preprocess import load_mask
 
@@ -302,6 +304,7 @@ def test_cli_box_and_strokes_on_a_real_photo(trained, tmp_path, capsys):
     assert code == 1 and "strokes image is 380×254, the image is 535×426 [bad_mask]" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_serve_box_and_strokes(trained, tmp_path):
     from support.server import ServerProcess
 

@@ -277,6 +277,7 @@ def test_cli_unwritable_output_and_bad_weights(trained, photos, tmp_path, capsys
         assert code == 1 and str(DEFAULT_WEIGHTS) in err and "--weights" in err and "genre train" in err
 
 
+@pytest.mark.slow
 def test_genre_entry_point(trained, photos, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     out = tmp_path / "m.obj"

@@ -78,6 +78,7 @@ def _refused(proc, code: str) -> str:
 
 
 # ---- part 3: refuse before work (CLI) ------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_refuses_intermediates_that_are_a_file_before_work(trained, photo, tmp_path):
     (tmp_path / "inter").write_text("a file")
     before = listing(tmp_path)
@@ -105,6 +106,7 @@ def test_cli_refuses_a_preview_named_as_the_photo_before_work(trained, tmp_path)
     assert listing(tmp_path) == before and photo.read_bytes() == data
 
 
+@pytest.mark.slow
 def test_cli_writes_a_mesh_with_a_name_at_the_limit_and_keeps_a_users_lookalike(trained, photo, tmp_path):
     name = "n" * 243 + ".obj"  # its texture's name, n…n_texture.png, is 255 bytes: the longest legal name
     dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout)
@@ -191,6 +193,7 @@ def test_serve_refuses_a_format_that_disagrees_with_the_extension(serve, photo, 
     assert s.close() == 0
 
 
+@pytest.mark.slow
 def test_serve_writes_names_at_the_limit_and_no_matplotlib_config(trained, photo, tmp_path):
     home = tmp_path / "home"
     home.mkdir()
@@ -255,6 +258,7 @@ def test_cli_signal_during_a_write_prints_one_line_and_exits(trained, photo, tmp
     assert listing(out) == set()  # no mesh, no .mtl, no texture (a textured OBJ is one unit), no temporary
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("at", [1, 2, 3])
 def test_cli_sigkill_during_a_textured_write_leaves_no_final_file_and_the_next_run_cleans_up(trained, photo, tmp_path, at):
     out = tmp_path / "out"
@@ -311,6 +315,7 @@ def test_serve_sigterm_when_idle(trained, tmp_path):
     assert listing(tmp_path) == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("at", [1, 2, 3])
 def test_serve_sigkill_during_a_write_then_the_next_job_cleans_up(trained, photo, tmp_path, at):
     s, out, mark = _slow_writing_server(trained, tmp_path)
@@ -344,6 +349,7 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_serve_signal_while_the_weights_load_says_bye_only(trained, tmp_path, sig, status):
     mark = tmp_path / "mark"
@@ -375,6 +381,7 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig, status, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
 def test_cli_signal_during_a_network_stage_prints_one_line_and_writes_nothing(trained, photo, tmp_path, sig, status, word):
     out = tmp_path / "out"
@@ -392,6 +399,7 @@ def test_cli_signal_during_a_network_stage_prints_one_line_and_writes_nothing(tr
     assert listing(out) == set()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_serve_signal_during_a_network_stage_cancels_the_job_and_says_bye(trained, photo, tmp_path, sig, status):
     out = tmp_path / "out"
@@ -484,6 +492,7 @@ def locked(trained, photo, tmp_path):
         p.chmod(0o755)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["output folder", "intermediates", "intermediates inside", "photo", "weights", "mask"])
 def test_cli_refuses_what_permission_bits_forbid_before_any_network(trained, photo, locked, tmp_path, case):
     mark = tmp_path / "mark"

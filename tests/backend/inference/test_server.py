@@ -144,6 +144,7 @@ def test_malformed_requests_get_error_events(server, line, code, rid):
     _alive(server)
 
 
+@pytest.mark.slow
 def test_reconstruct_reports_progress_and_result(server, files, trained):
     out = files["out"] / "box.ply"
     server.send({"type": "reconstruct", "id": "job1", "image": str(files["rgb"]), "output": str(out), "options": {"threshold": 0.45, "hole_closing": 2, "silhouette_carve": True, "visible_fusion": True, "primitive_snap": 0.99, "test_time_mirror": True,
@@ -265,6 +266,7 @@ def test_duplicate_job_id_is_refused(server, files):
     assert any(e["type"] == "error" and e["code"] == "bad_field" and e["id"] == "dup" for e in events)
 
 
+@pytest.mark.slow
 def test_end_of_input_finishes_queued_jobs_then_exits(trained, files):
     s = ServerProcess("--weights", str(trained[0]))
     assert s.next(timeout=300)["type"] == "ready"

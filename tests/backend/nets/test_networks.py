@@ -154,6 +154,7 @@ def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
     assert torch.equal(again["refiner.skip.weight"], model.state_dict()["refiner.skip.weight"])
 
 
+@pytest.mark.slow
 def test_grown_refiner_starts_with_the_same_output_and_then_learns_a_sharp_band():
     """grow_refiner adds the full-resolution branch with the logits unchanged; the branch then fits,
     within a few hundred steps, a one-voxel band around an input surface that the coarse path

@@ -409,6 +409,7 @@ def test_parallel_workers_write_the_same_rows(tiny, tmp_path):
     assert main(_args(root, views, run, tmp_path / "bad", "--jobs", "0")) == 2
 
 
+@pytest.mark.slow
 def test_the_distance_target_is_nearer_the_truth_than_the_shell(tiny):
     """Truth through each representation, at its best threshold, against the resampling floor."""
     import dataclasses

@@ -176,6 +176,7 @@ def test_shards_read_back_bit_for_bit(tmp_path):
         read_shards(tmp_path)
 
 
+@pytest.mark.slow
 def test_burst_trains_on_the_cpu_and_returns_weights(tiny_pack, tmp_path):
     """The CPU dry run: a few steps of each recipe from tiny weights; the shards come back and join into a weights file."""
     from training.learn.burst import BurstSpec, main, read_shards, run_burst

@@ -39,6 +39,7 @@ def test_every_stage_overfits_four_samples(tiny_views, tmp_path):
     assert load_model(run / "refine" / "best.safetensors").config == TINY
 
 
+@pytest.mark.slow
 def test_frozen_nets_stay_frozen(tiny_views, tmp_path):
     run = tmp_path / "run"
     train(_cfg("depth", tiny_views, run, steps=3), TINY)
@@ -189,6 +190,7 @@ def test_refiner_input_choices_change_exactly_the_chosen_samples_in_training_onl
         assert torch.allclose(chosen(batch)[0], refine_loss(chosen, vox_inpainted, vox_depth), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_several_views_folders_and_processor_time_that_accumulates(tiny_views, tmp_path):
     run = tmp_path / "run"
     s = train(_cfg("joint", tiny_views, run, data=[str(tiny_views), str(tiny_views)], steps=3, depth_weight=1.0), TINY)
@@ -201,6 +203,7 @@ def test_several_views_folders_and_processor_time_that_accumulates(tiny_views, t
     assert json.loads((run / "joint" / "final.json").read_text())["extra"]["cpu_s"] == s2["cpu_s"]
 
 
+@pytest.mark.slow
 def test_a_stage_continued_with_another_learning_rate_trains_with_it(tiny_views, tmp_path):
     run = tmp_path / "run"
     train(_cfg("depth", tiny_views, run, steps=3, lr=1e-3), TINY)
@@ -334,6 +337,7 @@ def test_resuming_with_another_architecture_says_which_checkpoint(tiny_views, tm
     assert f"genre train: error: {ck} was written for a different model" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_ddp_with_two_cpu_processes(tiny_views, tmp_path):
     cfg_json = tmp_path / "tiny.json"
     cfg_json.write_text(json.dumps(TINY.to_dict()))
@@ -491,6 +495,7 @@ def test_the_hit_head_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewher
         train(_cfg("refine", tiny_views, tmp_path / "other", steps=2, init=str(init), inpaint_head="hit"))
 
 
+@pytest.mark.slow
 def test_a_wider_inpainting_net_is_trained_fresh_at_the_inpaint_stage_and_refused_elsewhere(tiny_views, tmp_path):
     """--inpaint-widths: the inpaint stage starts a fresh inpainting net of those widths (the depth net and the
     refiner kept) and fits four samples; the next stage keeps it; another stage asked for new widths refuses;
@@ -534,6 +539,7 @@ def test_inpaint_from_puts_another_runs_inpainting_net_under_the_init_weights(ti
                     "--inpaint-from", str(tmp_path / "missing.safetensors")])
 
 
+@pytest.mark.slow
 def test_photo_compositing_applies_to_the_stage_that_asks_for_it(tiny_views, tmp_path):
     """--photo-fraction on the refine stage shows the frozen depth net composited images (it was once ignored there)."""
     folder = two_colour_backgrounds(tmp_path / "bg")

@@ -256,6 +256,7 @@ def test_cli_renders_resumes_and_records_failures(renderer, sphere_path, tmp_pat
     assert render_cli.main(argv[:-3] + ["--seed", "6", "--no-progress"], "genre data render") == 2
 
 
+@pytest.mark.slow
 def test_render_killed_mid_run_resumes_without_corrupt_views(sphere_path, tmp_path):
     """kill -9 a rendering process after its first complete view; a second run completes every view."""
     import signal

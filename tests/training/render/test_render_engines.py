@@ -229,6 +229,7 @@ def _blender_env(tmp: Path, **extra) -> dict:
     return env
 
 
+@pytest.mark.slow
 @needs_blender
 def test_stock_blender_writes_the_same_views_as_the_bpy_module(meshes, tmp_path):
     shapes = tmp_path / "shapes"
@@ -311,6 +312,7 @@ def _speckle(rgb: np.ndarray, inside: np.ndarray) -> float:
     return float(np.abs(rgb - med).mean(axis=2)[inside].mean())
 
 
+@pytest.mark.slow
 @needs_blender
 def test_stock_blender_renders_corpus_glbs_with_exact_depth_their_colours_and_less_noise(tmp_path):
     import torch  # noqa: PLC0415

@@ -94,6 +94,7 @@ def _assert_same_as(reference: Path, out: Path) -> None:
     assert not list(out.glob("render_failures*.json"))
 
 
+@pytest.mark.slow
 def test_killed_twice_on_one_shape_then_resumed(shapes, reference, tmp_path):
     """kill -9 twice while the same shape renders: neither kill fails it, and a third run completes the folder."""
     out = tmp_path / "out"
@@ -130,6 +131,7 @@ def _interrupt_after_first_views(proc: subprocess.Popen, out) -> tuple[str, floa
             proc.communicate()
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_promptly_with_130_and_resumes(shapes, reference, tmp_path):
     out = tmp_path / "out"
     argv = _argv(shapes, out)
@@ -161,6 +163,7 @@ cli.render_shape = render_shape
 """
 
 
+@pytest.mark.slow
 def test_repeated_crashes_fail_the_shape_and_the_run_says_what_is_missing(shapes, tmp_path):
     out = tmp_path / "out"
     argv = _argv(shapes, out)
@@ -196,6 +199,7 @@ def test_attempts_file_of_older_versions_reads_as_interruptions(tmp_path):
     assert view_files.read_render_attempts(tmp_path) == attempts
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("blender") is None,
                     reason="no stock Blender on PATH (Debian: apt-get install blender; scripts/setup.sh --test does)")
 def test_ctrl_c_in_a_stock_blender_stops_with_130(shapes, tmp_path):
