@@ -949,6 +949,7 @@ def test_failures_leave_nothing_behind_and_say_why(built, trained, tmp_path):
     assert "(bad_weights)" in r["check_bad_weights"]
 
 
+@pytest.mark.slow
 def test_annotation_becomes_strokes_and_box(built, tmp_path):
     """Annotate strokes over the robin in an Image Editor (headless bpy) → the strokes file and box the add-on sends,
     which the backend reads back and which fix the robin's automatic mask against its hand mask."""

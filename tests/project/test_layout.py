@@ -159,6 +159,7 @@ def test_reconstruct_starts_without_the_modules_it_does_not_use():
     assert _imported(code) == []
 
 
+@pytest.mark.slow
 def test_a_reconstruct_run_imports_none_of_the_modules_it_does_not_use(tmp_path):
     """A whole `genre reconstruct` of the example photo with the shipped weights and their options (GrabCut mask,
     mirror averaging, cleanup), run by the command's own entry point in a fresh interpreter."""

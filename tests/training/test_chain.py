@@ -127,6 +127,7 @@ def test_resume_skips_the_finished_steps_and_runs_the_rest(tiny_views, tmp_path,
     assert run_chain(longer, home, say=said.append) == ["depth", "keep"]
 
 
+@pytest.mark.slow
 def test_a_failing_step_stops_the_chain_without_a_marker(tmp_path):
     home = tmp_path / "home"
     chain = Chain("failing", (Step("bad", Run("training.eval.install", ("--no-such-option",))),

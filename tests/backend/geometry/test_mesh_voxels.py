@@ -331,6 +331,7 @@ def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothin
         fuse_visible_surface(holed, depth, camera, shell, level)
 
 
+@pytest.mark.slow
 def test_a_pit_in_the_front_is_filled_where_the_depth_map_says_and_an_offset_depth_map_changes_nothing():
     from genre_backend.geometry.mesh_voxels import fuse_visible_surface
     from genre_backend.geometry.voxels import ray_first_hit
@@ -355,6 +356,7 @@ def test_a_pit_in_the_front_is_filled_where_the_depth_map_says_and_an_offset_dep
         assert float(inner.float().sum() / (depth > 0).sum()) > 0.97  # the front is where the whole sphere's is
 
 
+@pytest.mark.slow
 def test_sealing_pits_fills_a_narrow_well_in_the_front_with_the_front_around_it_and_nothing_else():
     from genre_backend.geometry.mesh_voxels import PIT_MIN_DEPTH_VOXELS, seal_pits
     from genre_backend.geometry.voxels import ray_first_hit

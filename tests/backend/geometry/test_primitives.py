@@ -51,6 +51,7 @@ def test_signed_distance_matches_the_distance_to_a_fine_mesh(family):
         assert np.abs(ours - ref).max() < 2e-3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", P.FAMILIES)
 def test_a_posed_shape_seen_from_one_side_is_recovered(family):
     """Half the surface (the side toward the camera) and the whole surface as the mesh: the family, its size and its

@@ -342,6 +342,7 @@ REPO = __import__("pathlib").Path(__file__).resolve().parents[3]
     ("examples/photos/orange.jpg", "examples/photos/orange_mask.png"),
     ("examples/photos/bus.jpg", "examples/photos/bus_mask.png"),  # busy: 7.69 (9.64 before issue 42)
 ])
+@pytest.mark.slow
 def test_shipped_model_coloured_mesh_reproduces_the_photo_through_its_camera(photo, mask):
     """The issue's check: render the textured mesh (flat, unlit) through the matching camera; inside the
     mask, where the mesh covers it, the mean absolute error to the photo is at most 8/255; one part.

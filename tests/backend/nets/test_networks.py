@@ -113,6 +113,7 @@ def test_weights_round_trip_and_bad_files(tmp_path):
         load_model(other)
 
 
+@pytest.mark.slow
 def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
     """save_model(half=True): the weights stored as float16, the batch-norm statistics as float32, the step
     counters as integers; load_model gives the float32 model with the weights rounded to float16, whose nets

@@ -369,6 +369,7 @@ def test_validation_shapes_come_from_the_training_split():
     assert split_views(refs, 0.05) == (train_refs, val_refs)  # deterministic
 
 
+@pytest.mark.slow
 def test_install_stores_the_seen_test_threshold(tmp_path):
     from genre_backend.nets.model import save_model
     from training.eval.install import install
