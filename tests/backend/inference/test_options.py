@@ -174,3 +174,30 @@ def test_min_part_share_drops_the_pieces_smaller_than_it():
         _, v, f, report = MeshOptions(threshold=0.5, min_part_share=share).resolved(shell).mesh(grid, shell)
         parts.append(report.parts)
     assert parts == [2, 1]
+
+
+@pytest.mark.parametrize("option", [o for o in OPTIONS if o.weights], ids=lambda o: o.name)
+def test_each_option_accepts_what_a_weights_file_may_store_and_nothing_else(option):
+    """An option that overrides a ``GeometryConfig`` field holds the same values as the field: a value that the
+    record accepts loads from a weights file and one it refuses is refused there too (so a file's own setting can
+    always be shown and overridden in the add-on's row, and no override can make what no file may hold)."""
+    if option.kind == "bool":
+        probes = [True, False, 0, 1, None, "yes"]
+    else:
+        step = 1 if option.kind == "int" else 1e-9
+        probes = [option.lo, option.hi, option.lo - step, option.hi + step, (option.lo + option.hi) / 2,
+                  math.nan, True, "0"]
+        if option.kind == "int":
+            probes[4] = int(probes[4])
+    for value in probes:
+        try:
+            option.check(value)
+            record = True
+        except OptionError:
+            record = False
+        try:
+            GeometryConfig(target="distance", **{option.weights: value})
+            stored = True
+        except (ValueError, TypeError):
+            stored = False
+        assert record == stored, (option.name, value, record, stored)
