@@ -256,7 +256,7 @@ def test_real_photos_box_and_doubt_figures():
     assert len(rows) == 9
     auto = np.mean([r["auto_iou"] for r in rows.values()])
     box = np.mean([r["box_iou"] for r in rows.values()])
-    assert auto == pytest.approx(0.812, abs=0.005) and box == pytest.approx(0.890, abs=0.005)
+    assert auto == pytest.approx(0.812, abs=0.005) and box == pytest.approx(0.905, abs=0.005)
     assert rows["robin"]["box_iou"] > rows["robin"]["auto_iou"] + 0.05 and rows["squirrel"]["box_iou"] > rows["squirrel"]["auto_iou"] + 0.2
     wrong = {n for n, r in rows.items() if r["auto_iou"] < 0.8}
     warned = {n for n, r in rows.items() if r["auto_warning"]}
@@ -267,6 +267,8 @@ def test_real_photos_box_and_doubt_figures():
     assert {n for n, r in rows.items() if r["box_warning"]} == {"robin"} and rows["robin"]["box_iou"] < 0.8
     assert "colours that barely separate" in rows["robin"]["box_warning"]
     assert rows["quokka"]["box_iou"] > 0.9 and rows["robin"]["box_iou"] > 0.75
+    # the automatic cut runs on out of the squirrel's box along the branch: that spill is one more background model
+    assert rows["squirrel"]["box_iou"] > 0.8 and rows["bus"]["box_iou"] > 0.895
 
 
 @pytest.mark.slow
@@ -415,7 +417,8 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
     over those stored pixels (as in Blender's Image Editor): with guidance_frame "stored" the mask GrabCut finds is
     the squirrel's, as good as the upright scribbles' on the upright photo; taken as upright, they are refused
     (90° turns: another size) or are worse (the mirrors and 180°: the squirrel sits near the middle, so they miss
-    only partly, IoU 0.44-0.83)."""
+    only partly, IoU 0.35-0.84: the vertical mirror's box overlaps the right one, and since the box's cut models
+    the automatic cut's spill out of the box it reaches 0.84 against 0.87, hence a margin of 0.03)."""
     from genre_backend.config import GenreConfig
     from genre_backend.inference.preprocess import ImageError, preprocess
 
@@ -443,8 +446,8 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
             except ImageError as exc:
                 assert o in (5, 6, 7, 8) and exc.code == "bad_mask" and "strokes image is 426×535, the image is 535×426" in str(exc)
             else:
-                assert o in (2, 3, 4) and _iou(wrong, hand_upright) < ious[o] - 0.04, (o, _iou(wrong, hand_upright), ious[o])
-    # (as the upright photo with its upright scribbles, 0.874 in docs/masks.md; JPEG's re-encoding moves it a little)
+                assert o in (2, 3, 4) and _iou(wrong, hand_upright) < ious[o] - 0.03, (o, _iou(wrong, hand_upright), ious[o])
+    # (as the upright photo with its upright scribbles, 0.872 in docs/masks.md; JPEG's re-encoding moves it a little)
     assert all(v > 0.85 for v in ious.values()) and max(ious.values()) - min(ious.values()) < 0.03, ious
     with pytest.raises(ImageError, match=r"strokes image is 535×426, the image is 426×535 as stored"):
         preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, strokes_path=tmp_path / "strokes_o1.png", guidance_frame="stored")
