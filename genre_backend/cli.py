@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NoReturn
 
 from . import __version__
+from .process import exit_process
 
-__all__ = ["Command", "ENTRY_POINT_GROUP", "backend_commands", "commands", "main"]
+__all__ = ["Command", "ENTRY_POINT_GROUP", "backend_commands", "commands", "main", "run"]
 
 ENTRY_POINT_GROUP = "genre.commands"
 MainFn = Callable[..., int]
@@ -26,11 +27,15 @@ MainFn = Callable[..., int]
 
 @dataclass(frozen=True)
 class Command:
-    """One ``genre`` subcommand: ``load()`` imports its module and returns its ``main(argv, prog) -> int``."""
+    """One ``genre`` subcommand: ``load()`` imports its module and returns its ``main(argv, prog) -> int``.
+
+    ``quick_exit``: a one-shot command whose process, once it has returned, ends without the interpreter's
+    tear-down of every module (:func:`run`)."""
 
     name: str
     summary: str
     load: Callable[[], MainFn]
+    quick_exit: bool = False
 
 
 def _reconstruct() -> MainFn:
@@ -53,7 +58,7 @@ def _bench() -> MainFn:
 
 def backend_commands() -> list[Command]:
     return [
-        Command("reconstruct", "turn photos into meshes", _reconstruct),
+        Command("reconstruct", "turn photos into meshes", _reconstruct, quick_exit=True),
         Command("serve", "run the JSON-over-stdio reconstruction server", _serve),
         Command("bench", "print speed figures (geometry, inference)", _bench),
     ]
@@ -128,9 +133,17 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
-if __name__ == "__main__":  # pragma: no cover
-    # `python -m genre_backend.cli` (genre chain runs its steps so): run the imported module's main, whose Command
-    # class is the one the registered commands were made with (this file's __main__ copy would not match them)
-    from genre_backend.cli import main as _main
+def run() -> NoReturn:
+    """The ``genre`` console script and ``python -m genre_backend.cli``: :func:`main`, then the process's end, at
+    once after a ``quick_exit`` command (:func:`genre_backend.process.exit_process`)."""
+    code = main()
+    name = sys.argv[1] if len(sys.argv) > 1 else None
+    exit_process(code, quick=any(c.name == name and c.quick_exit for c in backend_commands()))
 
-    sys.exit(_main())
+
+if __name__ == "__main__":  # pragma: no cover
+    # `python -m genre_backend.cli` (genre chain runs its steps so): run the imported module's run(), whose Command
+    # class is the one the registered commands were made with (this file's __main__ copy would not match them)
+    from genre_backend.cli import run as _run
+
+    _run()

@@ -558,7 +558,7 @@ def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) ->
     names = [k for k in _COLD_ROWS if any(k in summaries[x]["cold_parts_s"] for x in labels)]
     notes = {"interpreter": "(Python's start-up, to the first line of the command)",
              "python + cli": "(the cli module, argument parsing, finding the commands)",
-             "import reconstruct": "(torch and the pipeline's modules)",
+             "import reconstruct": "(torch and the pipeline's modules, from the first import of torch)",
              "cli": "(the command's own work between these parts)",
              "exit": "(interpreter shut-down)"}
     for name in names:

@@ -21,6 +21,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 BACKEND_LAYERS = {
     "genre_backend.config": 0, "genre_backend.validation": 0, "genre_backend.io": 0,
+    "genre_backend.process": 0,
     "genre_backend.frame": 1, "genre_backend.geometry": 2, "genre_backend.nets": 3,
     "genre_backend.inference": 4, "genre_backend.cli": 5,
 }

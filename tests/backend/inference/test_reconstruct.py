@@ -463,3 +463,33 @@ def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_p
             rec.run(photos["rgba"], silhouette_carve=bad)
     code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "c.obj", "--weights", trained[0], "--silhouette-carve")
     assert code == 0 and (tmp_path / "c.obj").is_file(), err
+
+
+_EXIT_SCRIPT = """
+import atexit, sys, threading
+from pathlib import Path
+from genre_backend import cli
+mark, thread = Path(sys.argv[1]), sys.argv[2]
+atexit.register(lambda: mark.write_text("exit functions ran"))
+if thread == "thread":
+    threading.Thread(target=lambda: (__import__("time").sleep(0.5), Path(f"{mark}.thread").write_text("done"))).start()
+sys.stdout.write("unflushed, no newline")
+sys.argv = ["genre", "reconstruct", f"{mark}.missing.png"]
+cli.run()
+"""
+
+
+@pytest.mark.parametrize("thread", ["none", "thread"])
+def test_genre_reconstruct_ends_quickly_but_whole(tmp_path, thread):
+    """The process of a quick-exit command (genre reconstruct) skips the interpreter's tear-down (its time:
+    ``genre bench reconstruct``'s exit row), but its exit status, its exit functions and its buffered output are
+    kept; a thread still running is waited for (a normal exit)."""
+    mark = tmp_path / "mark"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT, str(mark), thread], capture_output=True, text=True,
+                          cwd=REPO, env=env, timeout=300)
+    assert proc.returncode == 1, proc.stderr  # the missing photo: one line, status 1
+    assert proc.stdout == "unflushed, no newline"
+    assert proc.stderr.endswith("mark.missing.png: no such file [bad_image]\n") and proc.stderr.count("\n") == 1
+    assert mark.read_text() == "exit functions ran"
+    assert (tmp_path / "mark.thread").is_file() == (thread == "thread")
