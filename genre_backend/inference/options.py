@@ -66,7 +66,7 @@ def _shown(value: Any, limit: int = 300) -> str:
     try:
         text = repr(value)
     except ValueError:  # an integer past Python's 4,300-digit conversion limit
-        text = f"<an int of more than 4,300 digits>"
+        text = "<an int of more than 4,300 digits>"
     return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
 
 
