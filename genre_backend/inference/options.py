@@ -39,6 +39,8 @@ from typing import Any, Callable, Iterable
 
 import torch
 
+from ..validation import MAX_HOLE_CLOSING
+
 __all__ = [
     "Option",
     "OptionError",
@@ -153,7 +155,7 @@ class MeshOptions:
         kind="float", lo=0.0, hi=1.0, lo_open=True, hi_open=True, weights="default_threshold", metavar="T",
         label="Threshold", help="isosurface level of the voxel grid: lower gives a fuller shape")
     hole_closing: int | None = _option(
-        kind="int", lo=0, hi=8, unit="voxels", weights="hole_closing", metavar="K", label="Seal Holes",
+        kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", weights="hole_closing", metavar="K", label="Seal Holes",
         help="seal holes in the mesh up to about twice this many voxels across (0: none; more also fills narrow gaps "
              "between parts)")
     silhouette_carve: bool | None = _option(
@@ -163,7 +165,7 @@ class MeshOptions:
         kind="bool", weights="visible_fusion", distance_only=True, label="Fill Visible Holes",
         help="fill the holes the model leaves in the side the photo shows with the estimated depth's surface")
     pit_sealing: int | None = _option(
-        kind="int", lo=0, hi=8, unit="voxels", weights="pit_sealing", distance_only=True, metavar="K", label="Seal Pits",
+        kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", weights="pit_sealing", distance_only=True, metavar="K", label="Seal Pits",
         help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
              "surface around them (0: none)")
     primitive_snap: float | None = _option(
