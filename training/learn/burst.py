@@ -60,7 +60,7 @@ from ..data.pack import Pack, read_pack
 from .losses import sph_loss, voxel_loss
 from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
 
-__all__ = ["BurstSpec", "ViewMaker", "object_distance_grid", "widen", "write_shards", "read_shards", "run_burst", "main"]
+__all__ = ["BurstSpec", "Speed", "ViewMaker", "cached_distance_grid", "object_distance_grid", "widen", "write_shards", "read_shards", "run_burst", "main"]
 
 SHARD_BYTES = 16 * 2**20 - 2**16  # a file from the device comes back if it is at most 16 MiB (64 KiB for the header)
 INDEX_FILE = "weights.index.json"
@@ -127,14 +127,47 @@ def object_distance_grid(vertices: torch.Tensor, faces: torch.Tensor, geometry, 
     return out
 
 
+def cached_distance_grid(cache: str | os.PathLike | None, pack: Pack, i: int, vertices: torch.Tensor,
+                         faces: torch.Tensor, geometry, factor: int) -> torch.Tensor:
+    """:func:`object_distance_grid` of the pack's shape ``i``, read from ``cache`` when it holds it, else made and
+    written there (``<cache>/<pack sha256[:16]>-N<voxels>-b<band>-x<factor>/<i>.npz``, compressed: a grid is
+    nearly all zeros).  The key names everything the grid depends on, so a new pack or geometry never reads a
+    stale grid.  ``cache`` None: always made."""
+    import numpy as np
+
+    if cache is None:
+        return object_distance_grid(vertices, faces, geometry, factor)
+    folder = Path(cache) / (f"{str(pack.meta.get('meshes_sha256', 'nosha'))[:16]}-N{geometry.voxel_size}"
+                            f"-b{geometry.distance_band:g}-x{factor}")
+    path = folder / f"{i:05d}.npz"
+    try:
+        with np.load(path) as z:
+            return torch.from_numpy(z["grid"]).to(vertices.device)
+    except (OSError, ValueError, KeyError):
+        pass
+    grid = object_distance_grid(vertices, faces, geometry, factor)
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / f".{i:05d}.{os.getpid()}.tmp.npz"
+    np.savez_compressed(tmp, grid=grid.cpu().numpy())
+    os.replace(tmp, path)
+    return grid
+
+
 class ViewMaker:
-    """Training samples of a pack's shapes from random views, made on one device (see the module doc)."""
+    """Training samples of a pack's shapes from random views, made on one device (see the module doc).
+
+    ``voxels``: make the refiner's target too (each shape's distance grid, built
+    at set-up); False for the inpainting net alone, which needs no grid and starts
+    at once.  ``grid_cache``: a folder where each shape's grid is kept
+    (:func:`cached_distance_grid`), so that only the first set-up on a machine
+    pays for them.
+    """
 
     def __init__(self, pack: Pack, config: GenreConfig, device: torch.device, grid_factor: int = 2,
-                 shapes: int | None = None, progress=None):
+                 shapes: int | None = None, progress=None, voxels: bool = True, grid_cache: str | os.PathLike | None = None):
         self.config, self.device = config, device
         g = config.geometry
-        if g.target != "distance":
+        if voxels and g.target != "distance":
             raise ValueError(f"a burst trains the distance target; the weights' target is {g.target!r}")
         count = len(pack) if shapes is None else min(shapes, len(pack))
         tris, offsets, grids = [], [0], []
@@ -145,12 +178,13 @@ class ViewMaker:
             f = torch.from_numpy(f).to(device)
             tris.append(v[f])
             offsets.append(offsets[-1] + f.shape[0])
-            grids.append(object_distance_grid(v, f, g, grid_factor))
-            if progress and ((i + 1) % 100 == 0 or i + 1 == count):
+            if voxels:
+                grids.append(cached_distance_grid(grid_cache, pack, i, v, f, g, grid_factor))
+            if progress and voxels and ((i + 1) % 100 == 0 or i + 1 == count):
                 progress(f"distance grids: {i + 1}/{count} shapes, {time.time() - start:.0f} s")
         self.triangles = torch.cat(tris)  # (F, 3, 3) object frame
         self.offsets = torch.tensor(offsets, dtype=torch.int64, device=device)
-        self.grids = torch.stack(grids)  # (K, R, R, R) uint8
+        self.grids = torch.stack(grids) if voxels else None  # (K, R, R, R) uint8
         self.extent = 0.5 + (g.distance_band + 1.0) / g.voxel_size
         n = g.voxel_size
         c = (torch.arange(n, dtype=torch.float32, device=device) + 0.5) / n - 0.5
@@ -173,7 +207,7 @@ class ViewMaker:
 
         Returns ``depth`` (B, S, S) planar depth with the noise added inside
         the mask (background 0), ``true_depth``, ``mask`` (B, S, S) bool,
-        ``full_sph`` (B, H, H) and ``voxels`` (B, N, N, N) float in [0, 1].
+        ``full_sph`` (B, H, H) and, when the maker has grids, ``voxels`` (B, N, N, N) float in [0, 1].
         """
         g, cam, dev = self.config.geometry, self.config.camera, self.device
         b = shape.shape[0]
@@ -193,13 +227,16 @@ class ViewMaker:
             noise = torch.nn.functional.interpolate(noise, size=(g.image_size,) * 2, mode="bicubic", align_corners=False)[:, 0]
             depth = torch.where(mask, true_depth + noise, true_depth)
         full_sph = raycast_triangles(tris, batch_index, b, g.sph_size)
+        sample = {"depth": depth, "true_depth": true_depth, "mask": mask, "full_sph": full_sph}
+        if self.grids is None:
+            return sample
         # the view's voxel centres in the object frame (view_to_object: p @ Rᵀ), as grid_sample's (x=W, y=H, z=D)
         pts = torch.einsum("pc,bdc->bpd", self.centres, rot) / self.extent
         n = g.voxel_size
         grid = pts[..., [2, 1, 0]].reshape(b, n, n, n, 3)
         vox = torch.nn.functional.grid_sample(self.grids[shape.to(dev)][:, None].float(), grid, mode="bilinear",
                                               padding_mode="zeros", align_corners=False)[:, 0] / 255.0
-        return {"depth": depth, "true_depth": true_depth, "mask": mask, "full_sph": full_sph, "voxels": vox}
+        return {**sample, "voxels": vox}
 
 
 # --------------------------------------------------------------------------- the model
@@ -341,36 +378,78 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool, channels_last: bool | None = None
-               ) -> tuple[torch.Tensor, dict]:
+@dataclass(frozen=True)
+class Speed:
+    """How each trained net runs: channels-last tensors and bf16 autocast, per net.
+
+    Chosen per device by measurement (``genre bench train``): on CUDA every
+    switch is on; on this project's CPUs (Xeon with AVX-512-BF16 and AMX) only
+    those that measured faster (:data:`CPU_SPEED`).  Every switch off is the
+    plain fp32 contiguous path, the reference the fast one is tested against.
+    """
+
+    inpaint_channels_last: bool = False
+    inpaint_bf16: bool = False
+    refiner_channels_last: bool = False
+    refiner_bf16: bool = False
+
+    @classmethod
+    def for_device(cls, device: torch.device) -> "Speed":
+        return CUDA_SPEED if device.type == "cuda" else CPU_SPEED
+
+
+REFERENCE_SPEED = Speed()
+CUDA_SPEED = Speed(True, True, True, True)
+# measured on the 2-core Xeon (genre bench train, docs/benchmarks.md): see there for the figures
+CPU_SPEED = Speed(inpaint_channels_last=True, inpaint_bf16=True, refiner_channels_last=True, refiner_bf16=True)
+
+
+def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None = None, channels_last: bool | None = None,
+               speed: Speed | None = None, refiner: bool = True) -> tuple[torch.Tensor, dict]:
     """One step's loss: the partial map and depth voxels of ``sample["depth"]`` (no gradient), the inpainting net
-    and the refiner (bf16 autocast when ``amp``; channels-last tensors when ``channels_last``, default: on CUDA),
-    the voxel loss plus ``sph_weight`` × the spherical loss.  Returns (loss, {term: value})."""
+    and (``refiner``) the refiner, run as ``speed`` says (default: :meth:`Speed.for_device`; ``amp`` and
+    ``channels_last``, when given, set both nets' switches); the voxel loss plus ``sph_weight`` × the spherical
+    loss, or the spherical loss alone without the refiner.  Returns (loss, {term: value})."""
     g = model.config.geometry
     dev_type = sample["depth"].device.type
-    channels_last = dev_type == "cuda" if channels_last is None else channels_last
+    speed = speed or Speed.for_device(sample["depth"].device)
+    if amp is not None:
+        speed = dataclasses.replace(speed, inpaint_bf16=amp, refiner_bf16=amp)
+    if channels_last is not None:
+        speed = dataclasses.replace(speed, inpaint_channels_last=channels_last, refiner_channels_last=channels_last)
     with torch.no_grad():
         partial = model.partial_sph(sample["depth"])
-        vox_depth = model.depth_voxels(sample["depth"])
-    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=amp):
+    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=speed.inpaint_bf16):
         padded = pad_sph(partial[:, None], g.sph_pad)
-        if channels_last:
+        if speed.inpaint_channels_last:
             padded = padded.contiguous(memory_format=torch.channels_last)
         parts = model.inpaint_net.forward_parts(padded)
     parts = {k: v.float() for k, v in parts.items()}
+    l_sph, terms = sph_loss(parts, sample["full_sph"], g, recipe.sph_loss)
+    if not refiner:
+        return l_sph, {**terms, "sph": l_sph}
+    with torch.no_grad():
+        vox_depth = model.depth_voxels(sample["depth"])
     full = crop_sph(parts["map"], g.sph_pad)[:, 0]
     vox_sph = model.sph_voxels(full)
-    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=amp):
+    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=speed.refiner_bf16):
         x = torch.cat([vox_sph, vox_depth], dim=1)
-        if channels_last:
+        if speed.refiner_channels_last:
             x = x.contiguous(memory_format=torch.channels_last_3d)
         logits = model.refiner(x)
-    l_vox, terms = voxel_loss(logits.float(), sample["voxels"], recipe.surface_weight)
-    l_sph, sph_terms = sph_loss(parts, sample["full_sph"], g, recipe.sph_loss)
-    terms.update(sph_terms)
-    loss = l_vox + recipe.sph_weight * l_sph
+    l_vox, vox_terms = voxel_loss(logits.float(), sample["voxels"], recipe.surface_weight)
+    terms.update(vox_terms)
     terms["sph"] = l_sph
-    return loss, terms
+    return l_vox + recipe.sph_weight * l_sph, terms
+
+
+def apply_speed(model: GenRe, speed: Speed) -> GenRe:
+    """The nets' parameters in the memory format ``speed`` names (channels-last 2D / 3D)."""
+    if speed.inpaint_channels_last:
+        model.inpaint_net.to(memory_format=torch.channels_last)
+    if speed.refiner_channels_last:
+        model.refiner.to(memory_format=torch.channels_last_3d)
+    return model
 
 
 def _bring_up(spec: BurstSpec, recipe: BurstRecipe, say) -> tuple[torch.device, GenRe, ViewMaker]:
@@ -388,10 +467,7 @@ def _bring_up(spec: BurstSpec, recipe: BurstRecipe, say) -> tuple[torch.device, 
     model, fresh = widen(load_model(spec.init), recipe.preset)
     say(f"model: {sum(p.numel() for p in model.parameters()):,} parameters; "
         f"{len(fresh)} tensors fresh (recipe {recipe.name}), the rest from {spec.init}")
-    model = model.to(device)
-    if device.type == "cuda":
-        model.inpaint_net.to(memory_format=torch.channels_last)
-        model.refiner.to(memory_format=torch.channels_last_3d)
+    model = apply_speed(model.to(device), Speed.for_device(device))
     maker = ViewMaker(pack, model.config, device, recipe.grid_factor, spec.shapes, progress=say)
     say(f"pack: {len(maker)} shapes, {maker.triangles.shape[0]:,} triangles; set-up {time.time() - t0:.0f} s")
     return device, model, maker
@@ -447,7 +523,7 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
             group["lr"] = lr
         shape, az, el = maker.draw(gen, batch, recipe)
         try:
-            loss, terms = _step_loss(model, maker.make(shape, az, el, recipe.depth_noise, gen), recipe, amp=cuda)
+            loss, terms = _step_loss(model, maker.make(shape, az, el, recipe.depth_noise, gen), recipe)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

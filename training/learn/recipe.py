@@ -257,6 +257,8 @@ class BurstRecipe:
     elevation_max_deg: float = 88.0
     depth_noise: float = 0.01
     grid_factor: int = 2
+    total_steps: int = 0  # > 0: the schedule follows steps (genre train session), not the wall clock
+    warmup_steps: int = 0
 
     def __post_init__(self):
         for name in ("lr", "lr_final", "beta1", "beta2", "surface_weight", "sph_weight", "depth_noise", "warmup_s",
@@ -270,6 +272,10 @@ class BurstRecipe:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive int, got {value!r}")
+        for name in ("total_steps", "warmup_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name}: expected an int >= 0, got {value!r}")
         if not -90.0 < self.elevation_min_deg <= self.elevation_max_deg < 90.0:
             raise ValueError(f"elevation range [{self.elevation_min_deg}, {self.elevation_max_deg}] must lie in (-90, 90)")
         if self.sph_loss not in ("mse", "l1"):
@@ -287,6 +293,12 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
                     "16-channel full-resolution branch, 2.4 M parameters as today's, starting afresh; the inpainting "
                     "net kept from --init",
         preset="wide",
+    ),
+    BurstRecipe(
+        name="session",
+        description="genre train session on the CPU: the --init weights' own nets warm-started, batch 16, lr 5e-4 "
+                    "with a 200-step warm-up and a cosine to 5 % over 40,000 steps (several sessions), then flat",
+        lr=5e-4, batch_size=16, total_steps=40_000, warmup_steps=200,
     ),
 )}
 

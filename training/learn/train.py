@@ -146,6 +146,14 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
         from . import burst
 
         return burst.main(argv[1:], prog=f"{prog} burst")
+    if argv[:1] == ["bench"]:  # genre bench train: training throughput per stage (training/learn/bench.py)
+        from . import bench
+
+        return bench.main(argv[1:], prog="genre bench train")
+    if argv[:1] == ["session"]:  # the background training of every session (training/learn/session.py)
+        from . import session
+
+        return session.main(argv[1:], prog=f"{prog} session")
     return run(parse_args(argv, prog), prog)
 
 

@@ -1,0 +1,136 @@
+"""``genre train session``: the schedule, resuming bit for bit, the distance-grid cache, and the fast CPU path
+against the plain fp32 one."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import pytest
+import torch
+import trimesh
+
+from genre_backend.nets.model import GenRe, load_model, save_model
+from support.tiny_data import TINY, write_manifest
+
+
+@pytest.fixture(scope="module")
+def prim_pack(tmp_path_factory):
+    """A pack of three analytic shapes (no rendering needed) and weights of the tiny preset to start from."""
+    from training.data.pack import build_pack
+
+    tmp = tmp_path_factory.mktemp("session")
+    shapes = {"box": trimesh.creation.box(extents=(0.6, 0.3, 0.4)),
+              "cyl": trimesh.creation.cylinder(radius=0.25, height=0.5, sections=16),
+              "ball": trimesh.creation.icosphere(subdivisions=2, radius=0.35)}
+    manifest = write_manifest(tmp, {k: (m, "product-train") for k, m in shapes.items()})
+    build_pack(manifest, tmp / "pack", max_faces=4000)
+    torch.manual_seed(0)
+    model = GenRe(TINY)
+    save_model(model, tmp / "init.safetensors")
+    return tmp / "pack", tmp / "init.safetensors"
+
+
+def test_the_schedule_warms_up_then_follows_a_cosine_then_stays_flat():
+    from training.learn.recipe import BurstRecipe
+    from training.learn.session import lr_at
+
+    r = BurstRecipe(name="t", description="", lr=1e-3, lr_final=0.1, total_steps=1000, warmup_steps=10)
+    assert lr_at(r, 0) == pytest.approx(1e-4)  # (0 + 1) / 10 of the way up
+    assert lr_at(r, 9) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 9 / 1000))))
+    assert lr_at(r, 500) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5))  # half-way down the cosine
+    assert lr_at(r, 1000) == pytest.approx(1e-4) and lr_at(r, 5000) == pytest.approx(1e-4)
+
+
+def _spec(pack, init, out, **kw):
+    from training.learn.session import SessionSpec
+
+    return SessionSpec(pack=str(pack), out=str(out), init=str(init), batch_size=2, threads=1, log_every=1,
+                       grid_cache=str(out / "grids"), **kw)
+
+
+def test_a_session_cut_in_two_ends_where_an_unbroken_one_does(prim_pack, tmp_path):
+    from training.learn.session import _load_state, run_session
+
+    pack, init = prim_pack
+    run_session(_spec(pack, init, tmp_path / "whole", max_steps=4), say=lambda m: None)
+    run_session(_spec(pack, init, tmp_path / "cut", max_steps=2), say=lambda m: None)
+    summary = run_session(_spec(pack, init, tmp_path / "cut", max_steps=4), say=lambda m: None)
+    assert summary["step"] == 4 and summary["samples"] == 8
+    a = _load_state(tmp_path / "whole" / "inpaint")[0].state_dict()
+    b = _load_state(tmp_path / "cut" / "inpaint")[0].state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # the weights file beside the state is the same model in float16 storage
+    w = load_model(tmp_path / "cut" / "inpaint" / "weights.safetensors").state_dict()
+    assert all(torch.allclose(w[k].float(), b[k].float(), rtol=1e-3, atol=1e-4) for k in b if b[k].is_floating_point())
+    # the nets it does not train are the init's, the inpainting net moved
+    ref = load_model(init).state_dict()
+    moved = [k for k in a if k.startswith("inpaint_net.") and a[k].is_floating_point() and not torch.equal(a[k], ref[k])]
+    assert moved
+    assert all(torch.equal(a[k], ref[k]) for k in a if k.startswith(("refiner.", "depth_net.")))
+    with open(tmp_path / "cut" / "inpaint" / "log.csv") as fh:
+        assert [int(r["step"]) for r in csv.DictReader(fh)] == [1, 2, 3, 4]
+
+
+def test_the_distance_grid_cache_returns_what_it_would_make(prim_pack, tmp_path):
+    from training.data.pack import read_pack
+    from training.learn.burst import ViewMaker, object_distance_grid
+
+    pack = read_pack(prim_pack[0])
+    first = ViewMaker(pack, TINY, torch.device("cpu"), grid_factor=2, grid_cache=tmp_path)
+    files = sorted(tmp_path.rglob("*.npz"))
+    assert len(files) == len(pack)
+    again = ViewMaker(pack, TINY, torch.device("cpu"), grid_factor=2, grid_cache=tmp_path)
+    assert torch.equal(first.grids, again.grids)
+    v, f = pack.mesh(1)
+    direct = object_distance_grid(torch.from_numpy(v), torch.from_numpy(f), TINY.geometry, 2)
+    assert torch.equal(direct, again.grids[1]) and int((direct > 0).sum()) > 100
+    # a grid made for another geometry is never read: its folder's name differs
+    import dataclasses
+
+    other = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, distance_band=TINY.geometry.distance_band + 1))
+    ViewMaker(pack, other, torch.device("cpu"), grid_factor=2, grid_cache=tmp_path)
+    assert len({p.parent for p in tmp_path.rglob("*.npz")}) == 2
+
+
+def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack):
+    """Channels-last and bf16 autocast (CPU_SPEED) against fp32 contiguous: the same losses over the first steps
+    of training from the same weights on the same samples, within 3 % (bf16 keeps 8 bits of mantissa)."""
+    from training.data.pack import read_pack
+    from training.learn.burst import CPU_SPEED, REFERENCE_SPEED, ViewMaker, _step_loss, apply_speed
+    from training.learn.recipe import get_burst_recipe
+
+    recipe = get_burst_recipe("session")
+    pack = read_pack(prim_pack[0])
+    maker = ViewMaker(pack, TINY, torch.device("cpu"), grid_factor=2)
+    curves = {}
+    for name, speed in (("plain", REFERENCE_SPEED), ("fast", CPU_SPEED)):
+        model = apply_speed(load_model(prim_pack[1]), speed)
+        model.train()
+        params = [p for n in (model.inpaint_net, model.refiner) for p in n.parameters()]
+        opt = torch.optim.AdamW(params, lr=1e-3)
+        losses = []
+        for k in range(5):
+            gen = torch.Generator().manual_seed(k)
+            shape, az, el = maker.draw(gen, 2, recipe)
+            loss, _ = _step_loss(model, maker.make(shape, az, el, recipe.depth_noise, gen), recipe, speed=speed)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+        curves[name] = losses
+    assert all(math.isfinite(x) for x in curves["fast"])
+    for a, b in zip(curves["plain"], curves["fast"]):
+        assert abs(a - b) <= 0.03 * abs(a), curves
+    assert curves["plain"][-1] < curves["plain"][0]  # and the steps do train
+
+
+def test_a_bad_session_spec_is_refused_with_its_field():
+    from training.learn.session import SessionSpec
+
+    with pytest.raises(ValueError, match="nets"):
+        SessionSpec(pack="p", out="o", nets="depth")
+    with pytest.raises(ValueError, match="hours"):
+        SessionSpec(pack="p", out="o", hours=-1.0)
+    with pytest.raises(ValueError, match="batch_size"):
+        SessionSpec(pack="p", out="o", batch_size=0)

@@ -1,0 +1,158 @@
+"""``genre bench train``: training throughput per stage, the plain path beside the fast one, in one run.
+
+For each stage (depth, inpaint, refine, joint) and each way of running the
+nets — fp32 contiguous (the plain path, what ``genre train`` runs), channels-last,
+bf16 autocast, both — it times forward plus backward plus an Adam step on
+inputs of the model's shapes, after warm-up steps, and prints the median
+samples/s and its ratio to the plain path.  The ways are interleaved round by
+round so that a busy machine slows them alike.  ``--pack`` also times the
+on-the-fly sample maker (:class:`training.learn.burst.ViewMaker`, no voxel
+target and with it), the data side of ``genre train session``.
+
+    genre bench train --weights default --batch 4 --rounds 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import torch
+import torch.nn.functional as F
+
+from genre_backend.geometry.spherical import pad_sph
+from genre_backend.io import resolve_weights
+from genre_backend.nets.model import GenRe, load_model
+
+__all__ = ["WAYS", "STAGES", "step_seconds", "main"]
+
+WAYS = {"fp32": (False, False), "channels-last": (True, False), "bf16": (False, True), "channels-last+bf16": (True, True)}
+STAGES = ("depth", "inpaint", "refine", "joint")
+
+
+def _inputs(model: GenRe, batch: int, gen: torch.Generator) -> dict[str, torch.Tensor]:
+    g = model.config.geometry
+    p, n = g.sph_size + 2 * g.sph_pad, g.voxel_size
+    partial = torch.rand(batch, 1, p, p, generator=gen)
+    partial = torch.where(partial > 0.6, torch.ones_like(partial), partial * 0.4 + 0.5)
+    return {"rgb": torch.rand(batch, 3, g.image_size, g.image_size, generator=gen),
+            "depth": torch.rand(batch, g.image_size, g.image_size, generator=gen) + 1.5,
+            "partial": partial, "full": torch.rand(batch, 1, p, p, generator=gen),
+            "vox": (torch.rand(batch, 2, n, n, n, generator=gen) > 0.97).float(),
+            "target": torch.rand(batch, 1, n, n, n, generator=gen)}
+
+
+def _forward(model: GenRe, stage: str, x: dict, channels_last: bool, bf16: bool) -> torch.Tensor:
+    """The stage's loss on ``x`` (the nets that stage trains, losses of the same kind as its own)."""
+    total = x["rgb"].new_zeros(())
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        if stage in ("depth", "joint"):
+            rgb = x["rgb"].contiguous(memory_format=torch.channels_last) if channels_last else x["rgb"]
+            out = model.depth_net(rgb)
+            total = total + F.mse_loss(out["depth"].float(), x["depth"])
+        if stage in ("inpaint", "joint"):
+            padded = x["partial"].contiguous(memory_format=torch.channels_last) if channels_last else x["partial"]
+            parts = model.inpaint_net.forward_parts(padded)
+            total = total + F.mse_loss(parts["map"].float(), x["full"])
+        if stage in ("refine", "joint"):
+            vox = x["vox"].contiguous(memory_format=torch.channels_last_3d) if channels_last else x["vox"]
+            logits = model.refiner(vox)
+            total = total + F.binary_cross_entropy_with_logits(logits.float(), x["target"])
+    return total
+
+
+def _trained(model: GenRe, stage: str) -> list[torch.nn.Module]:
+    return {"depth": [model.depth_net], "inpaint": [model.inpaint_net], "refine": [model.refiner],
+            "joint": [model.depth_net, model.inpaint_net, model.refiner]}[stage]
+
+
+def step_seconds(weights: str, stage: str, way: str, batch: int, steps: int, warmup: int = 2, seed: int = 0) -> list[float]:
+    """Seconds of each of ``steps`` training steps (after ``warmup``) of ``stage`` run the ``way`` named."""
+    channels_last, bf16 = WAYS[way]
+    model = load_model(resolve_weights(weights))
+    if channels_last:
+        model.depth_net.to(memory_format=torch.channels_last)
+        model.inpaint_net.to(memory_format=torch.channels_last)
+        model.refiner.to(memory_format=torch.channels_last_3d)
+    nets = _trained(model, stage)
+    params = [p for n in nets for p in n.parameters()]
+    opt = torch.optim.Adam(params, lr=1e-5)
+    model.train()
+    x = _inputs(model, batch, torch.Generator().manual_seed(seed))
+    times = []
+    for k in range(warmup + steps):
+        t = time.perf_counter()
+        loss = _forward(model, stage, x, channels_last, bf16)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if k >= warmup:
+            times.append(time.perf_counter() - t)
+    return times
+
+
+def _maker_seconds(pack: str, weights: str, batch: int, steps: int, voxels: bool, shapes: int) -> list[float]:
+    from training.data.pack import read_pack
+
+    from .burst import ViewMaker
+    from .recipe import get_burst_recipe
+
+    model = load_model(resolve_weights(weights))
+    recipe = get_burst_recipe("session")
+    maker = ViewMaker(read_pack(pack), model.config, torch.device("cpu"), recipe.grid_factor, shapes, voxels=voxels)
+    gen = torch.Generator().manual_seed(0)
+    times = []
+    for _ in range(steps):
+        t = time.perf_counter()
+        shape, az, el = maker.draw(gen, batch, recipe)
+        maker.make(shape, az, el, recipe.depth_noise, gen)
+        times.append(time.perf_counter() - t)
+    return times
+
+
+def main(argv: list[str] | None = None, prog: str = "genre bench train") -> int:
+    ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
+    ap.add_argument("--weights", default="default")
+    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--steps", type=int, default=3, help="timed steps per round (default 3)")
+    ap.add_argument("--rounds", type=int, default=3, help="rounds, each running every way once (default 3)")
+    ap.add_argument("--stages", default=",".join(STAGES))
+    ap.add_argument("--ways", default=",".join(WAYS))
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: every core)")
+    ap.add_argument("--pack", default=None, help="also time the on-the-fly sample maker on this pack")
+    ap.add_argument("--pack-shapes", type=int, default=40, help="shapes of the pack the maker times (default 40)")
+    args = ap.parse_args(argv)
+    import os
+
+    torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    stages = [s for s in args.stages.split(",") if s]
+    ways = [w for w in args.ways.split(",") if w]
+    for name in stages + ways:
+        if name not in STAGES and name not in WAYS:
+            ap.error(f"unknown stage or way {name!r}")
+    print(f"device: cpu, {torch.get_num_threads()} threads, torch {torch.__version__}; batch {args.batch}; "
+          f"median of {args.rounds} rounds × {args.steps} steps", flush=True)
+    results: dict[tuple[str, str], list[float]] = {}
+    for _ in range(args.rounds):
+        for stage in stages:
+            for way in ways:
+                results.setdefault((stage, way), []).extend(step_seconds(args.weights, stage, way, args.batch, args.steps))
+    print(f"\n| stage | {' | '.join(ways)} |\n| --- |{' --- |' * len(ways)}")
+    for stage in stages:
+        plain = statistics.median(results[(stage, ways[0])])
+        cells = []
+        for way in ways:
+            med = statistics.median(results[(stage, way)])
+            cells.append(f"{args.batch / med:.2f}/s ({plain / med:.2f}×)")
+        print(f"| {stage} | {' | '.join(cells)} |")
+    if args.pack:
+        for voxels in (False, True):
+            t = _maker_seconds(args.pack, args.weights, args.batch, args.rounds * args.steps, voxels, args.pack_shapes)
+            print(f"sample maker ({'with' if voxels else 'without'} voxel targets): {args.batch / statistics.median(t):.1f} samples/s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,312 @@
+"""``genre train session``: the training every session starts in its first minutes, in the background.
+
+It trains the inpainting net (``--nets inpaint``) or the inpainting net and the
+refiner together (``--nets both``) from samples made on the fly from a training
+pack's meshes (:class:`training.learn.burst.ViewMaker`: random views from
+−10° to 88°, the true depth plus a smooth error, the true full spherical map,
+the refiner's distance target), on whatever device there is, with each net run
+as :class:`~training.learn.burst.Speed` says for that device.  No rendering is
+needed; the inpainting net needs no distance grid either, so it starts at once.
+
+It never ends by itself unless ``--hours`` or ``--max-steps`` says so.  Every
+``--checkpoint-minutes`` (default 3), on SIGINT / SIGTERM and at the end it
+writes, atomically, into ``OUT/NETS/``:
+
+* ``state.safetensors`` + ``state.json``: the model, the optimiser, the step
+  and the processor time; the next run of the same command resumes from it,
+  on this machine or (copied) another;
+* ``weights.safetensors`` (+ ``.json``): the model as a weights file that
+  ``--weights`` and ``genre eval`` read (no pickle);
+* ``log.csv``: one row every ``--log-every`` steps (rows past the checkpoint
+  that a kill lost are dropped on resume).
+
+Without a state it starts from ``--init`` (default: the installed
+``default`` weights).  The learning rate follows the recipe's step schedule
+(:class:`~training.learn.recipe.BurstRecipe` ``total_steps``): warm-up, a
+cosine to ``lr_final`` × lr at ``total_steps``, then flat, so a run cut into
+sessions follows the same curve as one run.  Each step's views are drawn from
+a generator seeded by (seed, step): a resumed run draws what an unbroken one
+would.  The next step's samples are made in a second thread while the current
+step trains (torch releases the GIL in its kernels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import signal
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from genre_backend.config import GenreConfig
+from genre_backend.io import resolve_weights
+from genre_backend.nets.model import GenRe, load_model, save_model
+
+from ..data.pack import read_pack
+from .burst import Speed, ViewMaker, _step_loss, apply_speed
+from .checkpoint import cpu_seconds
+from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
+
+__all__ = ["SessionSpec", "lr_at", "run_session", "main"]
+
+NETS = ("inpaint", "both")
+STATE, STATE_JSON, WEIGHTS, LOG = "state.safetensors", "state.json", "weights.safetensors", "log.csv"
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """One session's training: what it reads, where it writes, which nets, how long."""
+
+    pack: str
+    out: str
+    nets: str = "inpaint"
+    init: str = "default"
+    recipe: str = "session"
+    hours: float | None = None  # None: until stopped
+    max_steps: int | None = None  # stop at this global step too
+    batch_size: int | None = None  # None: the recipe's
+    device: str = "auto"
+    seed: int = 0
+    threads: int | None = None  # None: every core
+    checkpoint_minutes: float = 3.0
+    log_every: int = 25
+    shapes: int | None = None  # only the first K shapes of the pack (tests)
+    grid_cache: str | None = None  # None: $GENRE_HOME/cache/distance_grids
+
+    def __post_init__(self):
+        if self.nets not in NETS:
+            raise ValueError(f"nets: expected one of {', '.join(NETS)}, got {self.nets!r}")
+        get_burst_recipe(self.recipe)
+        for name in ("hours", "checkpoint_minutes"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive number, got {v!r}")
+        for name in ("max_steps", "batch_size", "threads", "shapes", "log_every"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise ValueError(f"{name}: expected a positive int, got {v!r}")
+
+
+def lr_at(recipe: BurstRecipe, step: int) -> float:
+    """The learning rate of global step ``step`` (0-based) under ``recipe``'s step schedule."""
+    total = max(recipe.total_steps, 1)
+    warm = min(1.0, (step + 1) / recipe.warmup_steps) if recipe.warmup_steps > 0 else 1.0
+    cosine = 0.5 * (1 + math.cos(math.pi * min(step / total, 1.0)))
+    return recipe.lr * warm * (recipe.lr_final + (1 - recipe.lr_final) * cosine)
+
+
+def _trained(model: GenRe, nets: str) -> list[torch.nn.Module]:
+    return [model.inpaint_net] if nets == "inpaint" else [model.inpaint_net, model.refiner]
+
+
+def _save_state(folder: Path, model: GenRe, opt: torch.optim.Optimizer, meta: dict) -> None:
+    """state.safetensors (model + optimiser tensors) and state.json, each replaced atomically, the JSON last."""
+    from safetensors.torch import save_file
+
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    opt_state = opt.state_dict()
+    scalars = {}
+    for idx, st in opt_state["state"].items():
+        for name, val in st.items():
+            if torch.is_tensor(val):
+                tensors[f"opt.{idx}.{name}"] = val.detach().cpu().contiguous()
+            else:
+                scalars[f"{idx}.{name}"] = val
+    tmp = folder / f".{STATE}.tmp-{os.getpid()}"
+    save_file(tensors, str(tmp))
+    os.replace(tmp, folder / STATE)
+    doc = {**meta, "config": model.config.to_dict(), "param_groups": opt_state["param_groups"], "opt_scalars": scalars}
+    tmp = folder / f".{STATE_JSON}.tmp-{os.getpid()}"
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, folder / STATE_JSON)
+
+
+def _load_state(folder: Path) -> tuple[GenRe, dict, dict] | None:
+    """(model, optimiser state dict, meta) from ``folder``'s state, or None when it has none."""
+    from safetensors.torch import load_file
+
+    if not (folder / STATE_JSON).is_file():
+        return None
+    doc = json.loads((folder / STATE_JSON).read_text())
+    tensors = load_file(str(folder / STATE))
+    model = GenRe(GenreConfig.from_dict(doc["config"]))
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, strict=True)
+    state: dict = {}
+    for key, val in tensors.items():
+        if key.startswith("opt."):
+            _, idx, name = key.split(".", 2)
+            state.setdefault(int(idx), {})[name] = val
+    for key, val in doc["opt_scalars"].items():
+        idx, name = key.split(".", 1)
+        state.setdefault(int(idx), {})[name] = val
+    return model, {"state": state, "param_groups": doc["param_groups"]}, doc
+
+
+def _trim_log(path: Path, step: int) -> list[dict]:
+    """log.csv's rows up to ``step`` (the rest were written after the state a resume starts from)."""
+    if not path.is_file():
+        return []
+    with open(path, newline="") as fh:
+        return [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
+
+
+def _write_log(path: Path, rows: list[dict]) -> None:
+    if not rows:
+        return
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]), extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
+
+
+def run_session(spec: SessionSpec, say=print) -> dict:
+    """Train until the budget ends or a signal comes; returns the summary (also in state.json)."""
+    from training.data.corpus import data_dir
+
+    t0 = time.time()
+    torch.set_num_threads(spec.threads or os.cpu_count() or 1)
+    recipe = get_burst_recipe(spec.recipe)
+    device = torch.device("cuda" if spec.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if spec.device == "auto" else spec.device))
+    speed = Speed.for_device(device)
+    folder = Path(spec.out) / spec.nets
+    folder.mkdir(parents=True, exist_ok=True)
+    resumed = _load_state(folder)
+    if resumed is None:
+        init = resolve_weights(spec.init)
+        model, opt_state, meta0 = load_model(init), None, {"step": 0, "samples": 0, "cpu_s": 0.0, "init": str(init)}
+        say(f"session: starting from {init}")
+    else:
+        model, opt_state, meta0 = resumed
+        say(f"session: resuming {folder} at step {meta0['step']} (from {meta0.get('init')})")
+    model = apply_speed(model.to(device), speed)
+    grid_cache = spec.grid_cache or str(data_dir() / "cache" / "distance_grids")
+    maker = ViewMaker(read_pack(spec.pack), model.config, device, recipe.grid_factor, spec.shapes, progress=say,
+                      voxels=spec.nets == "both", grid_cache=grid_cache)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    trained = _trained(model, spec.nets)
+    params = [p for net in trained for p in net.parameters()]
+    for p in params:
+        p.requires_grad_(True)
+    opt = torch.optim.AdamW(params, lr=recipe.lr, betas=(recipe.beta1, recipe.beta2), weight_decay=recipe.weight_decay)
+    if opt_state is not None:
+        opt.load_state_dict(opt_state)
+    model.eval()
+    for net in trained:
+        net.train()
+    batch = spec.batch_size or recipe.batch_size
+    step, samples, cpu_before = int(meta0["step"]), int(meta0["samples"]), float(meta0["cpu_s"])
+    rows = _trim_log(folder / LOG, step)
+    say(f"session: {spec.nets} on {device} ({torch.get_num_threads()} threads), {speed}, batch {batch}, "
+        f"{len(maker)} shapes, recipe {recipe.name}; set-up {time.time() - t0:.0f} s")
+
+    stop = {"signal": None}
+
+    def on_signal(signum, _frame):
+        stop["signal"] = signum
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    session_start, session_step0, last_ck = time.time(), step, time.time()
+    deadline = None if spec.hours is None else session_start + spec.hours * 3600.0
+
+    def draw(k: int) -> dict:
+        gen = torch.Generator().manual_seed(spec.seed * 1_000_003 + k)
+        shape, az, el = maker.draw(gen, batch, recipe)
+        return maker.make(shape, az, el, recipe.depth_noise, gen)
+
+    def meta(final: bool) -> dict:
+        elapsed = time.time() - session_start
+        done = step - session_step0
+        return {"step": step, "samples": samples, "cpu_s": cpu_before + cpu_seconds(), "init": meta0.get("init"),
+                "recipe": recipe.name, "nets": spec.nets, "batch": batch, "device": str(device),
+                "threads": torch.get_num_threads(), "speed": speed.__dict__, "final": final,
+                "session_steps": done, "session_samples_per_s": done * batch / max(elapsed, 1e-9)}
+
+    def checkpoint(final: bool) -> None:
+        m = meta(final)
+        _save_state(folder, model, opt, m)
+        save_model(model, folder / WEIGHTS, {"session": {k: m[k] for k in ("step", "samples", "recipe", "nets", "init")}},
+                   half=True)
+        _write_log(folder / LOG, rows)
+
+    pool = ThreadPoolExecutor(1)
+    try:
+        upcoming = pool.submit(draw, step)
+        while stop["signal"] is None and (deadline is None or time.time() < deadline) and \
+                (spec.max_steps is None or step < spec.max_steps):
+            sample = upcoming.result()
+            upcoming = pool.submit(draw, step + 1)
+            lr = lr_at(recipe, step)
+            for group in opt.param_groups:
+                group["lr"] = lr
+            loss, terms = _step_loss(model, sample, recipe, speed=speed, refiner=spec.nets == "both")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step, samples = step + 1, samples + batch
+            if step % spec.log_every == 0:
+                elapsed = time.time() - session_start
+                rows.append({"step": step, "seconds": round(elapsed, 1), "lr": lr, "batch": batch,
+                             "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}})
+                say(f"step {step:7d}  loss {rows[-1]['loss']:.4f}  "
+                    f"{(step - session_step0) * batch / max(elapsed, 1e-9):.1f} samples/s  lr {lr:.2e}")
+            if time.time() - last_ck >= spec.checkpoint_minutes * 60.0:
+                checkpoint(False)
+                last_ck = time.time()
+                say(f"checkpoint: step {step}, {folder}")
+        upcoming.cancel()
+    finally:
+        pool.shutdown(wait=True)
+        for s, h in old.items():
+            signal.signal(s, h)
+    checkpoint(True)
+    summary = meta(True)
+    why = f"signal {stop['signal']}" if stop["signal"] else "budget"
+    say(f"session: stopped ({why}) at step {step}; {summary['session_samples_per_s']:.1f} samples/s; state in {folder}")
+    return summary
+
+
+def main(argv: list[str] | None = None, prog: str = "genre train session") -> int:
+    from training.data.corpus import data_dir
+
+    home = data_dir()
+    parser = argparse.ArgumentParser(prog=prog, description="Train the inpainting net (and the refiner) from a "
+                                     "training pack, resuming, checkpointing every few minutes (training/learn/session.py).")
+    parser.add_argument("--pack", default=str(home / "pack"), help="a training pack (genre data pack; default $GENRE_HOME/pack)")
+    parser.add_argument("--out", default=str(home / "runs" / "session"), help="default $GENRE_HOME/runs/session")
+    parser.add_argument("--nets", default="inpaint", choices=NETS, help="what trains (default inpaint)")
+    parser.add_argument("--init", default="default", help="weights to start from when OUT/NETS holds no state")
+    parser.add_argument("--recipe", default="session", choices=sorted(BURST_RECIPES))
+    parser.add_argument("--hours", type=float, default=None, help="stop after this long (default: until stopped)")
+    parser.add_argument("--max-steps", type=int, default=None)
+    parser.add_argument("--batch-size", type=int, default=None)
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--checkpoint-minutes", type=float, default=3.0)
+    parser.add_argument("--log-every", type=int, default=25)
+    parser.add_argument("--shapes", type=int, default=None)
+    parser.add_argument("--grid-cache", default=None)
+    args = parser.parse_args(argv)
+    try:
+        spec = SessionSpec(**{k: v for k, v in vars(args).items()})
+        run_session(spec, say=lambda m: print(m, flush=True))
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
