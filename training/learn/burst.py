@@ -384,7 +384,7 @@ class Speed:
 
     Chosen per device by measurement (``genre bench train``): on CUDA every
     switch is on; on this project's CPUs (Xeon with AVX-512-BF16 and AMX) only
-    those that measured faster (:data:`CPU_SPEED`).  Every switch off is the
+    those that measured faster (:data:`CPU_SPEED`: channels-last).  Every switch off is the
     plain fp32 contiguous path, the reference the fast one is tested against.
     """
 
@@ -400,8 +400,9 @@ class Speed:
 
 REFERENCE_SPEED = Speed()
 CUDA_SPEED = Speed(True, True, True, True)
-# measured on the 2-core Xeon (genre bench train, docs/benchmarks.md): see there for the figures
-CPU_SPEED = Speed(inpaint_channels_last=True, inpaint_bf16=True, refiner_channels_last=True, refiner_bf16=True)
+# measured on the 2-core Xeon (genre bench train, docs/benchmarks.md): channels-last wins for both nets; bf16
+# autocast loses 3-4x there (torch 2.13 CPU), so it stays off
+CPU_SPEED = Speed(inpaint_channels_last=True, inpaint_bf16=False, refiner_channels_last=True, refiner_bf16=False)
 
 
 def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None = None, channels_last: bool | None = None,
@@ -431,6 +432,8 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None
     with torch.no_grad():
         vox_depth = model.depth_voxels(sample["depth"])
     full = crop_sph(parts["map"], g.sph_pad)[:, 0]
+    if "teacher" in sample:  # (B,) bool: these samples feed the refiner the true full map
+        full = torch.where(sample["teacher"][:, None, None], sample["full_sph"], full)
     vox_sph = model.sph_voxels(full)
     with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=speed.refiner_bf16):
         x = torch.cat([vox_sph, vox_depth], dim=1)

@@ -259,15 +259,18 @@ class BurstRecipe:
     grid_factor: int = 2
     total_steps: int = 0  # > 0: the schedule follows steps (genre train session), not the wall clock
     warmup_steps: int = 0
+    sph_teacher: float = 0.0  # the share of samples whose refiner input is the true full map (genre train session)
 
     def __post_init__(self):
         for name in ("lr", "lr_final", "beta1", "beta2", "surface_weight", "sph_weight", "depth_noise", "warmup_s",
-                     "weight_decay"):
+                     "weight_decay", "sph_teacher"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
         if not (self.lr > 0 and self.lr_final <= 1 and self.beta1 < 1 and self.beta2 < 1):
             raise ValueError("lr must be > 0, lr_final ≤ 1, betas < 1")
+        if self.sph_teacher > 1:
+            raise ValueError(f"sph_teacher: a share in [0, 1], got {self.sph_teacher!r}")
         for name in ("batch_size", "grid_factor"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

@@ -223,7 +223,10 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     def draw(k: int) -> dict:
         gen = torch.Generator().manual_seed(spec.seed * 1_000_003 + k)
         shape, az, el = maker.draw(gen, batch, recipe)
-        return maker.make(shape, az, el, recipe.depth_noise, gen)
+        sample = maker.make(shape, az, el, recipe.depth_noise, gen)
+        if recipe.sph_teacher > 0:
+            sample["teacher"] = torch.rand(batch, generator=gen) < recipe.sph_teacher
+        return sample
 
     def meta(final: bool) -> dict:
         elapsed = time.time() - session_start

@@ -94,8 +94,10 @@ def test_the_distance_grid_cache_returns_what_it_would_make(prim_pack, tmp_path)
 
 
 def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack):
-    """Channels-last and bf16 autocast (CPU_SPEED) against fp32 contiguous: the same losses over the first steps
-    of training from the same weights on the same samples, within 3 % (bf16 keeps 8 bits of mantissa)."""
+    """The CPU's fast path (CPU_SPEED: channels-last; bf16 autocast where it is on) against fp32 contiguous: the
+    same losses over the first five steps of training from the same weights on the same samples, within 3 %.
+    Measured with channels-last alone: 2e-4 at the first step (other convolution kernels, other rounding),
+    1.7 % by the fifth (Adam's steps amplify the difference in small gradients)."""
     from training.data.pack import read_pack
     from training.learn.burst import CPU_SPEED, REFERENCE_SPEED, ViewMaker, _step_loss, apply_speed
     from training.learn.recipe import get_burst_recipe
@@ -120,6 +122,7 @@ def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack):
             losses.append(float(loss.detach()))
         curves[name] = losses
     assert all(math.isfinite(x) for x in curves["fast"])
+    assert abs(curves["plain"][0] - curves["fast"][0]) <= 1e-3 * curves["plain"][0]  # the same weights, one pass
     for a, b in zip(curves["plain"], curves["fast"]):
         assert abs(a - b) <= 0.03 * abs(a), curves
     assert curves["plain"][-1] < curves["plain"][0]  # and the steps do train
