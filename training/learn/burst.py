@@ -407,19 +407,21 @@ CPU_SPEED = Speed(inpaint_channels_last=True, inpaint_bf16=False, refiner_channe
 
 def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None = None, channels_last: bool | None = None,
                speed: Speed | None = None, refiner: bool = True) -> tuple[torch.Tensor, dict]:
-    """One step's loss: the partial map and depth voxels of ``sample["depth"]`` (no gradient), the inpainting net
+    """One step's loss: the partial map (``sample["partial"]``, else made) and depth voxels of ``sample["depth"]``
+    (no gradient), the inpainting net
     and (``refiner``) the refiner, run as ``speed`` says (default: :meth:`Speed.for_device`; ``amp`` and
     ``channels_last``, when given, set both nets' switches); the voxel loss plus ``sph_weight`` × the spherical
     loss, or the spherical loss alone without the refiner.  Returns (loss, {term: value})."""
     g = model.config.geometry
-    dev_type = sample["depth"].device.type
-    speed = speed or Speed.for_device(sample["depth"].device)
+    device = sample["full_sph"].device
+    dev_type = device.type
+    speed = speed or Speed.for_device(device)
     if amp is not None:
         speed = dataclasses.replace(speed, inpaint_bf16=amp, refiner_bf16=amp)
     if channels_last is not None:
         speed = dataclasses.replace(speed, inpaint_channels_last=channels_last, refiner_channels_last=channels_last)
     with torch.no_grad():
-        partial = model.partial_sph(sample["depth"])
+        partial = sample["partial"] if "partial" in sample else model.partial_sph(sample["depth"])
     with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=speed.inpaint_bf16):
         padded = pad_sph(partial[:, None], g.sph_pad)
         if speed.inpaint_channels_last:

@@ -260,6 +260,8 @@ class BurstRecipe:
     total_steps: int = 0  # > 0: the schedule follows steps (genre train session), not the wall clock
     warmup_steps: int = 0
     sph_teacher: float = 0.0  # the share of samples whose refiner input is the true full map (genre train session)
+    reuse: int = 1  # genre train session: each made sample is trained on this many times on average (a replay buffer)
+    buffer_steps: int = 0  # ... drawn from the samples of the last this many steps (0: the current step's only)
 
     def __post_init__(self):
         for name in ("lr", "lr_final", "beta1", "beta2", "surface_weight", "sph_weight", "depth_noise", "warmup_s",
@@ -271,11 +273,11 @@ class BurstRecipe:
             raise ValueError("lr must be > 0, lr_final ≤ 1, betas < 1")
         if self.sph_teacher > 1:
             raise ValueError(f"sph_teacher: a share in [0, 1], got {self.sph_teacher!r}")
-        for name in ("batch_size", "grid_factor"):
+        for name in ("batch_size", "grid_factor", "reuse"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive int, got {value!r}")
-        for name in ("total_steps", "warmup_steps"):
+        for name in ("total_steps", "warmup_steps", "buffer_steps"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"{name}: expected an int >= 0, got {value!r}")
@@ -300,8 +302,9 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
     BurstRecipe(
         name="session",
         description="genre train session on the CPU: the --init weights' own nets warm-started, batch 16, lr 5e-4 "
-                    "with a 200-step warm-up and a cosine to 5 % over 40,000 steps (several sessions), then flat",
-        lr=5e-4, batch_size=16, total_steps=40_000, warmup_steps=200,
+                    "with a 200-step warm-up and a cosine to 5 % over 40,000 steps (several sessions), then flat; "
+                    "4 fresh views a step, the batch drawn from the last 250 steps' views (each seen ~4 times)",
+        lr=5e-4, batch_size=16, total_steps=40_000, warmup_steps=200, reuse=4, buffer_steps=250,
     ),
 )}
 

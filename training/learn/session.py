@@ -26,8 +26,12 @@ Without a state it starts from ``--init`` (default: the installed
 cosine to ``lr_final`` × lr at ``total_steps``, then flat, so a run cut into
 sessions follows the same curve as one run.  Each step's views are drawn from
 a generator seeded by (seed, step): a resumed run draws what an unbroken one
-would.  The next step's samples are made in a second thread while the current
-step trains (torch releases the GIL in its kernels).
+would.  The next step's views are made in a second thread while the current
+step trains (torch releases the GIL in its kernels).  Making a view costs about
+as much as training on it (the spherical ray casts), so the recipe's ``reuse``
+makes ``batch / reuse`` fresh views a step and fills the batch from the views of
+the last ``buffer_steps`` steps, each mirrored at random when only the inpainting
+net trains; a resumed run first remakes the buffer an unbroken run would hold.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ import os
 import signal
 import sys
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +52,7 @@ from pathlib import Path
 import torch
 
 from genre_backend.config import GenreConfig
+from genre_backend.geometry.spherical import mirror_sph
 from genre_backend.io import resolve_weights
 from genre_backend.nets.model import GenRe, load_model, save_model
 
@@ -220,13 +226,40 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     session_start, session_step0, last_ck = time.time(), step, time.time()
     deadline = None if spec.hours is None else session_start + spec.hours * 3600.0
 
-    def draw(k: int) -> dict:
+    fresh = max(1, batch // recipe.reuse)  # views made per step
+    keep = ("partial", "full_sph", "teacher") if spec.nets == "inpaint" else None
+
+    def make(k: int) -> dict:
+        """Step ``k``'s fresh views, partial maps included (a function of (seed, k) alone)."""
         gen = torch.Generator().manual_seed(spec.seed * 1_000_003 + k)
-        shape, az, el = maker.draw(gen, batch, recipe)
+        shape, az, el = maker.draw(gen, fresh, recipe)
         sample = maker.make(shape, az, el, recipe.depth_noise, gen)
+        with torch.no_grad():
+            sample["partial"] = model.partial_sph(sample["depth"])  # (the projection only: no parameters)
         if recipe.sph_teacher > 0:
-            sample["teacher"] = torch.rand(batch, generator=gen) < recipe.sph_teacher
-        return sample
+            sample["teacher"] = torch.rand(fresh, generator=gen) < recipe.sph_teacher
+        return sample if keep is None else {k2: v for k2, v in sample.items() if k2 in keep}
+
+    buffer: deque = deque(maxlen=max(1, recipe.buffer_steps))
+
+    def batch_of(k: int) -> dict:
+        """Step ``k``'s batch: its fresh views and the rest drawn from the buffer's, mirrored at random when only
+        the inpainting net trains (the reflection of a view is a view of the reflected shape)."""
+        gen = torch.Generator().manual_seed(spec.seed * 1_000_003 + k + 2**40)
+        sizes = [len(entry["full_sph"]) for entry in buffer]
+        flat = torch.cat([torch.stack([torch.full((n,), e), torch.arange(n)], 1) for e, n in enumerate(sizes)])
+        current = flat[-sizes[-1]:]
+        extra = flat[torch.randint(len(flat), (batch - len(current),), generator=gen)] if batch > len(current) else flat[:0]
+        pick = torch.cat([current, extra])[:batch]
+        out = {name: torch.stack([buffer[int(e)][name][int(i)] for e, i in pick]) for name in buffer[-1]}
+        if spec.nets == "inpaint":
+            flip = torch.rand(len(pick), generator=gen) < 0.5
+            for name in ("partial", "full_sph"):
+                out[name] = torch.where(flip[:, None, None], mirror_sph(out[name]), out[name])
+        return out
+
+    for k in range(max(0, step - buffer.maxlen + 1), step):  # a resumed run's buffer is what an unbroken one holds
+        buffer.append(make(k))
 
     def meta(final: bool) -> dict:
         elapsed = time.time() - session_start
@@ -245,11 +278,12 @@ def run_session(spec: SessionSpec, say=print) -> dict:
 
     pool = ThreadPoolExecutor(1)
     try:
-        upcoming = pool.submit(draw, step)
+        upcoming = pool.submit(make, step)
         while stop["signal"] is None and (deadline is None or time.time() < deadline) and \
                 (spec.max_steps is None or step < spec.max_steps):
-            sample = upcoming.result()
-            upcoming = pool.submit(draw, step + 1)
+            buffer.append(upcoming.result())
+            upcoming = pool.submit(make, step + 1)
+            sample = batch_of(step)
             lr = lr_at(recipe, step)
             for group in opt.param_groups:
                 group["lr"] = lr
