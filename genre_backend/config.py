@@ -204,6 +204,12 @@ class GeometryConfig:
     # reconstruction and in evaluation (every learned row alike).  Twice the nets' time.  Turned on only by
     # the rule in results/decisions.md.  Weights stored without the key: off.
     test_time_mirror: bool = False
+    # The seen side kept: the full spherical map takes the partial map's own value wherever the partial map
+    # sees the surface, the inpainting net's elsewhere (nets.model.GenRe.forward).  The net predicts every
+    # pixel afresh; on the seen side its map is ~1.7x further from the truth than its own input
+    # (scripts/inpaint_errors.py, results/stage_errors/inpaint.md).  Turned on only by the rule in
+    # results/decisions.md.  Weights stored without the key: off.
+    sph_keep_seen: bool = False
     # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
     # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at
     # the top of that range for every learned row (first weights: 0.70; the shipped ones: 0.75),
@@ -248,6 +254,8 @@ class GeometryConfig:
             raise ValueError(f"geometry.primitive_snap: expected a share in [0, 1), got {self.primitive_snap!r}")
         if not isinstance(self.test_time_mirror, bool):
             raise ValueError(f"geometry.test_time_mirror: expected true or false, got {self.test_time_mirror!r}")
+        if not isinstance(self.sph_keep_seen, bool):
+            raise ValueError(f"geometry.sph_keep_seen: expected true or false, got {self.sph_keep_seen!r}")
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")
         for name in ("default_threshold", "threshold_min", "threshold_max"):

@@ -90,6 +90,29 @@ def test_oracle_inputs_replace_network_outputs():
     assert (out["masked_depth"][~mask] == 0).all()
 
 
+def test_keeping_the_seen_side_takes_the_partial_map_where_it_sees_and_the_net_elsewhere():
+    import dataclasses
+
+    cfg = get_preset("default")
+    g = cfg.geometry
+    torch.manual_seed(0)
+    plain = GenRe(cfg).eval()
+    keep = GenRe(dataclasses.replace(cfg, geometry=dataclasses.replace(g, sph_keep_seen=True))).eval()
+    keep.load_state_dict(plain.state_dict())
+    # a box 1.9–2.1 units away, seen face-on: the partial map sees the near hemisphere's middle
+    depth = torch.full((1, g.image_size, g.image_size), 2.0)
+    mask = torch.zeros(1, g.image_size, g.image_size, dtype=torch.bool)
+    mask[:, 40:88, 40:88] = True
+    rgb = torch.rand(1, 3, g.image_size, g.image_size)
+    with torch.no_grad():
+        a, b = plain(rgb, mask=mask, depth=depth), keep(rgb, mask=mask, depth=depth)
+    seen = a["partial_sph"] < g.sph_nohit_min
+    assert 50 < int(seen.sum()) < g.sph_size ** 2 // 2
+    assert torch.equal(b["full_sph"][seen], a["partial_sph"][seen])
+    assert torch.equal(b["full_sph"][~seen], a["full_sph"][~seen])
+    assert not torch.equal(a["full_sph"][seen], a["partial_sph"][seen])  # the net alone does not copy its input
+
+
 def test_weights_round_trip_and_bad_files(tmp_path):
     cfg = get_preset("default")
     model = GenRe(cfg)
