@@ -198,7 +198,7 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     model = apply_speed(model.to(device), speed)
     grid_cache = spec.grid_cache or str(data_dir() / "cache" / "distance_grids")
     maker = ViewMaker(read_pack(spec.pack), model.config, device, recipe.grid_factor, spec.shapes, progress=say,
-                      voxels=spec.nets == "both", grid_cache=grid_cache)
+                      voxels=spec.nets == "both", grid_cache=grid_cache, targets="exact" if device.type == "cpu" else "grid")
     for p in model.parameters():
         p.requires_grad_(False)
     trained = _trained(model, spec.nets)

@@ -128,6 +128,18 @@ def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack):
     assert curves["plain"][-1] < curves["plain"][0]  # and the steps do train
 
 
+def test_the_cpu_distance_grid_matches_the_pair_tests():
+    """libigl's AABB tree (the CPU's way) and the exact pair tests (any device) give the same grid."""
+    from training.learn.burst import object_distance_grid
+
+    mesh = trimesh.creation.annulus(r_min=0.15, r_max=0.3, height=0.2, sections=20)
+    v, f = torch.from_numpy(mesh.vertices).float(), torch.from_numpy(mesh.faces)
+    a = object_distance_grid(v, f, TINY.geometry, 2, exact="igl")
+    b = object_distance_grid(v, f, TINY.geometry, 2, exact="torch")
+    assert int((b > 0).sum()) > 500
+    assert int((a.int() - b.int()).abs().max()) <= 1  # uint8 steps: float32 against float64 rounding at most
+
+
 def test_a_bad_session_spec_is_refused_with_its_field():
     from training.learn.session import SessionSpec
 
@@ -137,3 +149,20 @@ def test_a_bad_session_spec_is_refused_with_its_field():
         SessionSpec(pack="p", out="o", hours=-1.0)
     with pytest.raises(ValueError, match="batch_size"):
         SessionSpec(pack="p", out="o", batch_size=0)
+
+
+def test_exact_view_targets_match_the_resampled_grid(prim_pack):
+    """The CPU's per-view exact targets (libigl) against the burst's resampled object-frame grid: the same band."""
+    from training.data.pack import read_pack
+    from training.learn.burst import ViewMaker
+
+    pack = read_pack(prim_pack[0])
+    grid = ViewMaker(pack, TINY, torch.device("cpu"), grid_factor=2)
+    exact = ViewMaker(pack, TINY, torch.device("cpu"), targets="exact")
+    args = (torch.tensor([0, 1, 2]), torch.tensor([30.0, 200.0, 95.0]), torch.tensor([20.0, 70.0, -5.0]))
+    a, b = grid.make(*args)["voxels"], exact.make(*args)["voxels"]
+    band = (a > 0) | (b > 0)
+    assert int(band.sum()) > 300
+    assert float((a - b)[band].abs().mean()) < 0.05
+    iou = ((a > 0.45) & (b > 0.45)).sum() / ((a > 0.45) | (b > 0.45)).sum()
+    assert float(iou) > 0.9
