@@ -78,7 +78,7 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
             hole_closing: int | None = None, sph_hit_probability: float | None = None,
             silhouette_carve: bool | None = None, visible_fusion: bool | None = None,
             primitive_snap: float | None = None, test_time_mirror: bool | None = None, half: bool = False,
-            pit_sealing: int | None = None) -> float:
+            pit_sealing: int | None = None, settings: dict | None = None) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
@@ -101,6 +101,7 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     the weights' own.
     ``half``: store the weights as float16, the batch-norm statistics as float32 (``save_model(half=True)``:
     half the file, read back into float32).
+    ``settings``: any other ``geometry`` fields to store, by name (``--set NAME=JSON``), checked by the config.
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -127,15 +128,21 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
             raise ValueError(f"{weights}: --sph-hit-probability needs hit-head weights (network.inpaint_head = 'hit'), "
                              f"these have {config.network.inpaint_head!r}")
         geometry = dataclasses.replace(geometry, sph_hit_probability=float(sph_hit_probability))
+    if settings:
+        known = {f.name for f in dataclasses.fields(geometry)}
+        unknown = sorted(set(settings) - known)
+        if unknown:
+            raise ValueError(f"--set: unknown geometry settings {unknown}")
+        geometry = dataclasses.replace(geometry, **settings)  # (validated by the config)
     model.config = dataclasses.replace(config, geometry=geometry)
     shipped = named_weights(name)
     out = Path(out) if out is not None else shipped
     out.parent.mkdir(parents=True, exist_ok=True)
     given = {"hole_closing": hole_closing, "silhouette_carve": silhouette_carve, "visible_fusion": visible_fusion,
              "primitive_snap": primitive_snap, "test_time_mirror": test_time_mirror, "pit_sealing": pit_sealing,
-             "sph_hit_probability": sph_hit_probability}
+             "sph_hit_probability": sph_hit_probability, **(settings or {})}
     extra = {"source": str(weights), "threshold_from": str(thresholds), "model": name,
-             **{f"{k}_from": _SETTING_FROM[k] for k, v in given.items() if v is not None}}
+             **{f"{k}_from": _SETTING_FROM.get(k, "results/decisions.md") for k, v in given.items() if v is not None}}
     save_model(model, out, extra, half=half)
     if name == PROTOCOL_WEIGHTS_NAME and out.resolve() == shipped.resolve():
         interim = named_weights(DEFAULT_WEIGHTS_NAME)
@@ -179,7 +186,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fp16", action="store_true",
                    help="store the weights as float16 (half the file; inference still computes in float32; check the "
                         "scores stay within 1e-3 CD of the float32 file's)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=JSON",
+                   help="store another geometry setting, e.g. --set sph_keep_seen=true (repeatable)")
     args = p.parse_args(argv)
+    settings = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError("expected NAME=JSON")
+            settings[key.strip()] = json.loads(value)
+        except ValueError as exc:
+            p.error(f"--set {item!r}: {exc}")
     out = args.out if args.out is not None else named_weights(args.name)
     interim = named_weights(DEFAULT_WEIGHTS_NAME)
     refresh = (args.name == PROTOCOL_WEIGHTS_NAME and out.resolve() == named_weights(PROTOCOL_WEIGHTS_NAME).resolve()
@@ -189,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
                     hole_closing=args.hole_closing, sph_hit_probability=args.sph_hit_probability,
                     silhouette_carve=args.silhouette_carve, visible_fusion=args.visible_fusion,
                     primitive_snap=args.primitive_snap, test_time_mirror=args.test_time_mirror, half=args.fp16,
-                    pit_sealing=args.pit_sealing)
+                    pit_sealing=args.pit_sealing, settings=settings)
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1

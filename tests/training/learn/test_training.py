@@ -426,6 +426,14 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     save_model(GenRe(dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, target="shell"))), shell)
     with pytest.raises(ValueError, match="pit_sealing"):
         install(shell, 0.4, tmp_path / "bad_pits.safetensors", pit_sealing=2)
+    # any other geometry setting by name, checked by the config
+    install(src, 0.4, tmp_path / "keep.safetensors", settings={"sph_keep_seen": True})
+    assert load_model(tmp_path / "keep.safetensors").config.geometry.sph_keep_seen is True
+    assert load_model(src).config.geometry.sph_keep_seen is False
+    with pytest.raises(ValueError, match="unknown geometry settings"):
+        install(src, 0.4, tmp_path / "bad.safetensors", settings={"no_such": 1})
+    with pytest.raises(ValueError, match="sph_keep_seen"):
+        install(src, 0.4, tmp_path / "bad.safetensors", settings={"sph_keep_seen": 3})
 
 
 def _extra(path) -> dict:
