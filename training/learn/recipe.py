@@ -306,6 +306,14 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
                     "4 fresh views a step, the batch drawn from the last 250 steps' views (each seen ~4 times)",
         lr=5e-4, batch_size=16, total_steps=40_000, warmup_steps=200, reuse=4, buffer_steps=250,
     ),
+    BurstRecipe(
+        name="session-both",
+        description="genre train session --nets both on the CPU: the inpainting net and the refiner together, batch 4, "
+                    "lr 5e-4 with a 200-step warm-up and a cosine to 5 % over 20,000 steps; a quarter of the samples "
+                    "feed the refiner the true full map (so that it learns to use the map); 2 fresh views a step, the "
+                    "batch drawn from the last 100 steps' views",
+        lr=5e-4, batch_size=4, total_steps=20_000, warmup_steps=200, reuse=2, buffer_steps=100, sph_teacher=0.25,
+    ),
 )}
 
 
