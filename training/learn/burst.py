@@ -625,7 +625,17 @@ def main(argv: list[str] | None = None, prog: str = "genre train burst") -> int:
                          batch_size=args.batch_size, device=args.device, seed=args.seed,
                          checkpoint_minutes=args.checkpoint_minutes, log_every=args.log_every,
                          max_steps=args.max_steps, shapes=args.shapes)
-        run_burst(spec, say=lambda m: print(m, flush=True))
+    except ValueError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 1
+    return run_command(prog, lambda: run_burst(spec, say=lambda m: print(m, flush=True)))
+
+
+def run_command(prog: str, work) -> int:
+    """Run ``work()``; a ValueError or FileNotFoundError (bad input: a pack, weights, a spec) is one line on stderr
+    and exit status 1."""
+    try:
+        work()
     except (ValueError, FileNotFoundError) as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 1

@@ -21,7 +21,8 @@ if TYPE_CHECKING:
     from .stage import StageModule
     from .train_config import TrainConfig
 
-__all__ = ["CheckpointMismatch", "cpu_seconds", "save_checkpoint", "load_checkpoint", "checkpoint_model_config", "same_nets"]
+__all__ = ["CheckpointMismatch", "cpu_seconds", "save_checkpoint", "load_checkpoint", "checkpoint_model_config", "same_nets",
+           "optimizer_tensors", "optimizer_state", "write_state", "read_state"]
 
 
 class CheckpointMismatch(ValueError):
@@ -36,40 +37,64 @@ def cpu_seconds() -> float:
     return use.ru_utime + use.ru_stime
 
 
-def save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer, step: int, best: float, tcfg: TrainConfig,
-                     cpu_s: float = 0.0) -> None:
-    from safetensors.torch import save_file
-
-    prefix, trained = module.checkpointed()
-    tensors = {f"{prefix}.{k}": v.detach().cpu().contiguous() for k, v in trained.state_dict().items()}
+def optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
+    """The optimiser's state as tensors (``opt.IDX.NAME``) and the JSON part (``param_groups``, ``opt_scalars``)."""
     opt_state = opt.state_dict()
-    scalars = {}
+    tensors, scalars = {}, {}
     for idx, st in opt_state["state"].items():
         for name, val in st.items():
             if torch.is_tensor(val):
                 tensors[f"opt.{idx}.{name}"] = val.detach().cpu().contiguous()
             else:
                 scalars[f"{idx}.{name}"] = val
+    return tensors, {"param_groups": opt_state["param_groups"], "opt_scalars": scalars}
+
+
+def write_state(folder: Path, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    """``folder/checkpoint/`` (``state.safetensors`` + ``state.json``) replaced as a whole: it is either the old
+    state or the new one, never half (a fresh temporary folder, two renames)."""
+    from safetensors.torch import save_file
+
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f"checkpoint.tmp-{os.getpid()}-", dir=folder))  # a fresh name, never a planted one
+    os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp makes 0700; the checkpoint gets the usual permissions
+    save_file(tensors, str(tmp / "state.safetensors"))
+    (tmp / "state.json").write_text(json.dumps(meta))
+    final = folder / "checkpoint"
+    old = folder / f"checkpoint.old-{os.getpid()}"
+    if final.exists():
+        os.replace(final, old)
+    os.replace(tmp, final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def read_state(folder: Path) -> tuple[dict[str, torch.Tensor], dict] | None:
+    """What :func:`write_state` wrote (or, after a kill between its two renames, the old state); None without one."""
+    from safetensors.torch import load_file
+
+    ck = folder / "checkpoint"
+    if not (ck / "state.json").is_file():
+        old = sorted(folder.glob("checkpoint.old-*"))
+        if not old:
+            return None
+        ck = old[-1]
+    return load_file(str(ck / "state.safetensors")), json.loads((ck / "state.json").read_text())
+
+
+def save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer, step: int, best: float, tcfg: TrainConfig,
+                     cpu_s: float = 0.0) -> None:
+    prefix, trained = module.checkpointed()
+    tensors = {f"{prefix}.{k}": v.detach().cpu().contiguous() for k, v in trained.state_dict().items()}
+    opt_tensors, opt_meta = optimizer_tensors(opt)
     meta = {
         "step": step,
         "best_val": best,
         "cpu_s": cpu_s,  # the stage's processor seconds over every run so far
-        "param_groups": opt_state["param_groups"],
-        "opt_scalars": scalars,
+        **opt_meta,
         "model_config": module.model.config.to_dict(),
         "train_config": dataclasses.asdict(tcfg),
     }
-    stage_dir.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f"checkpoint.tmp-{os.getpid()}-", dir=stage_dir))  # a fresh name, never a planted one
-    os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp makes 0700; the checkpoint gets the usual permissions
-    save_file(tensors, str(tmp / "state.safetensors"))
-    (tmp / "state.json").write_text(json.dumps(meta))
-    final = stage_dir / "checkpoint"
-    old = stage_dir / f"checkpoint.old-{os.getpid()}"
-    if final.exists():
-        os.replace(final, old)
-    os.replace(tmp, final)  # the checkpoint is either the old or the new one, never half
-    shutil.rmtree(old, ignore_errors=True)
+    write_state(stage_dir, {**tensors, **opt_tensors}, meta)
 
 
 def checkpoint_model_config(stage_dir: Path) -> GenreConfig | None:
@@ -89,16 +114,11 @@ def same_nets(a: GenreConfig, b: GenreConfig) -> bool:
 
 
 def load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optimizer) -> tuple[int, float, float]:
-    from safetensors.torch import load_file
-
+    state = read_state(stage_dir)
+    if state is None:
+        return 0, math.inf, 0.0
+    tensors, meta = state
     ck = stage_dir / "checkpoint"
-    if not (ck / "state.json").is_file():
-        old = sorted(stage_dir.glob("checkpoint.old-*"))  # killed between the two renames
-        if not old:
-            return 0, math.inf, 0.0
-        ck = old[-1]
-    meta = json.loads((ck / "state.json").read_text())
-    tensors = load_file(str(ck / "state.safetensors"))
     prefix, trained = module.checkpointed()  # older baseline checkpoints also hold "model." tensors: ignored
     try:
         trained.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")})
@@ -112,7 +132,8 @@ def load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optim
     return int(meta["step"]), float(meta["best_val"]), float(meta.get("cpu_s", 0.0))
 
 
-def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+def optimizer_state(tensors: dict[str, torch.Tensor], meta: dict) -> dict[int, dict]:
+    """The optimiser's per-parameter state from :func:`optimizer_tensors`' two parts."""
     state: dict[int, dict] = {}
     for k, v in tensors.items():
         if k.startswith("opt."):
@@ -121,6 +142,11 @@ def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor]
     for k, v in meta["opt_scalars"].items():
         idx, name = k.split(".", 1)
         state.setdefault(int(idx), {})[name] = v
+    return state
+
+
+def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    state = optimizer_state(tensors, meta)
     groups = meta["param_groups"]
     for saved, current in zip(groups, opt.param_groups):
         # this run's settings win over the checkpoint's: a stage continued with another --lr (or betas)

@@ -12,9 +12,9 @@ It never ends by itself unless ``--hours`` or ``--max-steps`` says so.  Every
 ``--checkpoint-minutes`` (default 3), on SIGINT / SIGTERM and at the end it
 writes, atomically, into ``OUT/NETS/``:
 
-* ``state.safetensors`` + ``state.json``: the model, the optimiser, the step
-  and the processor time; the next run of the same command resumes from it,
-  on this machine or (copied) another;
+* ``checkpoint/`` (``state.safetensors`` + ``state.json``, replaced whole):
+  the model, the optimiser, the step and the processor time; the next run of
+  the same command resumes from it, on this machine or (copied) another;
 * ``weights.safetensors`` (+ ``.json``): the model as a weights file that
   ``--weights`` and ``genre eval`` read (no pickle);
 * ``log.csv``: one row every ``--log-every`` steps (rows past the checkpoint
@@ -57,14 +57,14 @@ from genre_backend.io import resolve_weights
 from genre_backend.nets.model import GenRe, load_model, save_model
 
 from ..data.pack import read_pack
-from .burst import Speed, ViewMaker, _step_loss, apply_speed
-from .checkpoint import cpu_seconds
+from .burst import Speed, ViewMaker, _step_loss, apply_speed, run_command
+from .checkpoint import cpu_seconds, optimizer_state, optimizer_tensors, read_state, write_state
 from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
 
 __all__ = ["SessionSpec", "lr_at", "run_session", "main"]
 
 NETS = ("inpaint", "both")
-STATE, STATE_JSON, WEIGHTS, LOG = "state.safetensors", "state.json", "weights.safetensors", "log.csv"
+WEIGHTS, LOG = "weights.safetensors", "log.csv"
 
 
 @dataclass(frozen=True)
@@ -114,46 +114,21 @@ def _trained(model: GenRe, nets: str) -> list[torch.nn.Module]:
 
 
 def _save_state(folder: Path, model: GenRe, opt: torch.optim.Optimizer, meta: dict) -> None:
-    """state.safetensors (model + optimiser tensors) and state.json, each replaced atomically, the JSON last."""
-    from safetensors.torch import save_file
-
+    """The model and optimiser as one checkpoint folder, replaced whole (:func:`~training.learn.checkpoint.write_state`)."""
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    opt_state = opt.state_dict()
-    scalars = {}
-    for idx, st in opt_state["state"].items():
-        for name, val in st.items():
-            if torch.is_tensor(val):
-                tensors[f"opt.{idx}.{name}"] = val.detach().cpu().contiguous()
-            else:
-                scalars[f"{idx}.{name}"] = val
-    tmp = folder / f".{STATE}.tmp-{os.getpid()}"
-    save_file(tensors, str(tmp))
-    os.replace(tmp, folder / STATE)
-    doc = {**meta, "config": model.config.to_dict(), "param_groups": opt_state["param_groups"], "opt_scalars": scalars}
-    tmp = folder / f".{STATE_JSON}.tmp-{os.getpid()}"
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, folder / STATE_JSON)
+    opt_tensors, opt_meta = optimizer_tensors(opt)
+    write_state(folder, {**tensors, **opt_tensors}, {**meta, "config": model.config.to_dict(), **opt_meta})
 
 
 def _load_state(folder: Path) -> tuple[GenRe, dict, dict] | None:
-    """(model, optimiser state dict, meta) from ``folder``'s state, or None when it has none."""
-    from safetensors.torch import load_file
-
-    if not (folder / STATE_JSON).is_file():
+    """(model, optimiser state dict, meta) from ``folder``'s checkpoint, or None when it has none."""
+    state = read_state(folder)
+    if state is None:
         return None
-    doc = json.loads((folder / STATE_JSON).read_text())
-    tensors = load_file(str(folder / STATE))
+    tensors, doc = state
     model = GenRe(GenreConfig.from_dict(doc["config"]))
     model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, strict=True)
-    state: dict = {}
-    for key, val in tensors.items():
-        if key.startswith("opt."):
-            _, idx, name = key.split(".", 2)
-            state.setdefault(int(idx), {})[name] = val
-    for key, val in doc["opt_scalars"].items():
-        idx, name = key.split(".", 1)
-        state.setdefault(int(idx), {})[name] = val
-    return model, {"state": state, "param_groups": doc["param_groups"]}, doc
+    return model, {"state": optimizer_state(tensors, doc), "param_groups": doc["param_groups"]}, doc
 
 
 def _trim_log(path: Path, step: int) -> list[dict]:
@@ -336,13 +311,7 @@ def main(argv: list[str] | None = None, prog: str = "genre train session") -> in
     parser.add_argument("--shapes", type=int, default=None)
     parser.add_argument("--grid-cache", default=None)
     args = parser.parse_args(argv)
-    try:
-        spec = SessionSpec(**{k: v for k, v in vars(args).items()})
-        run_session(spec, say=lambda m: print(m, flush=True))
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"{prog}: {exc}", file=sys.stderr)
-        return 1
-    return 0
+    return run_command(prog, lambda: run_session(SessionSpec(**vars(args)), say=lambda m: print(m, flush=True)))
 
 
 if __name__ == "__main__":
