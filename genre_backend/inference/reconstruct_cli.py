@@ -161,7 +161,8 @@ def _mask_inputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> t
     if args.box is not None or args.strokes is not None:
         used = " and ".join(n for n, v in (("--box", args.box), ("--strokes", args.strokes)) if v is not None)
         if len(args.images) > 1:
-            parser.error(f"{used} apply to one image; give one image per call")
+            verb = "apply" if " and " in used else "applies"
+            parser.error(f"{used} {verb} to one image; give one image per call")
         if args.mask:
             parser.error(f"give either --mask or {used}, not both")
         if args.no_refine:
