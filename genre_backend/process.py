@@ -28,7 +28,7 @@ import sys
 import threading
 from pathlib import Path  # (loaded already by the interpreter's start-up: the editable install's finder)
 
-# (no `typing`: the annotations are strings, never evaluated, and this module loads before genre serve's handlers)
+# (no `typing`: this module loads before genre serve's signal handlers, which should come as early as they can)
 
 __all__ = ["Stop", "install_stop_handlers", "take_stops", "stops_quiet", "open_missing_streams", "say", "private_folder",
            "remove_own_folders", "remove_dead_folders", "is_private_folder_name", "exit_process"]
@@ -128,7 +128,7 @@ def open_missing_streams() -> None:
                 os.close(got)
 
 
-def _write_line(stream: TextIO | None, text: str) -> bool:
+def _write_line(stream, text: str) -> bool:  # (stream: a text stream or None)
     if stream is None:
         return False
     try:
@@ -227,7 +227,7 @@ def remove_own_folders() -> None:
 
 
 # ---------------------------------------------------------------------------------------------- the end
-def exit_process(code: int, quick: bool) -> NoReturn:
+def exit_process(code: int, quick: bool):  # -> NoReturn
     """End this process with status ``code``.
 
     ``quick`` (a one-shot command such as ``genre reconstruct``, once it has returned; ``genre serve`` once it

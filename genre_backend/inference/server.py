@@ -21,7 +21,6 @@ import logging
 import math
 import os
 import queue
-import signal
 import sys
 import threading
 from dataclasses import dataclass, field
