@@ -94,7 +94,7 @@ def install_stop_handlers(at_once=None) -> None:
         return
     if not _state["installed"]:
         _state["at_once"] = at_once
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in (signal.SIGINT, signal.SIGTERM):  # (SIGTERM last: once it is caught, both are this module's)
             signal.signal(sig, _on_stop_signal)
         _state["installed"] = True
 
