@@ -160,8 +160,7 @@ def blender_session_folder():
     :func:`genre_backend.process.private_folder`), so that folder, and Blender's inside it, is removed when the
     process ends in any way it survives, and by the next process after a kill.  Wrap every ``import bpy`` and
     ``bpy.ops.wm.read_factory_settings``."""
-    if not _session_base:
-        tempfile.gettempdir()  # (Python's own temp folder read first, from the variables as the user set them)
+    if not _session_base:  # (made by mkdtemp, which reads Python's temp folder, once, before the variables change)
         _session_base.append(private_folder(SESSION_PREFIX))
     names = ("TMP", "TMPDIR")
     saved = {name: os.environ.get(name) for name in names}
