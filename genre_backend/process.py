@@ -30,7 +30,7 @@ from pathlib import Path  # (loaded already by the interpreter's start-up: the e
 
 # (no `typing`: this module loads before genre serve's signal handlers, which should come as early as they can)
 
-__all__ = ["Stop", "install_stop_handlers", "take_stops", "stops_quiet", "open_missing_streams", "say", "private_folder",
+__all__ = ["Stop", "install_stop_handlers", "uninstall_stop_handlers", "take_stops", "stops_quiet", "open_missing_streams", "say", "private_folder",
            "remove_own_folders", "remove_dead_folders", "is_private_folder_name", "exit_process"]
 
 
@@ -56,6 +56,7 @@ class Stop(BaseException):
 # the signal's name giving the (stderr, stdout) lines to write before ending at once, else None (the handler raises
 # :class:`Stop`); ``quiet``: the process has said its last line and is ending
 _state = {"signum": None, "at_once": None, "quiet": False, "installed": False}
+_previous: dict = {}  # the handlers replaced
 
 
 def _on_stop_signal(signum, frame) -> None:
@@ -80,7 +81,7 @@ def _on_stop_signal(signum, frame) -> None:
     raise Stop(signum)
 
 
-def install_stop_handlers(at_once=None) -> None:
+def install_stop_handlers(at_once=None) -> bool:
     """SIGINT and SIGTERM stop this process, once; a later one is logged and otherwise ignored (the first is
     already stopping it).  Installed whatever the signals' disposition was, so a server started with SIGINT
     ignored (the background of a shell) still stops on it.  Main thread only; installed once.
@@ -89,14 +90,23 @@ def install_stop_handlers(at_once=None) -> None:
     signal's name returning the line for stderr and the line for stdout; the handler writes them and ends the
     process at once with 128 plus the signal's number, wherever it was (an import half done included), until
     :func:`take_stops`.  Without it (or after :func:`take_stops`) the handler raises :class:`Stop` in the main
-    thread."""
-    if threading.current_thread() is not threading.main_thread():
-        return
-    if not _state["installed"]:
-        _state["at_once"] = at_once
-        for sig in (signal.SIGINT, signal.SIGTERM):  # (SIGTERM last: once it is caught, both are this module's)
-            signal.signal(sig, _on_stop_signal)
-        _state["installed"] = True
+    thread.  Returns whether this call installed them."""
+    if threading.current_thread() is not threading.main_thread() or _state["installed"]:
+        return False
+    _state.update(signum=None, at_once=at_once, quiet=False)
+    for sig in (signal.SIGINT, signal.SIGTERM):  # (SIGTERM last: once it is caught, both are this module's)
+        _previous[sig] = signal.signal(sig, _on_stop_signal)
+    _state["installed"] = True
+    return True
+
+
+def uninstall_stop_handlers() -> None:
+    """Put back the handlers :func:`install_stop_handlers` replaced (a caller in a longer-lived process: a test)."""
+    if _state["installed"] and threading.current_thread() is threading.main_thread():
+        for sig, previous in _previous.items():
+            signal.signal(sig, signal.SIG_DFL if previous is None else previous)
+        _previous.clear()
+        _state.update(signum=None, at_once=None, quiet=False, installed=False)
 
 
 def take_stops() -> None:

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from .. import __version__
-from ..process import Stop, install_stop_handlers, stops_quiet, take_stops
+from ..process import Stop, install_stop_handlers, stops_quiet, take_stops, uninstall_stop_handlers
 from .serve_stop import stopped_lines
 
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
@@ -463,12 +463,14 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
     # (done already when started by `genre serve`, before this module was imported): until `ready`, a signal
     # writes `bye` and ends the process at once, wherever it is (an import, the weights' load); from `ready` on,
     # it raises Stop, and the server stops as `shutdown` does (Server.serve)
-    install_stop_handlers(at_once=stopped_lines)
+    installed = install_stop_handlers(at_once=stopped_lines)
     out = sys.stdout
     try:
         return _main(argv, prog, out)
     finally:
         sys.stdout = out
+        if installed:  # (called in a process that goes on, a test's: its own handlers back)
+            uninstall_stop_handlers()
 
 
 def _main(argv: list[str] | None, prog: str, out: TextIO | None) -> int:
