@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from support.faults import SLOW_WRITES, all_lines, default_sigint, env, job, listing, server_with_env, temporaries, wait_for_mark
+from support.faults import SLOW_WRITES_RUN, all_lines, default_sigint, env, job, listing, server_with_env, temporaries, wait_for_mark
 
 NAMES = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
 
@@ -143,7 +143,7 @@ def test_serve_second_signal_during_a_textured_job_is_ignored(trained, photo, tm
     out.mkdir()
     mark = tmp_path / "mark"
     s = server_with_env(trained[0], tmp_path, {**environ, "GENRE_TEST_MARK": str(mark), "GENRE_TEST_SLEEP": "1"},
-                        script=SLOW_WRITES)
+                        script=SLOW_WRITES_RUN)
     assert s.next(timeout=300)["type"] == "ready"
     s.send(job("j", photo, str(out / "m.obj"), texture=True))
     wait_for_mark(mark, s.proc, writes=1)
