@@ -181,9 +181,8 @@ def import_bpy():
     private folder of this process (:func:`blender_session_folder`)."""
     if "bpy" not in sys.modules:
         prepare_blender_environment()
-        with blender_session_folder():
-            import bpy  # noqa: PLC0415  (deliberately lazy)
-    import bpy  # noqa: PLC0415
+    with blender_session_folder():  # (also made now when bpy came in otherwise: a stock Blender's, a test's)
+        import bpy  # noqa: PLC0415  (deliberately lazy)
 
     return bpy
 
