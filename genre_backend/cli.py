@@ -13,11 +13,18 @@ The backend never imports the training side.
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
-from typing import Callable, NoReturn
 
-from . import __version__
-from .process import exit_process
+if sys.argv[1:2] == ["serve"]:  # genre serve: SIGINT and SIGTERM taken over first, before even this module's imports
+    from .inference.serve_stop import stopped_lines
+    from .process import install_stop_handlers
+
+    install_stop_handlers(at_once=stopped_lines)
+
+from dataclasses import dataclass  # noqa: E402
+from typing import Callable, NoReturn  # noqa: E402
+
+from . import __version__  # noqa: E402
+from .process import exit_process, open_missing_streams, say  # noqa: E402
 
 __all__ = ["Command", "ENTRY_POINT_GROUP", "backend_commands", "commands", "main", "run"]
 
@@ -29,8 +36,9 @@ MainFn = Callable[..., int]
 class Command:
     """One ``genre`` subcommand: ``load()`` imports its module and returns its ``main(argv, prog) -> int``.
 
-    ``quick_exit``: a one-shot command whose process, once it has returned, ends without the interpreter's
-    tear-down of every module (:func:`run`)."""
+    ``quick_exit``: a command whose process, once it has returned, ends without the interpreter's tear-down of
+    every module (:func:`run`).
+    (``genre serve`` takes SIGINT and SIGTERM over in this module's first lines, before its other imports.)"""
 
     name: str
     summary: str
@@ -59,7 +67,7 @@ def _bench() -> MainFn:
 def backend_commands() -> list[Command]:
     return [
         Command("reconstruct", "turn photos into meshes", _reconstruct, quick_exit=True),
-        Command("serve", "run the JSON-over-stdio reconstruction server", _serve),
+        Command("serve", "run the JSON-over-stdio reconstruction server", _serve, quick_exit=True),
         Command("bench", "print speed figures (geometry, inference)", _bench),
     ]
 
@@ -109,11 +117,20 @@ def _usage(available: dict[str, Command]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    name = argv[0] if argv else None
+    command = {cmd.name: cmd for cmd in backend_commands()}.get(name)
+    try:
+        return _dispatch(argv, name, command)
+    except KeyboardInterrupt:  # Ctrl-C: one line, no traceback, the shell's 128 + SIGINT (each write is atomic: no half file)
+        say(f"genre {name}: interrupted")
+        return 130
+
+
+def _dispatch(argv: list[str], name: str | None, command: Command | None) -> int:
+    """Run the command ``argv`` names (``command``: the backend's, when it is one), or print the usage."""
     if argv[:1] in (["-V"], ["--version"]):
         print(f"genre {__version__}")
         return 0
-    name = argv[0] if argv else None
-    command = {cmd.name: cmd for cmd in backend_commands()}.get(name)
     if command is None:  # (the backend's own commands start without the entry-point look-up and the training package)
         available = commands()
         if not argv or name in ("-h", "--help", "help"):
@@ -126,16 +143,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"genre: unknown command {name!r}{hint}\n\n{_usage(available)}", file=sys.stderr)
             return 2
         command = available[name]
-    try:
-        return int(command.load()(argv[1:], prog=f"genre {name}") or 0)
-    except KeyboardInterrupt:  # Ctrl-C: one line, no traceback, the shell's 128 + SIGINT (each write is atomic: no half file)
-        print(f"genre {name}: interrupted", file=sys.stderr, flush=True)
-        return 130
+    return int(command.load()(argv[1:], prog=f"genre {name}") or 0)
 
 
 def run() -> NoReturn:
     """The ``genre`` console script and ``python -m genre_backend.cli``: :func:`main`, then the process's end, at
-    once after a ``quick_exit`` command (:func:`genre_backend.process.exit_process`)."""
+    once after a ``quick_exit`` command (:func:`genre_backend.process.exit_process`).  A standard stream that was
+    closed when the process started gets the null device first (:func:`genre_backend.process.open_missing_streams`)."""
+    open_missing_streams()
     code = main()
     name = sys.argv[1] if len(sys.argv) > 1 else None
     exit_process(code, quick=any(c.name == name and c.quick_exit for c in backend_commands()))

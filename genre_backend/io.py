@@ -280,6 +280,24 @@ def save_weights(path: str | os.PathLike, state: dict, meta: dict[str, str], sid
     return path
 
 
+def _not_a_file(path: Path, what: str) -> str | None:
+    """Why ``path`` is no regular file to read (None when it is one), as one line: missing, a directory, or another
+    kind (a FIFO, a socket, a device), which is never opened (opening a FIFO would wait for a writer)."""
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return f"{what} file not found: {path}"
+    except (OSError, ValueError) as exc:  # a name too long, a loop of links; a NUL in the name
+        return f"{path}: {what} file cannot be opened ({getattr(exc, 'strerror', None) or exc})"
+    if stat.S_ISREG(mode):
+        return None
+    kind = ("a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+    return f"{path}: is {kind}, not a {what} file" if kind != "not a regular file" else f"{path}: not a regular file"
+
+
 def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weights") -> tuple[dict, dict[str, str]]:
     """Read a file written by :func:`save_weights`: ``(state, meta)`` on the CPU.
 
@@ -289,8 +307,9 @@ def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weigh
     from safetensors import safe_open
 
     path = Path(path)
-    if not path.is_file():
-        raise WeightsError(f"{what} file not found: {path}")
+    problem = _not_a_file(path, what)
+    if problem:
+        raise WeightsError(problem)
     try:  # (safetensors reports an unreadable file as "No such file or directory")
         with open(path, "rb"):
             pass

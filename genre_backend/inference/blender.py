@@ -20,8 +20,15 @@ from pathlib import Path
 import numpy as np
 
 from ..config import CameraConfig
+from ..process import private_folder
 
-__all__ = ["prepare_blender_environment", "own_private_folder", "private_scratch", "quiet_stdout", "import_bpy", "render_meshes", "render_views", "PREVIEW_VIEWS", "render_textured", "photo_colour_error"]
+# the fallback cache folder of a process (when <tmp>/genre-blender-<uid> cannot be trusted), and the folder of
+# Blender's own session folder (blender_XXXXXX): both PREFIX<pid>-XXXXXXXX, removed when the process ends
+FALLBACK_PREFIX = "genre-blender-p"
+SESSION_PREFIX = "genre-bpy-"
+_session_base: list[Path] = []
+
+__all__ = ["prepare_blender_environment", "blender_session_folder", "factory_reset", "own_private_folder", "private_scratch", "quiet_stdout", "import_bpy", "render_meshes", "render_views", "PREVIEW_VIEWS", "render_textured", "photo_colour_error"]
 
 
 def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> Path:
@@ -31,16 +38,18 @@ def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> P
     already set, so bpy never writes into the home folder.  The default
     folder is ``$GENRE_BLENDER_CACHE``, else ``<tmp>/genre-blender-<uid>``
     when that is a real folder of this user's that nobody else can write
-    (:func:`own_private_folder`), else a fresh private folder from
-    :func:`tempfile.mkdtemp`.  Returns the folder used.
+    (:func:`own_private_folder`), else a fresh private folder of this process,
+    ``genre-blender-p<pid>-XXXXXXXX``, removed when the process ends (and, after
+    a kill, by the next process that needs one: :func:`genre_backend.process.private_folder`).
+    Returns the folder used.
     """
     if cache_dir is None:
         cache_dir = os.environ.get("GENRE_BLENDER_CACHE")
     if cache_dir is None:
         uid = os.getuid() if hasattr(os, "getuid") else "user"
         root = own_private_folder(Path(tempfile.gettempdir()) / f"genre-blender-{uid}")
-        if root is None:  # someone else's folder (or a link) took the shared name: use a fresh one
-            root = Path(tempfile.mkdtemp(prefix="genre-blender-"))
+        if root is None:  # someone else's folder (or a link) took the shared name: a fresh one, removed at the end
+            root = private_folder(FALLBACK_PREFIX)
     else:
         root = Path(cache_dir)
     (root / "user").mkdir(parents=True, exist_ok=True)
@@ -142,20 +151,53 @@ def _quiet_fd(fd: int):
         os.close(devnull)
 
 
+@contextlib.contextmanager
+def blender_session_folder():
+    """Blender makes its session folder (``blender_XXXXXX``, for its render results and caches) under ``$TMP`` or
+    ``$TMPDIR`` when bpy is imported and again at each factory reset, and removes it only at a normal exit of
+    the interpreter (never after ``os._exit``, as ``genre reconstruct`` ends, nor after a kill).  Inside this
+    block those variables name a private folder of this process (``genre-bpy-<pid>-XXXXXXXX``,
+    :func:`genre_backend.process.private_folder`), so that folder, and Blender's inside it, is removed when the
+    process ends in any way it survives, and by the next process after a kill.  Wrap every ``import bpy`` and
+    ``bpy.ops.wm.read_factory_settings``."""
+    if not _session_base:  # (made by mkdtemp, which reads Python's temp folder, once, before the variables change)
+        _session_base.append(private_folder(SESSION_PREFIX))
+    names = ("TMP", "TMPDIR")
+    saved = {name: os.environ.get(name) for name in names}
+    for name in names:
+        os.environ[name] = str(_session_base[0])
+    try:
+        yield _session_base[0]
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
 def import_bpy():
-    """``import bpy`` after :func:`prepare_blender_environment` (first call only)."""
+    """``import bpy`` after :func:`prepare_blender_environment` (first call only), Blender's session folder in a
+    private folder of this process (:func:`blender_session_folder`)."""
     if "bpy" not in sys.modules:
         prepare_blender_environment()
-    import bpy  # noqa: PLC0415  (deliberately lazy)
+    with blender_session_folder():  # (also made now when bpy came in otherwise: a stock Blender's, a test's)
+        import bpy  # noqa: PLC0415  (deliberately lazy)
 
     return bpy
+
+
+def factory_reset(bpy) -> None:
+    """``bpy.ops.wm.read_factory_settings(use_empty=True)`` (quiet), Blender's session folder kept in this process's
+    private folder (:func:`blender_session_folder`)."""
+    with quiet_stdout(True), blender_session_folder():
+        bpy.ops.wm.read_factory_settings(use_empty=True)
 
 
 def _empty_scene(size: int):
     """(bpy, scene): Blender reset to an empty factory scene rendering size × size pixels."""
     bpy = import_bpy()
-    with quiet_stdout(True):
-        bpy.ops.wm.read_factory_settings(use_empty=True)
+    factory_reset(bpy)
     scene = bpy.context.scene
     scene.render.resolution_x = scene.render.resolution_y = size
     return bpy, scene

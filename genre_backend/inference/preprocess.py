@@ -170,6 +170,11 @@ class Preprocessed:
 
 
 # ---------------------------------------------------------------------------------- decoding
+def _article(word: str) -> str:
+    """"an" before a vowel sound ("an image"), else "a" ("a strokes file", "a mask file")."""
+    return "an" if word[:1].lower() in "aeio" else "a"
+
+
 def _check_file(path: Path, what: str, code: str) -> None:
     try:
         st = path.stat()
@@ -180,7 +185,7 @@ def _check_file(path: Path, what: str, code: str) -> None:
     except ValueError as exc:  # a NUL character, or a lone surrogate no file name can hold
         raise ImageError(code, f"{str(path)!r}: not a usable path ({exc})") from None
     if stat.S_ISDIR(st.st_mode):
-        raise ImageError(code, f"{path}: is a directory, not an {what} file")
+        raise ImageError(code, f"{path}: is a directory, not {_article(what)} {what} file")
     if not stat.S_ISREG(st.st_mode):
         raise ImageError(code, f"{path}: not a regular file")
     if st.st_size == 0:

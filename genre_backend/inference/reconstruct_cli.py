@@ -38,6 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..process import say
+
 __all__ = ["main", "output_paths"]
 
 
@@ -89,10 +91,10 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
     try:
         return _main(argv, prog)
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr, flush=True)
+        say(f"{prog}: interrupted")
         return 130
     except _Terminated:
-        print(f"{prog}: terminated", file=sys.stderr, flush=True)
+        say(f"{prog}: terminated")
         return 143
     finally:
         if previous is not None:
@@ -161,7 +163,8 @@ def _mask_inputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> t
     if args.box is not None or args.strokes is not None:
         used = " and ".join(n for n, v in (("--box", args.box), ("--strokes", args.strokes)) if v is not None)
         if len(args.images) > 1:
-            parser.error(f"{used} apply to one image; give one image per call")
+            verb = "apply" if " and " in used else "applies"
+            parser.error(f"{used} {verb} to one image; give one image per call")
         if args.mask:
             parser.error(f"give either --mask or {used}, not both")
         if args.no_refine:
@@ -212,7 +215,7 @@ def _main(argv: list[str] | None, prog: str) -> int:
 
 
 def _fail(prog: str, message: str, code: str) -> int:
-    print(f"{prog}: error: {message} [{code}]", file=sys.stderr)
+    say(f"{prog}: error: {message} [{code}]")
     return 1
 
 
@@ -261,29 +264,33 @@ def reconstruct_all(spec: ReconstructSpec) -> int:
     if isinstance(rec, int):
         return rec
     bar = None
-    if spec.many:
+    if spec.many and sys.stderr is not None:  # (no bar on a closed stderr)
         from tqdm import tqdm
 
         bar = tqdm(total=len(spec.images), desc="reconstruct", unit="image", file=sys.stderr, dynamic_ncols=True)
 
-    def say(text: str, err: bool = False) -> None:
-        stream = sys.stderr if err else sys.stdout
+    def tell(text: str, err: bool = False) -> None:
+        """One line on stdout (``err``: stderr), else on the other stream when that one is closed or broken: a
+        mesh written is never turned into a failure by a reader that has gone."""
         if bar is not None:
-            bar.write(text, file=stream)
-        else:
-            print(text, file=stream, flush=True)
+            try:
+                bar.write(text, file=sys.stderr if err else sys.stdout)
+                return
+            except (OSError, ValueError, AttributeError):
+                pass
+        say(text, err=err)
 
     failed = 0
     try:  # (on Ctrl-C or SIGTERM the bar is closed first: the one-line message comes on a line of its own)
         for image, out in zip(spec.images, spec.outputs):
-            failed += not _reconstruct_one(spec, rec, image, out, say)
+            failed += not _reconstruct_one(spec, rec, image, out, tell)
             if bar is not None:
                 bar.update(1)
     finally:
         if bar is not None:
             bar.close()
     if failed and spec.many:
-        print(f"{spec.prog}: {failed} of {len(spec.images)} images failed", file=sys.stderr)
+        say(f"{spec.prog}: {failed} of {len(spec.images)} images failed")
     return 1 if failed else 0
 
 

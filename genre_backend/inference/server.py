@@ -21,7 +21,6 @@ import logging
 import math
 import os
 import queue
-import signal
 import sys
 import threading
 from dataclasses import dataclass, field
@@ -29,6 +28,8 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from .. import __version__
+from ..process import Stop, install_stop_handlers, stops_quiet, take_stops, uninstall_stop_handlers
+from .serve_stop import stopped_lines
 
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
@@ -46,35 +47,6 @@ def _option_keys() -> tuple[str, ...]:
 
 _OPTION_KEYS = _option_keys()
 log = logging.getLogger("genre.serve")
-
-
-class Stop(BaseException):
-    """SIGINT or SIGTERM arrived (raised in the main thread by the handler :func:`main` installs)."""
-
-    def __init__(self, signum: int):
-        super().__init__(signum)
-        self.signum = signum
-
-    @property
-    def reason(self) -> str:
-        return signal.Signals(self.signum).name
-
-
-def _install_stop_handlers() -> None:
-    """SIGINT and SIGTERM raise :class:`Stop` in the main thread, once; a later one is logged and otherwise ignored
-    (the first is already stopping the server, and it finishes the write in progress before it exits)."""
-    fired: list[int] = []
-
-    def on_signal(signum, frame):
-        if fired:
-            log.warning("%s: already stopping (on %s); finishing the write in progress", signal.Signals(signum).name,
-                        signal.Signals(fired[0]).name)
-            return
-        fired.append(signum)
-        raise Stop(signum)
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
 
 
 class RequestError(ValueError):
@@ -343,6 +315,7 @@ class Server:
             self.worker.join()  # (the running job stops at its next stage boundary; a write in progress is finished)
         if not self.said_bye:
             self.said_bye = True
+            stops_quiet()  # (a signal from here on is logged, never a second bye)
             self.emit({"type": "bye", "id": rid} if reason is None else {"type": "bye", "id": rid, "reason": reason})
 
     # ---- the worker ---------------------------------------------------------------------
@@ -455,9 +428,14 @@ class Server:
         returns 128 + the signal's number (130, 143).
         """
         try:
+            take_stops()  # (from here a signal raises Stop: the jobs to cancel, a write to finish, then `bye`)
             self.emit({"type": "ready", **self.info()})
+            if self.broken.is_set():  # a stdout whose reader has gone (a closed pipe): nobody to answer
+                stops_quiet()
+                log.error("stdout is closed: nobody to answer; stopping")
+                return 1
             self.worker.start()
-            for raw in stdin:
+            for raw in stdin if stdin is not None else ():  # (None: started with stdin closed, an empty input)
                 line = raw.strip()
                 if not line:
                     continue
@@ -473,10 +451,29 @@ class Server:
             if not self.worker.is_alive() and self.worker.ident is None:
                 self.worker.start()  # (so that shutdown's join has a thread to join)
             self.shutdown(None, cancel=True, reason=stop.reason)
-            return 128 + stop.signum
+            return stop.status
 
 
 def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
+    """``genre serve``: the exit status (0 after ``shutdown`` or the end of input; 130 or 143 after SIGINT or
+    SIGTERM; 1 when the weights cannot be loaded or stdout is closed).
+
+    A signal before ``ready`` (while the arguments are read, the modules imported or the weights loaded) writes
+    ``bye`` with its name as the only line; after ``ready``, :meth:`Server.serve` stops as ``shutdown`` does."""
+    # (done already when started by `genre serve`, before this module was imported): until `ready`, a signal
+    # writes `bye` and ends the process at once, wherever it is (an import, the weights' load); from `ready` on,
+    # it raises Stop, and the server stops as `shutdown` does (Server.serve)
+    installed = install_stop_handlers(at_once=stopped_lines)
+    out = sys.stdout
+    try:
+        return _main(argv, prog, out)
+    finally:
+        sys.stdout = out
+        if installed:  # (called in a process that goes on, a test's: its own handlers back)
+            uninstall_stop_handlers()
+
+
+def _main(argv: list[str] | None, prog: str, out: TextIO | None) -> int:
     parser = argparse.ArgumentParser(prog=prog, description="JSON-lines reconstruction server on stdin/stdout (protocol: docs/protocol.md).")
     parser.add_argument("--weights", metavar="W",
                         help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
@@ -485,38 +482,30 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = parser.parse_args(argv)
     logging.basicConfig(stream=sys.stderr, level=args.log_level, format="genre serve: %(levelname)s %(message)s")
-    if threading.current_thread() is threading.main_thread():
-        _install_stop_handlers()
-    out = sys.stdout
+    if out is None:  # started with stdout closed: one line on stderr (when that is open), no traceback
+        stops_quiet()
+        log.error("stdout is closed: nobody to answer; stopping")
+        return 1
     sys.stdout = sys.stderr  # nothing but protocol lines reaches the real stdout
     stdin = sys.stdin
     try:
         out.reconfigure(encoding="utf-8", newline="\n")
-        stdin.reconfigure(encoding="utf-8", errors="replace")
+        if stdin is not None:
+            stdin.reconfigure(encoding="utf-8", errors="replace")
     except (AttributeError, ValueError):
         pass
 
     def fatal(code: str, message: str) -> int:
+        stops_quiet()
         log.error(message)
         try:
             out.write(json.dumps({"type": "error", "id": None, "code": code, "message": message}) + "\n")
             out.flush()
-        except OSError:
+        except (OSError, ValueError):
             pass
         return 1
 
-    try:
-        return _load_and_serve(args, out, stdin, fatal)
-    except Stop as stop:  # while the weights load: nothing is written yet
-        log.info("%s while loading: stopping", stop.reason)
-        try:
-            out.write(json.dumps({"type": "bye", "id": None, "reason": stop.reason}) + "\n")
-            out.flush()
-        except (OSError, ValueError):
-            pass
-        return 128 + stop.signum
-    finally:
-        sys.stdout = out
+    return _load_and_serve(args, out, stdin, fatal)
 
 
 def _load_and_serve(args, out: TextIO, stdin: TextIO, fatal) -> int:

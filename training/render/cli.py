@@ -15,13 +15,16 @@ What stops a shape, and what the next run does about it:
   written) or stopped with Ctrl-C: an interruption, never a failure; the
   next run renders the missing views.
 
-Ctrl-C (SIGINT) lets the view being rendered finish, then stops the run with
-exit code 130 (a second Ctrl-C stops at once, also with 130).
+Ctrl-C (SIGINT) or SIGTERM lets the view being rendered finish, then stops the
+run with exit code 130 (SIGINT) or 143 (SIGTERM); a second signal stops at
+once, with the same code.  Either way the process's temp folders (the
+renderer's ``genre-render-<pid>-XXXXXXXX`` and Blender's session folder) are
+removed; after a kill, the next run removes them.
 
 Exit codes: 0 when every view of every selected shape is on disk, 1 when
 views are missing because shapes failed (in this run or an earlier one; the
 count is printed), 2 on a usage error or when Blender cannot render with the
-chosen engine, 130 when interrupted.
+chosen engine, 130 or 143 when interrupted (SIGINT, SIGTERM).
 """
 
 from __future__ import annotations
@@ -107,38 +110,51 @@ def _read_json(path: Path, default):
 
 
 class _StopOnSigint:
-    """While active (main thread only), SIGINT asks the run to stop after the current view.
+    """While active (main thread only), SIGINT or SIGTERM asks the run to stop after the current view.
 
     Python's own handler would raise KeyboardInterrupt wherever Python code
     runs next, which is often inside Cycles' Python callbacks, where Blender
-    prints and swallows it and rendering goes on.  A second SIGINT exits at
-    once with code 130 (the files on disk stay consistent: every file is
-    written atomically and a view is complete only once its JSON exists).
+    prints and swallows it and rendering goes on.  A second signal exits at
+    once with 128 plus the first one's number (the files on disk stay
+    consistent: every file is written atomically and a view is complete only
+    once its JSON exists), after removing this process's temp folders (its
+    scratch folder and Blender's session folder,
+    :func:`genre_backend.process.remove_own_folders`).
     """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self, prog: str):
         self.prog = prog
         self.requested = False
-        self._previous = None
-        self._installed = False
+        self.signum = signal.SIGINT  # the signal that asked (its exit status: 128 plus its number)
+        self._previous: dict = {}
+
+    @property
+    def status(self) -> int:
+        return 128 + int(self.signum)
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-            self._installed = True
+            self._previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
         return self
 
     def __exit__(self, *exc):
-        if self._installed:  # (None: a handler installed outside Python, such as a stock Blender's own)
-            signal.signal(signal.SIGINT, signal.SIG_DFL if self._previous is None else self._previous)
+        for sig, previous in self._previous.items():  # (None: a handler installed outside Python, such as a stock Blender's own)
+            signal.signal(sig, signal.SIG_DFL if previous is None else previous)
         return False
 
     def _handle(self, signum, frame):
         if self.requested:
+            from genre_backend.process import remove_own_folders  # noqa: PLC0415
+
             os.write(2, f"\n{self.prog}: stopped at once\n".encode())
-            os._exit(EXIT_INTERRUPTED)
+            remove_own_folders()
+            os._exit(self.status)
         self.requested = True
-        os.write(2, f"\n{self.prog}: stopping after the current view (Ctrl-C again to stop at once)\n".encode())
+        self.signum = signum
+        again = "Ctrl-C" if signum == signal.SIGINT else "a second signal"
+        os.write(2, f"\n{self.prog}: {signal.Signals(signum).name}: stopping after the current view ({again} to stop at once)\n".encode())
 
     def check(self) -> None:
         """Raise KeyboardInterrupt if a stop was asked for."""
@@ -355,7 +371,7 @@ def _outcome(run: _RenderRun, shapes: list, seconds: float, interrupted: bool) -
     if interrupted:
         print(f"{run.prog}: interrupted: {sum(missing.values())} views of {len(missing)} shapes are missing; "
               f"run the same command again to render them", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return run.stop.status if run.stop is not None else EXIT_INTERRUPTED
     if missing:
         failed = [sid for sid in missing if sid in run.failures]
         print(f"{run.prog}: {sum(missing.values())} views of {len(missing)} shapes are missing: {len(failed)} shapes "

@@ -50,14 +50,14 @@ import glob
 import math
 import os
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from genre_backend.inference.blender import import_bpy, prepare_blender_environment, quiet_stdout
+from genre_backend.inference.blender import factory_reset, import_bpy, prepare_blender_environment, quiet_stdout
+from genre_backend.process import private_folder
 
 from ..data.views import MESH_SUFFIXES, ShapeEntry, remove_stale_temporaries, view_is_complete, write_view
 from .backgrounds import composite_over, make_background
@@ -198,7 +198,7 @@ class BlenderRenderer:
         if self.size <= 0:
             raise ValueError(f"image_size must be positive, got {self.size}")
         self._own_scratch = scratch_dir is None
-        self.scratch = Path(scratch_dir) if scratch_dir is not None else Path(tempfile.mkdtemp(prefix="genre-render-"))
+        self.scratch = Path(scratch_dir) if scratch_dir is not None else private_folder("genre-render-")
         self.scratch.mkdir(parents=True, exist_ok=True)
         self.quiet = quiet
         self.notes: list[str] = []
@@ -226,7 +226,7 @@ class BlenderRenderer:
     # ---- scene set-up -------------------------------------------------------
     def _setup_scene(self) -> None:
         bpy = self.bpy
-        bpy.ops.wm.read_factory_settings(use_empty=True)
+        factory_reset(bpy)
         scene = bpy.context.scene
         self.scene = scene
         render = scene.render

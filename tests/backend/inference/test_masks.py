@@ -293,7 +293,7 @@ def test_cli_box_and_strokes_on_a_real_photo(trained, tmp_path, capsys):
     assert ious["auto"] < 0.45 and ious["box"] > 0.65 and ious["strokes"] > 0.75 and ious["box+strokes"] > 0.85, ious
     # refused before any work: with --mask, several images, --no-refine, a malformed box, a box off the photo
     for argv, text in (([str(photo), "--mask", str(PHOTOS / "squirrel_mask.png"), "--box", "1,1,9,9"], "either --mask or --box"),
-                       ([str(photo), str(photo), "--strokes", str(strokes)], "--strokes apply to one image"),
+                       ([str(photo), str(photo), "--strokes", str(strokes)], "--strokes applies to one image"),
                        ([str(photo), "--no-refine", "--box", "1,1,9,9"], "--no-refine turns it off"),
                        ([str(photo), "--box", "9,1,1,9"], "x0 < x1")):
         with pytest.raises(SystemExit) as exc:

@@ -10,53 +10,23 @@ and say so, so the test knows the temporary exists when the signal goes.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from genre_backend.io import TMP_MARK, is_temporary_name
+from genre_backend.io import TMP_MARK
+from support.faults import SLOW_WRITES as _SLOW_WRITES
+from support.faults import all_lines as _all_lines
+from support.faults import env as _env
+from support.faults import job as _job
+from support.faults import listing, server_with_env, temporaries
+from support.faults import wait_for_mark as _wait_for_mark
 from support.server import ServerProcess
-
-REPO = Path(__file__).resolve().parents[3]
-
-# The CLI with every atomic write slowed: the bytes are written and flushed into the temporary, the target is
-# appended to $GENRE_TEST_MARK, then it sleeps $GENRE_TEST_SLEEP seconds (before the file is closed and renamed).
-_SLOW_WRITES = """
-import os, sys, time
-import genre_backend.io as gio
-_orig = gio._write_temporary
-def _slow(path, writer):
-    def w(fh):
-        writer(fh)
-        fh.flush()
-        with open(os.environ["GENRE_TEST_MARK"], "a") as m:
-            m.write(os.fspath(path) + "\\n")
-        time.sleep(float(os.environ.get("GENRE_TEST_SLEEP", "3")))
-    return _orig(path, w)
-gio._write_temporary = _slow
-from genre_backend.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
-
-
-def listing(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob("*")}
-
-
-def temporaries(root: Path) -> list[str]:
-    return sorted(n for n in listing(root) if is_temporary_name(Path(n).name))
-
-
-def _env(**extra) -> dict:
-    return {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", **extra}
-
 
 def reconstruct(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "genre_backend.cli", "reconstruct", *args], cwd=cwd, env=_env(),
@@ -138,30 +108,8 @@ def serve(trained, tmp_path):
             s.proc.wait()
 
 
-def _all_lines(s: ServerProcess) -> list[dict]:
-    """Every event the (exited) server wrote."""
-    while s.events.get(timeout=60) is not None:
-        pass
-    return [json.loads(line) for line in s.raw]
-
-
 def _server_with_env(trained, cwd, env, script: str | None = None, prefix: list[str] | None = None) -> ServerProcess:
-    s = ServerProcess.__new__(ServerProcess)
-    import queue
-    import threading
-
-    cmd = [sys.executable, "-c", script, "serve"] if script else [sys.executable, "-m", "genre_backend.cli", "serve"]
-    s.proc = subprocess.Popen([*(prefix or []), *cmd, "--weights", str(trained[0])], cwd=cwd, env=env, text=True, encoding="utf-8",
-                              errors="replace", stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=1,
-                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # (see _slow_cli)
-    s.events = queue.Queue()
-    s.raw = []
-    threading.Thread(target=s._read, daemon=True).start()
-    return s
-
-
-def _job(rid, photo, output, **options) -> dict:
-    return {"type": "reconstruct", "id": rid, "image": str(photo), "output": output, "options": options}
+    return server_with_env(trained[0], cwd, env, script=script, prefix=prefix)
 
 
 def test_serve_refuses_intermediates_it_cannot_fill_before_work(serve, photo, tmp_path):
@@ -217,17 +165,6 @@ def test_serve_writes_names_at_the_limit_and_no_matplotlib_config(trained, photo
 
 
 # ---- part 4: a clean stop ------------------------------------------------------------------------
-def _wait_for_mark(mark: Path, proc, timeout: float = 300.0, writes: int = 1) -> list[str]:
-    """Wait until the ``writes``-th temporary of the run holds its bytes (the slowed writer sleeps in it)."""
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        if mark.exists() and len(mark.read_text().splitlines()) >= writes:
-            return mark.read_text().splitlines()
-        assert proc.poll() is None, proc.stderr.read()
-        time.sleep(0.05)
-    raise AssertionError("no write began")
-
-
 def _slow_cli(trained, photo, tmp_path, out: Path, *extra: str) -> tuple[subprocess.Popen, Path]:
     mark = tmp_path / "mark"
     mark.unlink(missing_ok=True)

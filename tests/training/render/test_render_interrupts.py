@@ -150,6 +150,78 @@ def test_ctrl_c_stops_promptly_with_130_and_resumes(shapes, reference, tmp_path)
     _assert_same_as(reference, out)
 
 
+# ---- issue 51: SIGTERM as Ctrl-C, and no temp folder left ($TMPDIR a fresh folder; Blender's cache outside it)
+def _start_in(argv, tmp: Path, tmpdir: Path) -> subprocess.Popen:
+    return subprocess.Popen(_command(argv), cwd=ROOT, env=dict(_env(tmp), TMPDIR=str(tmpdir)), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _fresh_tmpdir(tmp_path: Path) -> Path:
+    tmpdir = tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    return tmpdir
+
+
+def _listing(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signals", [1, 2], ids=["once", "twice"])
+def test_sigterm_stops_like_ctrl_c_with_143_and_leaves_no_temp_folder(shapes, reference, tmp_path, signals):
+    """SIGTERM lets the view being rendered finish (once) or stops at once (twice); either way the renderer's
+    scratch folder (genre-render-<pid>-…, where the partial view_depth.exr and view_rgba.png lie) and Blender's
+    session folder (blender_XXXXXX, in genre-bpy-<pid>-…) are removed, and the next run completes the folder."""
+    out = tmp_path / "out"
+    argv = _argv(shapes, out)
+    tmpdir = _fresh_tmpdir(tmp_path)
+    proc = _start_in(argv, tmp_path, tmpdir)
+    try:
+        _wait_for(out / "ball" / "view_001.json", proc)
+        during = _listing(tmpdir)
+        assert any(n.startswith("genre-render-") for n in during) and any("/blender_" in n for n in during), during
+        for _ in range(signals):
+            proc.send_signal(signal.SIGTERM)
+            time.sleep(0.02)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    assert "SIGTERM: stopping after the current view" in err
+    if signals == 1:
+        assert "interrupted:" in err and "views of" in err
+    else:
+        assert "stopped at once" in err
+    assert _listing(tmpdir) == set()
+    done = subprocess.run(_command(argv), cwd=ROOT, env=dict(_env(tmp_path), TMPDIR=str(tmpdir)), capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    _assert_same_as(reference, out)
+    assert _listing(tmpdir) == set()
+
+
+@pytest.mark.slow
+def test_after_a_kill_the_next_run_removes_the_temp_folders(shapes, tmp_path):
+    out = tmp_path / "out"
+    argv = _argv(shapes, out)
+    tmpdir = _fresh_tmpdir(tmp_path)
+    proc = _start_in(argv, tmp_path, tmpdir)
+    try:
+        _wait_for(out / "ball" / "view_000.json", proc)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.communicate()
+    left = {n for n in _listing(tmpdir) if "/" not in n}
+    assert {n.split(f"{proc.pid}-")[0] for n in left} == {"genre-render-", "genre-bpy-"}, left
+    done = subprocess.run(_command(argv), cwd=ROOT, env=dict(_env(tmp_path), TMPDIR=str(tmpdir)), capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert _listing(tmpdir) == set()
+
+
 # Makes rendering the box crash the process with a real SIGSEGV (as a Blender crash would).
 _CRASH_ON_BOX = """
 import faulthandler
