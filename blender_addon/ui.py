@@ -8,6 +8,10 @@ import bpy
 from . import ops, schema
 
 
+# the one-line hint under "Use Annotation": how to fix a wrong automatic mask (the property's tooltip says it at length)
+ANNOTATION_HINT = "Wrong mask? Draw a box, or strokes (layers Box, Background)"
+
+
 class GENRE_PT_panel(bpy.types.Panel):
     bl_label = "GenRe: Photo to Mesh"
     bl_idname = "GENRE_PT_panel"
@@ -36,6 +40,7 @@ class GENRE_PT_panel(bpy.types.Panel):
         if settings.mask_path:
             row.operator("genre.clear_mask", text="", icon="X")
         col.prop(settings, "use_annotation")
+        col.label(text=ANNOTATION_HINT, icon="INFO")  # the same as the checkbox's tooltip, visible without hovering
         col.separator()
         col.row().prop(settings, "quality", expand=True)
         col.prop(settings, "colour_from_photo")

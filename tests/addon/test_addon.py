@@ -128,6 +128,7 @@ def scenario_install(args: dict) -> dict:
     settings.photo_path = "/a/long/folder/chair.jpg"
     mod.ui.GENRE_PT_panel.draw(type("P", (), {"layout": drawn})(), bpy.context)
     out["main_drawn"] = drawn.calls
+    out["annotation_tooltip"] = type(settings).bl_rna.properties["use_annotation"].description
     settings.photo_path = ""
     prefs = bpy.context.preferences.addons[module].preferences
     out["prefs_idname"] = type(prefs).bl_idname
@@ -803,6 +804,11 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
         ["prop", "", "source", None], ["operator", "genre.choose_file", "chair.jpg"], ["operator", "genre.choose_file", "Mask (optional)…"],
         ["prop", "", "use_annotation", None], ["prop", "", "quality", None], ["prop", "", "colour_from_photo", None], ["prop", "", "add_camera", None],
         ["operator", "genre.reconstruct", None]]
+    # beside "Use Annotation", one visible line says how to fix a wrong mask; its tooltip says it at length
+    at = r["main_drawn"].index(["prop", "", "use_annotation", None])
+    assert r["main_drawn"][at + 1] == ["label", "Wrong mask? Draw a box, or strokes (layers Box, Background)"]
+    assert "salient-object net" in r["annotation_tooltip"] and "'Box'" in r["annotation_tooltip"] \
+        and "'Background'" in r["annotation_tooltip"]
     assert r["model_default"] == "default"
     assert r["model_items"] == [["default", "Product"], ["protocol", "Research protocol"], ["custom", "Custom file"]]
     assert r["argv"] == {"default": ["--weights", "default"], "protocol": ["--weights", "protocol"],
