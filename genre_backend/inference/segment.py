@@ -696,9 +696,9 @@ def salient_doubt(prob: np.ndarray, mask: np.ndarray, window: np.ndarray | None 
     return f"the mask {'; it also '.join(facts)}" if facts else None
 
 
-def _fallback_line(exc: Exception) -> str:
-    """The one-line warning of an automatic mask made by GrabCut because the salient net could not be loaded."""
-    return f"the salient-object net cannot be used ({exc}): the mask is GrabCut's, seeded by the photo's border"
+def _fallback_line(exc: Exception, guided: bool) -> str:
+    """The one-line warning of a mask made by GrabCut because the salient net could not be loaded."""
+    return f"the salient-object net cannot be used ({exc}): the mask is GrabCut's" + ("" if guided else ", seeded by the photo's border")
 
 
 def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str = DEFAULT_SEEDING,
@@ -757,7 +757,7 @@ def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str
             if box is not None:
                 prob = _box_saliency(rgb, prob, box_seeds(sh, sw, tuple(v * k for v in box)) != cv2.GC_BGD, box)
         except SalientNetError as exc:
-            fallback = _fallback_line(exc)
+            fallback = _fallback_line(exc, guided)
             if not guided:
                 seeding = "border"
     fg_small = bg_small = None
@@ -775,6 +775,8 @@ def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str
             labels = guided_seeds(salient_labels(prob, box_labels), fg_small, bg_small)
             cut = feature_grabcut(small, labels, prior=prob)[0]
         mask = largest_part(cut, fg_small)
+        if bg_small is not None:  # background strokes stay background, even in a hole the filling closed
+            mask &= ~bg_small
         warning = salient_doubt(prob, mask, window) if mask.any() else None
     else:
         spill = band = None
