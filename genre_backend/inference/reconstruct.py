@@ -67,6 +67,8 @@ for _s in STAGES:
 del _acc, _s
 
 DEFAULT_WEIGHTS = named_weights(DEFAULT_WEIGHTS_NAME)  # the product weights; --weights protocol|FILE picks others (io.resolve_weights)
+# the long side of the mask-over-photo picture save_intermediates writes (mask_overlay.png; the add-on shows it)
+MASK_OVERLAY_SIDE = 320
 
 ProgressFn = Callable[[str, float], None]
 
@@ -225,6 +227,27 @@ class Reconstruction:
             mask = mask[np.ix_(rows, cols)]
         return mask
 
+    def mask_overlay(self, side: int = MASK_OVERLAY_SIDE) -> np.ndarray:
+        """(h, w, 3) uint8: the photo at up to ``side`` pixels on its long side with the mask the networks used over
+        it: the background dimmed to a third and tinted blue, the mask's outline yellow.  What the add-on's panel
+        shows after a run (``mask_overlay.png`` of :meth:`save_intermediates`), so that a wrong mask is seen at once."""
+        import cv2  # noqa: PLC0415
+
+        if self.photo_mask is None or self.photo is None:
+            raise ValueError("this reconstruction keeps no mask and photo at the photo's pixels")
+        rgb = composite(self.photo)
+        h, w = rgb.shape[:2]
+        k = min(1.0, side / max(h, w))
+        size = (max(1, round(w * k)), max(1, round(h * k)))
+        small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA) if k < 1.0 else rgb.copy()
+        mask = cv2.resize(self.photo_mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+        out = small.astype(np.float32)
+        out[~mask] = out[~mask] * 0.35 + np.array([20.0, 40.0, 110.0], np.float32)
+        out = np.clip(out, 0, 255).astype(np.uint8)
+        contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(out, contours, -1, (255, 220, 0), max(1, round(max(size) / 160)))
+        return out
+
     def texture(self) -> PhotoTexture:
         """The mesh's colour from the photo (:mod:`.colour`): corner UVs into an atlas of the photo's crop (at up to
         2,048 px) and its smooth copy.
@@ -270,7 +293,8 @@ class Reconstruction:
         (max-projections along view −z, −x and −y, side by side), and
         ``mask_in_photo.png``: the mask at the photo's own size (white object
         on black, :meth:`mask_in_photo`), to correct in any editor and give
-        back with ``--mask``.
+        back with ``--mask``; ``mask_overlay.png``: the mask over the photo
+        (:meth:`mask_overlay`), to see at once whether it is right.
         """
         folder = Path(folder)
         try:
@@ -282,6 +306,8 @@ class Reconstruction:
         images = {name: _upscale(img) for name, img in self.intermediate_images().items()}
         if self.photo_mask is not None:
             images["mask_in_photo"] = self.mask_in_photo().astype(np.uint8) * 255  # the photo's own pixels, never scaled
+            if self.photo is not None:
+                images["mask_overlay"] = self.mask_overlay()
         for name in images:  # all checks before the first write
             check_output_path(folder / f"{name}.png", self.inputs)
         paths = []

@@ -139,6 +139,21 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
         pixels = np.asarray(im)
     assert set(np.unique(pixels)) == {0, 255}
     assert np.array_equal(pixels == 255, auto.mask_in_photo()) and np.array_equal(auto.mask_in_photo(), auto.photo_mask)
+    # the mask over the photo (what the add-on's panel shows): the object's pixels as in the photo, bar its yellow
+    # outline; the background dimmed and tinted blue
+    with Image.open(written["mask_overlay.png"]) as im:
+        assert im.size == (203, 151) and im.mode == "RGB"
+        overlay = np.asarray(im).astype(int)
+    photo_rgb = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    from scipy.ndimage import binary_erosion
+
+    inner, outside = binary_erosion(auto.photo_mask, iterations=2), ~auto.photo_mask
+    assert np.array_equal(overlay[inner], photo_rgb[inner])
+    far = binary_erosion(outside, iterations=2)  # (clear of the outline)
+    dimmed = photo_rgb[far] * 0.35 + [20, 40, 110]
+    assert np.abs(overlay[far] - dimmed).max() <= 1
+    edge = auto.photo_mask & ~binary_erosion(auto.photo_mask)
+    assert (np.abs(overlay[edge] - [255, 220, 0]).sum(1) == 0).mean() > 0.8
     again = rec.run(path, mask_path=written["mask_in_photo.png"])
     assert again.mask_source == "file"
     assert again.crop_box == auto.crop_box
