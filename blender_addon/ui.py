@@ -5,11 +5,15 @@ import os
 
 import bpy
 
-from . import ops, schema
+from . import jobs, ops, schema
 
 
 # the one-line hint under "Use Annotation": how to fix a wrong automatic mask (the property's tooltip says it at length)
 ANNOTATION_HINT = "Wrong mask? Draw a box, or strokes (layers Box, Background)"
+
+
+# the size of the mask's picture in the panel, in icon units (20 px each at the interface's scale 1)
+MASK_PREVIEW_SCALE = 9.0
 
 
 class GENRE_PT_panel(bpy.types.Panel):
@@ -73,6 +77,14 @@ class GENRE_PT_panel(bpy.types.Panel):
                 col.label(text=counts.replace(" vertices,", " verts,"), icon="BLANK1")
                 if mask:
                     col.label(text=f"mask: {mask}", icon="BLANK1")
+            overlay = bpy.data.images.get(jobs.MASK_IMAGE)
+            if overlay is not None and not status.message_is_error:
+                # the mask the backend used over the photo (background dimmed, outline yellow): a wrong one is seen at once
+                col = layout.column(align=True)
+                col.label(text="Mask used (yellow outline):", icon="MOD_MASK")
+                preview = getattr(overlay, "preview", None)
+                if preview is not None:
+                    col.template_icon(icon_value=preview.icon_id, scale=MASK_PREVIEW_SCALE)
             if status.mask_warning and not status.message_is_error:
                 # the backend doubts the mask (probably the photo's frame): say so, with the way out
                 col = layout.column(align=True)

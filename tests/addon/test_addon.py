@@ -91,6 +91,9 @@ class _Layout:
     def template_ID(self, *args, **kwargs):
         self.calls.append(["template_ID"])
 
+    def template_icon(self, **kwargs):
+        self.calls.append(["template_icon", kwargs.get("scale")])
+
 
 def scenario_install(args: dict) -> dict:
     import bpy
@@ -301,6 +304,17 @@ def scenario_reconstruct(args: dict) -> dict:
     out["mesh"] = _mesh_report(bpy.data.objects[job.objects[0].name], bpy)
     out["status_after"] = {"running": status.running, "message": status.message, "error": status.message_is_error,
                            "mask_warning": status.mask_warning}
+    # the mask the backend used, over the photo: a packed image the panel shows under the result line
+    overlay = bpy.data.images.get(addon.jobs.MASK_IMAGE)
+    out["mask_overlay"] = None if overlay is None else {"size": list(overlay.size), "packed": overlay.packed_file is not None,
+                                                        "preview": getattr(overlay, "preview", None) is not None}
+    if overlay is not None:
+        pixels = list(overlay.pixels[:])
+        out["mask_overlay"]["yellow"] = sum(1 for i in range(0, len(pixels), 4)
+                                            if pixels[i] > 0.95 and 0.8 < pixels[i + 1] < 0.92 and pixels[i + 2] < 0.05)
+    drawn = _Layout()
+    addon.ui.GENRE_PT_panel.draw(type("P", (), {"layout": drawn})(), bpy.context)
+    out["panel_after"] = drawn.calls
     out["job_dirs_after"] = _job_dirs(ops)
     pid = ops.manager.client.pid
 
@@ -842,6 +856,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
         o.name: getattr(geometry, o.weights) if o.weights else o.default for o in record}  # the model's own, shown beside
     assert r["ready_options"] and {e["name"] for e in r["ready_options"]} == {o.name for o in OPTIONS}
     # nothing ticked: only the quality's name, the format and the colour are sent; the mesh is the weights'
+    assert r["payload"]["options"].pop("save_intermediates").endswith(os.sep + "intermediates")  # (the mask's picture)
     assert r["payload"]["options"] == {"quality": "fast", "format": "obj", "texture": True}
     assert ev["threshold"] == level and r["fields_after"]["threshold"] == pytest.approx(level)
     for name in ("hole_closing", "pit_sealing", "silhouette_carve", "primitive_snap", "visible_fusion"):  # each row follows the weights
@@ -850,6 +865,7 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert ev["test_time_mirror"] is geometry.test_time_mirror is r["fields_after"]["test_time_mirror"] is False
     # a ticked row: sent and used, over the quality's set (Fast turns the mirror average off)
     assert r["overridden"]["outcome"][0] == "INFO"
+    assert r["overridden"]["payload"].pop("save_intermediates").endswith(os.sep + "intermediates")
     assert r["overridden"]["payload"] == {"test_time_mirror": True, "hole_closing": 2, "quality": "fast", "format": "obj", "texture": True}
     assert r["overridden"]["used"] == {"test_time_mirror": True, "hole_closing": 2}
     assert r["clamped"] == 8
@@ -868,7 +884,12 @@ def test_reconstruct_against_genre_serve(built, trained, tmp_path):
     assert cam["forward"] == pytest.approx([0.0, 1.0, 0.0], abs=1e-6)  # looking along +Y at it
     assert cam["background"] == ["box.png"] and cam["shows_background"]
     assert r["added"] == {"objects": ["box", "box camera"], "meshes": ["box"], "cameras": ["box camera"],
-                          "collections": ["GenRe"], "images": ["box photo", "box.png"], "materials": ["box photo"]}
+                          "collections": ["GenRe"], "images": ["GenRe mask", "box photo", "box.png"], "materials": ["box photo"]}
+    # the panel shows the mask over the photo after the run: the backend's mask_overlay.png, packed (its folder is gone)
+    overlay = r["mask_overlay"]
+    assert overlay is not None and overlay["packed"] and max(overlay["size"]) <= 320 and overlay["yellow"] > 50, overlay
+    at = r["panel_after"].index(["label", "Mask used (yellow outline):"])
+    assert overlay["preview"] and r["panel_after"][at + 1] == ["template_icon", 9.0]
     # Colour from Photo (default on): the photo's texture packed into the file (an atlas: the photo's square, then
     # its smooth copy), UVs that are the vertices' own projections through the backend's camera, into the left
     # square, for the part the photo sees
