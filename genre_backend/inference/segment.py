@@ -581,11 +581,11 @@ def _shrink_marks(marks: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- the salient net's masks
-# the doubt of a net's mask: its outline's band (saliency between these) wider than MAX_UNSURE_BAND of the mask's
-# area; a second part of the thresholded saliency at least MIN_SECOND_PART of the largest; a mask whose pixels on
+# the doubt of a net's mask: its outline's band (saliency between these) wider on average than MAX_UNSURE_WIDTH pixels
+# (at WORK_SIDE); a second part of the thresholded saliency at least MIN_SECOND_PART of the largest; a mask whose pixels on
 # the photo's edge are more than MAX_FRAME_CUT of its outline; one covering less than MIN_COVER of the photo
 UNSURE_LOW, UNSURE_HIGH = 0.1, 0.9
-MAX_UNSURE_BAND = 0.12
+MAX_UNSURE_WIDTH = 4.0
 MIN_SECOND_PART = 0.25
 MAX_FRAME_CUT = 0.10
 MIN_COVER = 0.01
@@ -654,35 +654,40 @@ def _parts(mask: np.ndarray) -> np.ndarray:
     return np.sort(stats[1:, cv2.CC_STAT_AREA])[::-1] if n > 1 else np.zeros(0, int)
 
 
+def _outline_length(mask: np.ndarray) -> int:
+    """The number of pixels on the outer outlines of a (H, W) bool mask's parts."""
+    cv2 = _cv2()
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    return sum(len(c) for c in contours)
+
+
 def _frame_cut(mask: np.ndarray) -> float:
     """The (H, W) bool mask's pixels on the photo's one-pixel edge, as a share of its outline's length (0 … 1)."""
-    cv2 = _cv2()
     if not mask.any():
         return 0.0
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    outline = sum(len(c) for c in contours)
     frame = np.concatenate([mask[0], mask[-1], mask[1:-1, 0], mask[1:-1, -1]])
-    return float(frame.sum()) / max(1, outline)
+    return float(frame.sum()) / max(1, _outline_length(mask))
 
 
 def salient_doubt(prob: np.ndarray, mask: np.ndarray, window: np.ndarray | None = None) -> str | None:
     """A one-line warning when the salient net's mask is doubtful, else None.
 
     ``prob``: (H, W) saliency; ``mask``: the (H, W) bool mask made of it.  Doubtful (levels at the top of the
-    file, set on our 9 photos, ``docs/masks.md``): the net is unsure of the outline (its pixels between
-    :data:`UNSURE_LOW` and :data:`UNSURE_HIGH` in the mask's bounding box are more than :data:`MAX_UNSURE_BAND` of the mask);
+    file, ``docs/masks.md``): the net is unsure of the outline (its pixels between :data:`UNSURE_LOW` and
+    :data:`UNSURE_HIGH` in the mask's bounding box, over the outline's length, are a band wider than
+    :data:`MAX_UNSURE_WIDTH` pixels);
     it found a second large object (a part of the thresholded saliency of :data:`MIN_SECOND_PART` of the largest
     or more); the mask is cut off by the frame (its pixels on the photo's edge are more than :data:`MAX_FRAME_CUT` of
-    its outline); it covers almost nothing (:data:`MIN_COVER`).  ``window``: (H, W) bool, where the net looked (a
-    box's crop): the frame is then not judged.  (Too much of the photo and the border: :func:`doubt`.)
+    its outline); it covers almost nothing (:data:`MIN_COVER`).  ``window``: (H, W) bool or None, the box the net
+    was given (its crop has a frame of its own): the frame is then not judged.  (Too much of the photo and the border: :func:`doubt`.)
     """
     facts = []
     if mask.any():
         rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
         near = prob[max(0, rows[0] - 2):rows[-1] + 3, max(0, cols[0] - 2):cols[-1] + 3]
-        unsure = float(((near > UNSURE_LOW) & (near < UNSURE_HIGH)).sum()) / float(mask.sum())
-        if unsure > MAX_UNSURE_BAND:
-            facts.append(f"has an outline the salient net is unsure of ({unsure:.0%} of its area)")
+        width = float(((near > UNSURE_LOW) & (near < UNSURE_HIGH)).sum()) / max(1, _outline_length(mask))
+        if width > MAX_UNSURE_WIDTH:
+            facts.append(f"has an outline the salient net is unsure of (a band {width:.1f} px wide at {max(mask.shape)} px)")
     parts = _parts(prob > SALIENT_THRESHOLD)
     if len(parts) > 1 and parts[1] >= MIN_SECOND_PART * parts[0]:
         facts.append(f"is one of {int((parts >= MIN_SECOND_PART * parts[0]).sum())} large objects the salient net found")
