@@ -467,7 +467,7 @@ class Reconstructor:
         alike (:class:`.options.OptionError`, a ValueError naming the option).  ``progress(stage, fraction)`` is
         called as each stage starts (fraction of the whole job done so far).  ``should_cancel()`` is polled at every
         stage boundary; when it returns True, :class:`Cancelled` is raised.  ``refine`` and ``seeding``: without a
-        mask file or alpha, find the mask by GrabCut (:func:`.preprocess.preprocess`); ``refine=False`` takes the
+        mask file or alpha, find the mask in the photo (the salient net's, :func:`.preprocess.preprocess`); ``refine=False`` takes the
         depth net's silhouette as it is.  ``box`` (x0, y0, x1, y1, the photo's pixels) and ``strokes_path`` (white
         object and black background strokes on grey, the photo's size): a person's guidance for the mask instead of
         the automatic one (:func:`.preprocess.preprocess`), over the photo's pixels as ``guidance_frame`` says
