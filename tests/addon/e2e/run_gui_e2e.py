@@ -39,7 +39,8 @@ SCRIPT = Path(__file__).resolve().with_name("blender_gui_script.py")
 # Training steps (depth, inpaint, refine) of the e2e weights: enough for the tiny box to look like a box.
 E2E_STEPS = (40, 40, 80)
 PHOTOS = REPO / "examples" / "photos"
-# The annotated run: a photo whose automatic mask is wrong, and a loop around the object for the Box layer
+# The annotated run: the photo whose automatic mask is the weakest (GrabCut's was wrong), and a loop around the
+# object for the Box layer
 # (the box of tests/backend/inference/test_masks.py; its scribbles are strokes.json's).
 ANNOTATED = "squirrel"
 ANNOTATED_BOX = [[127, 95], [364, 95], [364, 366], [127, 366], [127, 95]]
@@ -164,6 +165,8 @@ def run_annotated(out: Path, weights: Path, zip_path: Path, timeout: float, turn
             problems.append(f"Blender did not show the pixels as stored (426×535): {result.get('image_size')}")
         if "mask: box+strokes" not in result.get("message", ""):
             problems.append(f"the result line does not say 'mask: box+strokes': {result.get('message')}")
+        if not (result.get("mask_overlay") or {}).get("packed"):
+            problems.append(f"the panel has no picture of the mask used: {result.get('mask_overlay')}")
         result["mask_iou"] = ious = mask_ious(out, photo, PHOTOS / f"{ANNOTATED}_mask.png")  # (the backend's frame: upright)
         # (the salient net's automatic mask 0.846, box and scribbles 0.885; with GrabCut's automatic mask, before
         # the net, 0.404 against 0.874, and this margin was 0.2)
