@@ -9,7 +9,9 @@ from . import jobs, ops, schema
 
 
 # the one-line hint under "Use Annotation": how to fix a wrong automatic mask (the property's tooltip says it at length)
-ANNOTATION_HINT = "Wrong mask? Draw a box, or strokes (layers Box, Background)"
+ANNOTATION_HINT = "Wrong mask? Draw a box, or strokes, on layers named Box and Background"
+# the characters of one line of text the sidebar shows uncut at its default width (longer lines are wrapped)
+LINE_CHARS = 26
 
 
 # the size of the mask's picture in the panel, in icon units (20 px each at the interface's scale 1)
@@ -44,7 +46,8 @@ class GENRE_PT_panel(bpy.types.Panel):
         if settings.mask_path:
             row.operator("genre.clear_mask", text="", icon="X")
         col.prop(settings, "use_annotation")
-        col.label(text=ANNOTATION_HINT, icon="INFO")  # the same as the checkbox's tooltip, visible without hovering
+        for i, part in enumerate(_wrap(ANNOTATION_HINT, LINE_CHARS)):  # the checkbox's tooltip in short, seen without hovering
+            col.label(text=part, icon="INFO" if i == 0 else "BLANK1")
         col.separator()
         col.row().prop(settings, "quality", expand=True)
         col.prop(settings, "colour_from_photo")
@@ -68,7 +71,7 @@ class GENRE_PT_panel(bpy.types.Panel):
             col = layout.column(align=True)
             head, sep, rest = status.message.partition(": ")
             if status.message_is_error or not sep:
-                for i, part in enumerate(_wrap(status.message, 38)):
+                for i, part in enumerate(_wrap(status.message, LINE_CHARS)):
                     col.label(text=part, icon=("ERROR" if status.message_is_error else "CHECKMARK") if i == 0 else "BLANK1")
             else:
                 counts, _, seconds = rest.rpartition(" in ")
@@ -88,7 +91,7 @@ class GENRE_PT_panel(bpy.types.Panel):
             if status.mask_warning and not status.message_is_error:
                 # the backend doubts the mask (probably the photo's frame): say so, with the way out
                 col = layout.column(align=True)
-                for i, part in enumerate(_wrap(f"Doubtful mask: {status.mask_warning}. Choose a mask file (white object on black), or annotate the photo in an Image Editor (object strokes; a Background layer; a Box layer), and reconstruct again.", 38)):
+                for i, part in enumerate(_wrap(f"Doubtful mask: {status.mask_warning}. Choose a mask file (white object on black), or annotate the photo in an Image Editor (object strokes; a Background layer; a Box layer), and reconstruct again.", LINE_CHARS)):
                     col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
 
 
