@@ -9,9 +9,9 @@ from . import jobs, ops, schema
 
 
 # the one-line hint under "Use Annotation": how to fix a wrong automatic mask (the property's tooltip says it at length)
-ANNOTATION_HINT = "Wrong mask? Draw a box, or strokes, on layers named Box and Background"
+ANNOTATION_HINT = "Wrong mask? Draw a box or strokes (layers Box, Background)"
 # the characters of one line of text the sidebar shows uncut at its default width (longer lines are wrapped)
-LINE_CHARS = 26
+LINE_CHARS = 24
 
 
 # the size of the mask's picture in the panel, in icon units (20 px each at the interface's scale 1)

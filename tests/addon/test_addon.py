@@ -825,8 +825,8 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
         if call[0] != "label":
             break
         hint.append(call[1])
-    assert " ".join(hint) == "Wrong mask? Draw a box, or strokes, on layers named Box and Background"
-    assert len(hint) <= 3 and all(len(line) <= 26 for line in hint), hint  # (the sidebar's default width)
+    assert " ".join(hint) == "Wrong mask? Draw a box or strokes (layers Box, Background)"
+    assert len(hint) <= 3 and all(len(line) <= 24 for line in hint), hint  # (the sidebar's default width)
     assert "salient-object net" in r["annotation_tooltip"] and "'Box'" in r["annotation_tooltip"] \
         and "'Background'" in r["annotation_tooltip"]
     assert r["model_default"] == "default"
