@@ -706,6 +706,57 @@ def _fallback_line(exc: Exception, guided: bool) -> str:
     return f"the salient-object net cannot be used ({exc}): the mask is GrabCut's" + ("" if guided else ", seeded by the photo's border")
 
 
+def _salient_cut(small: np.ndarray, prob: np.ndarray, box: tuple[float, float, float, float] | None,
+                 fg: np.ndarray | None, bg: np.ndarray | None) -> tuple[np.ndarray, str | None]:
+    """The net's (h, w) bool mask of the work-size photo ``small`` from its saliency ``prob`` and its doubt.
+
+    ``box`` (work-size pixels): a hard limit; ``fg``, ``bg``: the strokes at the work size, hard constraints of a
+    cut (:func:`feature_grabcut`) started from the net's labels, its log-odds the prior.  Without strokes the
+    saliency is cut at :data:`SALIENT_THRESHOLD`.
+    """
+    cv2 = _cv2()
+    sh, sw = prob.shape
+    box_labels = None if box is None else box_seeds(sh, sw, box)
+    window = None if box is None else box_labels != cv2.GC_BGD
+    if fg is None and bg is None:
+        cut = prob > SALIENT_THRESHOLD
+        if window is not None:
+            cut &= window
+    else:
+        cut = feature_grabcut(small, guided_seeds(salient_labels(prob, box_labels), fg, bg), prior=prob)[0]
+    mask = largest_part(cut, fg)
+    if bg is not None:  # background strokes stay background, even in a hole the filling closed
+        mask &= ~bg
+    return mask, (salient_doubt(prob, mask, window) if mask.any() else None)
+
+
+def _grabcut_cut(small: np.ndarray, seeding: str | None, prob: np.ndarray | None, box: tuple[float, float, float, float] | None,
+                 fg: np.ndarray | None, bg: np.ndarray | None) -> tuple[np.ndarray, str | None]:
+    """GrabCut's (h, w) bool mask of the work-size photo ``small`` and its doubt (without the net).
+
+    ``seeding``: ``"border"`` or ``"network"`` (``prob``: the depth net's silhouette at the work size), or None for
+    a person's guidance: ``box`` (work-size pixels; :func:`box_prior`, :func:`feature_grabcut`) and the strokes.
+    """
+    cv2 = _cv2()
+    sh, sw = small.shape[:2]
+    spill = band = None
+    if seeding is None:
+        labels = border_seeds(sh, sw)
+        if box is not None:
+            labels, spill = box_prior(small, box_seeds(sh, sw, box))
+        labels = guided_seeds(labels, fg, bg)
+        spill = None if spill is None else spill & (labels == cv2.GC_BGD)
+    elif seeding == "border":
+        labels = border_seeds(sh, sw)
+        band = max(1, min(BORDER_BAND, (min(sh, sw) - 1) // 4))
+    else:
+        labels = network_seeds(prob)
+        band = 1
+    cut, fgd, bgd = feature_grabcut(small, labels, spill=spill) if box is not None else grabcut_models(small, labels)
+    mask = largest_part(cut, fg)
+    return mask, (cut_doubt(small, mask, fgd, bgd, band) if mask.any() else None)
+
+
 def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str = DEFAULT_SEEDING,
             work_side: int | None = None, *, box: tuple[float, float, float, float] | None = None,
             object_strokes: np.ndarray | None = None, background_strokes: np.ndarray | None = None) -> Segmentation:
@@ -760,7 +811,8 @@ def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str
         try:
             prob = _net_saliency(rgb, (sw, sh))
             if box is not None:
-                prob = _box_saliency(rgb, prob, box_seeds(sh, sw, tuple(v * k for v in box)) != cv2.GC_BGD, box)
+                inside = box_seeds(sh, sw, tuple(v * k for v in box)) != cv2.GC_BGD
+                prob = _box_saliency(rgb, prob, inside, box)
         except SalientNetError as exc:
             fallback = _fallback_line(exc, guided)
             if not guided:
@@ -769,38 +821,15 @@ def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str
     if guided:
         fg_small = None if object_strokes is None else _shrink_marks(object_strokes, (sw, sh))
         bg_small = None if background_strokes is None else _shrink_marks(background_strokes, (sw, sh))
+    box_small = None if box is None else tuple(v * k for v in box)
     if prob is not None:
-        box_labels = None if box is None else box_seeds(sh, sw, tuple(v * k for v in box))
-        window = None if box is None else box_labels != cv2.GC_BGD
-        if fg_small is None and bg_small is None:
-            cut = prob > SALIENT_THRESHOLD
-            if box_labels is not None:
-                cut &= box_labels != cv2.GC_BGD
-        else:
-            labels = guided_seeds(salient_labels(prob, box_labels), fg_small, bg_small)
-            cut = feature_grabcut(small, labels, prior=prob)[0]
-        mask = largest_part(cut, fg_small)
-        if bg_small is not None:  # background strokes stay background, even in a hole the filling closed
-            mask &= ~bg_small
-        warning = salient_doubt(prob, mask, window) if mask.any() else None
+        mask, warning = _salient_cut(small, prob, box_small, fg_small, bg_small)
     else:
-        spill = band = None
-        if guided:
-            labels = border_seeds(sh, sw)
-            if box is not None:
-                labels, spill = box_prior(small, box_seeds(sh, sw, tuple(v * k for v in box)))
-            labels = guided_seeds(labels, fg_small, bg_small)
-            spill = None if spill is None else spill & (labels == cv2.GC_BGD)
-        elif seeding == "border":
-            labels = border_seeds(sh, sw)
-            band = max(1, min(BORDER_BAND, (min(sh, sw) - 1) // 4))
-        else:
-            p = cv2.resize(probability.astype(np.float32), (sw, sh), interpolation=cv2.INTER_AREA) if k < 1.0 else probability
-            labels = network_seeds(p)
-            band = 1
-        cut, fgd, bgd = feature_grabcut(small, labels, spill=spill) if box is not None else grabcut_models(small, labels)
-        mask = largest_part(cut, fg_small)
-        warning = cut_doubt(small, mask, fgd, bgd, band) if mask.any() else None
+        small_prob = None
+        if seeding == "network" and not guided:
+            small_prob = cv2.resize(probability.astype(np.float32), (sw, sh), interpolation=cv2.INTER_AREA) if k < 1.0 \
+                else probability
+        mask, warning = _grabcut_cut(small, seeding if not guided else None, small_prob, box_small, fg_small, bg_small)
     if k < 1.0:
         mask = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR) > 0.5
     return Segmentation(mask, seeding, warning, fallback, prob is not None)
