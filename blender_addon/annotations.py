@@ -4,7 +4,7 @@ The artist shows the photo in an Image Editor and draws on it with the
 Annotate tool; the next Reconstruct sends what was drawn (``docs/masks.md``):
 
 * strokes on a layer named **Background** (any name that starts with "back"
-  or "bg", in any case) mark background: the backend's GrabCut keeps them
+  or "bg", in any case) mark background: the backend's mask keeps them
   out of the mask;
 * strokes on a layer named **Box** give a box: the bounding box of all its
   points (a rectangle or any loop around the object);

@@ -58,8 +58,13 @@ class JobSpec:
     def output_path(self) -> str:
         return os.path.join(self.work_dir, "mesh.obj")
 
+    @property
+    def intermediates_dir(self) -> str:
+        """Where the backend writes its pictures of the run: the panel shows ``mask_overlay.png`` from it."""
+        return os.path.join(self.work_dir, "intermediates")
+
     def request_payload(self) -> dict[str, Any]:
-        options = {**self.options, "quality": self.quality, "format": "obj"}
+        options = {**self.options, "quality": self.quality, "format": "obj", "save_intermediates": self.intermediates_dir}
         if self.colour_from_photo:
             options["texture"] = True
         payload: dict[str, Any] = {"image": self.image_path, "output": self.output_path, "options": options}
@@ -230,6 +235,10 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     return spec
 
 
+# the image the panel shows after a run: the mask the backend used, over the photo (Job.load_mask_overlay)
+MASK_IMAGE = "GenRe mask"
+
+
 @dataclass
 class JobLimits:
     startup_timeout: float = 120.0
@@ -320,6 +329,23 @@ class Job:
         if obj is not None and self.spec.target_faces and faces > self.spec.target_faces:
             line += f" (decimated to ~{self.spec.target_faces:,})"
         return f"{line} in {self.request.elapsed:.1f} s"
+
+    def load_mask_overlay(self):
+        """The backend's picture of the mask it used over the photo (``mask_overlay.png``) as the packed image
+        :data:`MASK_IMAGE`, which the panel shows (any older one replaced); None when the backend wrote none."""
+        old = bpy.data.images.get(MASK_IMAGE)
+        if old is not None:
+            bpy.data.images.remove(old)
+        folder = ((self.request.payload or {}).get("options") or {}).get("save_intermediates")
+        path = os.path.join(folder, "mask_overlay.png") if isinstance(folder, str) else ""
+        if not path or not os.path.isfile(path):
+            return None
+        image = bpy.data.images.load(path, check_existing=False)
+        image.name = MASK_IMAGE
+        image.pack()  # the job's folder is removed next
+        if hasattr(image, "preview_ensure"):
+            image.preview_ensure()  # the panel draws its preview icon
+        return image
 
     def cleanup(self) -> None:
         """Remove the job's temporary folder (the mesh file and any photo copy)."""

@@ -14,7 +14,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from . import schema
 from .backend import BackendError, BackendManager, Request, build_command, weights_argument
-from .jobs import Job, JobLimits, UserError, prepare_job, work_root
+from .jobs import MASK_IMAGE, Job, JobLimits, UserError, prepare_job, work_root
 from .props import ADDON_PACKAGE, get_preferences
 
 TICK_SECONDS = 0.1
@@ -61,6 +61,9 @@ def start_job(settings, prefs, status, *, backend: BackendManager | None = None)
     status.message = ""
     status.message_is_error = False
     status.mask_warning = ""
+    old = bpy.data.images.get(MASK_IMAGE)  # the last run's mask picture: not this run's
+    if old is not None:
+        bpy.data.images.remove(old)
     return job
 
 
@@ -154,6 +157,11 @@ def follow_result(settings, result: dict) -> None:
 
 
 def finish_job(job: Job, status, outcome) -> None:
+    if outcome[0] == "INFO":  # the mask over the photo, for the panel: read before the job's folder goes
+        try:
+            job.load_mask_overlay()
+        except RuntimeError:  # an unreadable picture: the mesh is still there, only the picture is missing
+            pass
     job.cleanup()
     if active.job is job:
         active.job = None

@@ -73,9 +73,10 @@ class GENRE_PG_settings(bpy.types.PropertyGroup):
     )
     use_annotation: BoolProperty(
         name="Use Annotation",
-        description="Guide the mask with what is drawn over the photo in an Image Editor with the Annotate tool: "
-                    "strokes on the object; strokes on a layer named 'Background' mark background; strokes on a layer "
-                    "named 'Box' give a box around the object. A mask file, when chosen, is used instead",
+        description="The mask is found by a salient-object net, which takes the photo's most eye-catching object. "
+                    "If it is wrong, guide it with what is drawn over the photo in an Image Editor with the Annotate tool: "
+                    "a box (draw it on a layer named 'Box'), or strokes: on the object, and on a layer named 'Background' "
+                    "for background. A mask file, when chosen, is used instead",
         default=True,
     )
     quality: EnumProperty(

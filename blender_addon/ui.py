@@ -5,7 +5,17 @@ import os
 
 import bpy
 
-from . import ops, schema
+from . import jobs, ops, schema
+
+
+# the one-line hint under "Use Annotation": how to fix a wrong automatic mask (the property's tooltip says it at length)
+ANNOTATION_HINT = "Wrong mask? Draw a box or strokes (layers Box, Background)"
+# the characters of one line of text the sidebar shows uncut at its default width (longer lines are wrapped)
+LINE_CHARS = 24
+
+
+# the size of the mask's picture in the panel, in icon units (20 px each at the interface's scale 1)
+MASK_PREVIEW_SCALE = 9.0
 
 
 class GENRE_PT_panel(bpy.types.Panel):
@@ -36,6 +46,8 @@ class GENRE_PT_panel(bpy.types.Panel):
         if settings.mask_path:
             row.operator("genre.clear_mask", text="", icon="X")
         col.prop(settings, "use_annotation")
+        for i, part in enumerate(_wrap(ANNOTATION_HINT, LINE_CHARS)):  # the checkbox's tooltip in short, seen without hovering
+            col.label(text=part, icon="INFO" if i == 0 else "BLANK1")
         col.separator()
         col.row().prop(settings, "quality", expand=True)
         col.prop(settings, "colour_from_photo")
@@ -59,7 +71,7 @@ class GENRE_PT_panel(bpy.types.Panel):
             col = layout.column(align=True)
             head, sep, rest = status.message.partition(": ")
             if status.message_is_error or not sep:
-                for i, part in enumerate(_wrap(status.message, 38)):
+                for i, part in enumerate(_wrap(status.message, LINE_CHARS)):
                     col.label(text=part, icon=("ERROR" if status.message_is_error else "CHECKMARK") if i == 0 else "BLANK1")
             else:
                 counts, _, seconds = rest.rpartition(" in ")
@@ -68,10 +80,18 @@ class GENRE_PT_panel(bpy.types.Panel):
                 col.label(text=counts.replace(" vertices,", " verts,"), icon="BLANK1")
                 if mask:
                     col.label(text=f"mask: {mask}", icon="BLANK1")
+            overlay = bpy.data.images.get(jobs.MASK_IMAGE)
+            if overlay is not None and not status.message_is_error:
+                # the mask the backend used over the photo (background dimmed, outline yellow): a wrong one is seen at once
+                col = layout.column(align=True)
+                col.label(text="Mask used (yellow outline):", icon="MOD_MASK")
+                preview = getattr(overlay, "preview", None)
+                if preview is not None:
+                    col.template_icon(icon_value=preview.icon_id, scale=MASK_PREVIEW_SCALE)
             if status.mask_warning and not status.message_is_error:
                 # the backend doubts the mask (probably the photo's frame): say so, with the way out
                 col = layout.column(align=True)
-                for i, part in enumerate(_wrap(f"Doubtful mask: {status.mask_warning}. Choose a mask file (white object on black), or annotate the photo in an Image Editor (object strokes; a Background layer; a Box layer), and reconstruct again.", 38)):
+                for i, part in enumerate(_wrap(f"Doubtful mask: {status.mask_warning}. Choose a mask file (white object on black), or annotate the photo in an Image Editor (object strokes; a Background layer; a Box layer), and reconstruct again.", LINE_CHARS)):
                     col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
 
 

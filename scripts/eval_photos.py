@@ -7,8 +7,9 @@ shipped weights (or ``--weights``):
 
 * **mask IoU** of the automatic mask (no user mask) against the hand mask,
   *before* (the depth net's silhouette alone: ``genre reconstruct
-  --no-refine``) and *after* (GrabCut refinement, the default), both at the
-  photo's pixels; with ``--seedings`` also the IoU of each GrabCut seeding
+  --no-refine``) and *after* (the default automatic mask: GrabCut's when
+  ``results/photos/`` was written, the salient net's since issue 48,
+  ``docs/masks.md``), both at the photo's pixels; with ``--seedings`` also the IoU of each GrabCut seeding
   (``border``, ``network``, ``auto``: :mod:`genre_backend.inference.segment`;
   ``auto`` judges the silhouette of the whole photo, the first pass) and
   ``auto*``: the same rule judged on the silhouette the old pipeline used as

@@ -1,24 +1,29 @@
 #!/usr/bin/env python3
-"""The automatic mask, a box alone and the doubt test on the real photos with hand masks.
+"""The automatic mask, a box alone and the doubt test on the real photos with hand masks (or another folder).
 
 For every photo ``NAME.jpg``/``.png`` in ``--photos`` (``examples/photos``)
 with a hand mask ``NAME_mask.png`` beside it: the IoU against the hand mask
 of
 
-* the **automatic** mask (GrabCut seeded by the photo's border, what
-  ``genre reconstruct`` does without a mask), and whether it is warned as
-  doubtful (:func:`genre_backend.inference.segment.doubt` or
+* the **automatic** mask (the salient-object net's, what ``genre
+  reconstruct`` does without a mask; with ``--grabcut``, GrabCut seeded by
+  the photo's border, its fallback), and whether it is warned as doubtful
+  (:func:`genre_backend.inference.segment.doubt`,
+  :func:`~genre_backend.inference.segment.salient_doubt` or
   :func:`~genre_backend.inference.segment.cut_doubt`, as ``genre
   reconstruct`` warns);
 * the mask from a **box** alone (``--box``): the hand mask's bounding box,
   its width and height grown by ``--grow`` (5 %, half on each side),
   clipped to the photo; and whether that is warned.
 
-No network runs (GrabCut only; a few seconds).  Prints a Markdown table
+Only the salient net runs (none with ``--grabcut``; about 20 s for the 9 photos on
+2 cores).  Prints a Markdown table
 (``docs/masks.md`` holds it) and the counts of the doubt test: a mask is
 *wrong* at IoU < ``--wrong`` (0.8).
 
     .venv/bin/python scripts/mask_box.py
+    .venv/bin/python scripts/mask_box.py --photos examples/holdout   # the six photos set aside
+    .venv/bin/python scripts/mask_box.py --grabcut                   # GrabCut's figures (the fallback)
 """
 
 from __future__ import annotations
@@ -52,8 +57,10 @@ def grown_box(mask: np.ndarray, grow: float) -> tuple[float, float, float, float
     return max(0.0, x0 - dx), max(0.0, y0 - dy), min(float(w), x1 + dx), min(float(h), y1 + dy)
 
 
-def measure(folder: Path, grow: float = 0.05) -> list[dict]:
-    """One row per photo with a hand mask: name, IoU and warning of the automatic and of the box mask."""
+def measure(folder: Path, grow: float = 0.05, seeding: str = "salient") -> list[dict]:
+    """One row per photo with a hand mask: name, IoU and warning of the automatic and of the box mask.
+
+    ``seeding``: ``"salient"`` (the net's masks) or ``"border"`` (GrabCut's, as without the net)."""
     rows = []
     for photo in sorted(folder.iterdir()):
         hand_path = folder / f"{photo.stem}_mask.png"
@@ -62,9 +69,9 @@ def measure(folder: Path, grow: float = 0.05) -> list[dict]:
         image = load_image(photo)
         hand = load_mask(hand_path, image)
         rgb = composite(image)
-        auto = segment(rgb)
+        auto = segment(rgb, seeding=seeding)
         box = grown_box(hand, grow)
-        boxed = segment(rgb, box=box)
+        boxed = segment(rgb, seeding=seeding, box=box)
         rows.append({
             "name": photo.stem,
             "auto_iou": iou(auto.mask, hand),
@@ -81,8 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos")
     parser.add_argument("--grow", type=float, default=0.05, help="the box's growth in width and height (default 0.05)")
     parser.add_argument("--wrong", type=float, default=0.8, help="a mask below this IoU is wrong (default 0.8)")
+    parser.add_argument("--grabcut", action="store_true", help="GrabCut's masks (the fallback), not the salient net's")
     args = parser.parse_args(argv)
-    rows = measure(args.photos, args.grow)
+    rows = measure(args.photos, args.grow, "border" if args.grabcut else "salient")
     print("| photo | automatic IoU | warned | box IoU | warned |")
     print("|---|---|---|---|---|")
     for r in rows:

@@ -3,8 +3,10 @@
 
     .venv/bin/python scripts/readme_gallery.py [--out docs/gallery.png] [--weights default] [--tile 150]
 
-One row per photo of ``examples/photos`` (hand-drawn masks, as
-``genre reconstruct PHOTO --mask PHOTO_mask.png --texture``): the photo, then
+One row per photo of ``examples/photos`` with its automatic mask (the
+salient-object net's, as ``genre reconstruct PHOTO --texture``; ``--hand-masks``:
+the hand-drawn masks, ``--mask PHOTO_mask.png``): the photo with that mask
+over it (:meth:`Reconstruction.mask_overlay`: background dimmed, outline yellow), then
 the mesh with the photo's colour (:meth:`Reconstruction.texture`) rendered
 by :func:`genre_backend.inference.blender.render_views` (Workbench, the
 ``--preview`` sheet's renderer) from the photo's viewpoint, from the right
@@ -28,7 +30,7 @@ sys.path.insert(0, str(REPO))
 # (photo, caption): round and boxy objects, then the weak cases (flat or thin objects come out thick).
 ROWS = [("apple.jpg", "apple"), ("bus.jpg", "bus"), ("quokka.jpg", "quokka"),
         ("lighter.png", "lighter (flat)"), ("butterfly.jpg", "butterfly (thin)")]
-COLUMNS = ("photo", "mesh: photo's view", "from the right", "from behind")
+COLUMNS = ("photo and mask", "mesh: photo's view", "from the right", "from behind")
 LABEL_H = 18
 
 
@@ -50,6 +52,7 @@ def main() -> int:
     p.add_argument("--out", type=Path, default=REPO / "docs" / "gallery.png")
     p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")
     p.add_argument("--tile", type=int, default=150, help="pixels a side of each picture")
+    p.add_argument("--hand-masks", action="store_true", help="the hand-drawn masks, not the automatic (salient net's) ones")
     args = p.parse_args()
     tile = args.tile
     rec = Reconstructor(args.weights)
@@ -60,16 +63,15 @@ def main() -> int:
     for i, (photo, caption) in enumerate(ROWS):
         t0 = time.perf_counter()
         path = REPO / "examples" / "photos" / photo
-        mask = path.with_name(path.stem + "_mask.png")
+        mask = path.with_name(path.stem + "_mask.png") if args.hand_masks else None
         result = rec.run(path, mask_path=mask)
         tex = result.texture()
         views = render_views(result.vertices, result.faces, tile * 2, camera=result.config.camera,
                              uv=tex.face_uv, texture=tex.image, views=("front", "side", "back"))
-        with Image.open(path) as im:
-            pictures = [_fit(np.asarray(im.convert("RGB")), tile)]
+        pictures = [_fit(result.mask_overlay(), tile)]
         pictures += [Image.fromarray(v).resize((tile, tile), Image.LANCZOS) for v in views]
         y = LABEL_H + i * (tile + LABEL_H)
-        draw.text((4, y + 3), f"{caption}: {len(result.faces):,} faces", fill="black")
+        draw.text((4, y + 3), f"{caption}: {len(result.faces):,} faces, mask: {result.mask_source}", fill="black")
         for j, pic in enumerate(pictures):
             sheet.paste(pic, (j * tile, y + LABEL_H))
         print(f"{photo:<14} {len(result.faces):>7,} faces  {time.perf_counter() - t0:5.1f} s", flush=True)

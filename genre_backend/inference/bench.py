@@ -17,7 +17,7 @@ the process's resident set every 2 ms.  On CUDA, per-stage peaks are
 
 ``genre bench reconstruct`` times what a user runs: ``genre reconstruct`` of a
 photo (``examples/sofa.png``) with the shipped weights (``default``) and their
-own options (GrabCut mask, mirror averaging, cleanup …).  Warm: one process,
+own options (the salient net's mask, mirror averaging, cleanup …).  Warm: one process,
 the weights loaded, each stage timed from the ``progress`` call that starts it.
 Cold: fresh ``genre reconstruct`` processes, wall clock, and instrumented ones
 that split that time into the interpreter's start, the imports, the weights'

@@ -14,11 +14,11 @@ framing here, and only here:
    on their long side, which is far more than the network input needs.
 2. **Mask** (:func:`preprocess`), in this order: a mask file given by the user
    (same size as the image, not empty), else a box and/or strokes given by the
-   user (:func:`photo_box`, :func:`load_strokes`: GrabCut seeded by them,
-   :func:`.segment.segment`), else the image's alpha channel when it
-   has real transparency, else a mask found in the photo by GrabCut
-   (:mod:`.segment`; seeded by the photo's border, a product-photo prior,
-   which beat seeding by the depth net's silhouette on our real photos),
+   user (:func:`photo_box`, :func:`load_strokes`: the salient net's mask
+   guided by them, :func:`.segment.segment`), else the image's alpha channel when it
+   has real transparency, else a mask found in the photo by a pretrained
+   salient-object net (:mod:`.salient`, :mod:`.segment`; GrabCut seeded by
+   the photo's border when the net cannot be loaded, with a warning),
    else the depth net's own silhouette (two passes: the whole image padded
    to a square, then the crop around that silhouette).  A final mask that
    covers most of the photo or touches most of its border is reported as
@@ -143,7 +143,8 @@ class Preprocessed:
     ``rgb``: (3, S, S) float32 in [0, 1].  ``mask``: (S, S) bool, or None when
     the depth net's silhouette is to be used (``mask_source`` ``"silhouette"``;
     the silhouette of the final crop then becomes the mask).  ``mask_source``:
-    ``"file"``, ``"alpha"``, ``"grabcut"`` or ``"silhouette"``.  ``crop_box``: (x0, y0, x1, y1)
+    ``"file"``, ``"alpha"``, ``"salient"`` (the salient-object net's), ``"grabcut"`` (GrabCut's, when the net
+    cannot be loaded or another seeding is asked for) or ``"silhouette"``.  ``crop_box``: (x0, y0, x1, y1)
     the square crop in the original image's pixel coordinates (may extend past
     the image).  ``image_size``: (width, height) of the original image.
     ``fill``: the RGB (uint8) that parts of the crop outside the photo got.
@@ -152,9 +153,11 @@ class Preprocessed:
     back with :func:`uncrop`).  ``network_doubt``: when the depth net's own
     silhouette of the whole photo was doubtful
     (:func:`.segment.doubt`), why; else None.  ``mask_doubt``: when the
-    GrabCut mask is doubtful (:func:`.segment.cut_doubt`), why; else None.
+    found mask is doubtful (:func:`.segment.salient_doubt`,
+    :func:`.segment.cut_doubt`) or was made without the salient net because
+    it could not be loaded, why; else None.
     ``mask_source`` is also ``"box"``, ``"strokes"`` or ``"box+strokes"``
-    for a mask GrabCut found from a person's box and strokes.
+    for a mask found from a person's box and strokes.
     """
 
     rgb: torch.Tensor
@@ -559,13 +562,13 @@ def preprocess(
     logits (float) or mask (bool) of the depth net, needed only when neither
     a mask file nor real alpha is there; it runs once on the whole image
     padded to a square.  Then, with ``refine`` (the default), the object's
-    mask is found in the photo by GrabCut (:func:`.segment.segment`,
-    ``seeding`` one of :data:`.segment.SEEDINGS`) and used like a mask file
-    (``mask_source`` ``"grabcut"``); without it (or when GrabCut finds
-    nothing) the returned ``mask`` is None so that the caller takes the
+    mask is found in the photo (:func:`.segment.segment`, ``seeding`` one of
+    :data:`.segment.SEEDINGS`: by default the salient-object net's, else
+    GrabCut's) and used like a mask file (``mask_source`` ``"salient"`` or
+    ``"grabcut"``); without it (or when nothing is found) the returned ``mask`` is None so that the caller takes the
     silhouette of the final crop (``mask_source`` ``"silhouette"``).
     ``box`` (x0, y0, x1, y1, the photo's pixels, :func:`photo_box`) and
-    ``strokes_path`` (:func:`load_strokes`): a person's guidance for GrabCut
+    ``strokes_path`` (:func:`load_strokes`): a person's guidance for the mask
     (:func:`.segment.segment`); they take the place of the alpha channel and
     of the automatic seeding, not of a mask file (giving both is a
     ``ValueError``).  ``guidance_frame``: the pixels they are drawn over
@@ -608,10 +611,25 @@ def preprocess(
     if refine:
         found = segment(rgb, photo_prob, seeding)
         if int(found.mask.sum()) >= MIN_OBJECT_PIXELS:
-            notes.append(f"mask: GrabCut seeded by the {'photo border' if found.seeding == 'border' else 'depth net silhouette'}")
-            return _framed(image, rgb, g, notes, found.mask, "grabcut", network_doubt, found.doubt)
-        notes.append("GrabCut found no object: the depth net's silhouette is used")
+            notes.append(_mask_note(found))
+            return _framed(image, rgb, g, notes, found.mask, "salient" if found.net else "grabcut", network_doubt,
+                           _found_doubt(found))
+        notes.append(f"{'the salient net' if found.net else 'GrabCut'} found no object: the depth net's silhouette is used")
     return _silhouette_framed(image, rgb, g, notes, prob, whole, fill, network_doubt)
+
+
+def _mask_note(found) -> str:
+    """The note that says how a :class:`.segment.Segmentation`'s mask was found."""
+    if found.net:
+        guide = found.seeding.replace("+", " and ")
+        return "mask: the salient-object net (U²-Netp)" + ("" if found.seeding == "salient" else f", guided by the {guide}")
+    seeds = {"border": "photo border", "network": "depth net silhouette"}.get(found.seeding, found.seeding.replace("+", " and "))
+    return f"mask: GrabCut seeded by the {seeds}"
+
+
+def _found_doubt(found) -> str | None:
+    """A :class:`.segment.Segmentation`'s one-line warning: the net's fallback and the mask's doubt, joined."""
+    return "; ".join(w for w in (found.fallback, found.doubt) if w) or None
 
 
 def _original_box(box: tuple[float, float, float, float], image: LoadedImage) -> tuple[float, ...]:
@@ -636,13 +654,13 @@ def _framed(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[
 
 def _guided(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], box: tuple[float, float, float, float] | None,
             strokes_path: str | os.PathLike | None, frame: str = "upright") -> Preprocessed:
-    """The mask from GrabCut guided by a person's ``box`` and/or strokes file (over the photo's ``frame``), framed."""
+    """The mask from the salient net (GrabCut without it) guided by a person's ``box`` and/or strokes file (over the photo's ``frame``), framed."""
     fg, bg = load_strokes(strokes_path, image, frame) if strokes_path is not None else (None, None)
     found = segment(rgb, box=None if box is None else photo_box(box, image, frame), object_strokes=fg, background_strokes=bg)
     if int(found.mask.sum()) < MIN_OBJECT_PIXELS:
         raise ImageError("no_object", f"{image.path}: no object found inside the {found.seeding.replace('+', ' and ')}")
-    notes.append(f"mask: GrabCut seeded by the {found.seeding.replace('+', ' and ')}")
-    return _framed(image, rgb, g, notes, found.mask, found.seeding, mask_doubt=found.doubt)
+    notes.append(_mask_note(found))
+    return _framed(image, rgb, g, notes, found.mask, found.seeding, mask_doubt=_found_doubt(found))
 
 
 def _silhouette_framed(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], prob: np.ndarray,

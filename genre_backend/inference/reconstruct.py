@@ -67,6 +67,8 @@ for _s in STAGES:
 del _acc, _s
 
 DEFAULT_WEIGHTS = named_weights(DEFAULT_WEIGHTS_NAME)  # the product weights; --weights protocol|FILE picks others (io.resolve_weights)
+# the long side of the mask-over-photo picture save_intermediates writes (mask_overlay.png; the add-on shows it)
+MASK_OVERLAY_SIDE = 320
 
 ProgressFn = Callable[[str, float], None]
 
@@ -125,13 +127,14 @@ class Reconstruction:
     """The result of one image.
 
     ``vertices`` (V, 3) float32 and ``faces`` (F, 3) int64: the mesh in the
-    view frame.  ``mask_source``: ``"file"``, ``"alpha"``, ``"grabcut"``,
+    view frame.  ``mask_source``: ``"file"``, ``"alpha"``, ``"salient"``, ``"grabcut"``,
     ``"box"``, ``"strokes"``, ``"box+strokes"`` or ``"silhouette"``.  ``photo_mask``: (H, W) bool, the mask the networks
     used at the decoded photo's pixels (:meth:`mask_in_photo` gives it at
     the photo's own size).  ``mask_warning``: one line when that mask is
     doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
     of the photo or touches most of its border; :func:`~genre_backend.inference.segment.cut_doubt`:
-    GrabCut's colours barely separate it, or it runs along the photo's edge), else None.
+    GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.inference.segment.salient_doubt`:
+    the salient net's mask; or the net could not be loaded and GrabCut's mask was used), else None.
     ``options``: the mesh options as the mesh was made (:class:`.options.MeshOptions`, resolved against the weights:
     no field ``None``); ``threshold``, ``hole_closing``, ``silhouette_carve``, ``visible_fusion``, ``pit_sealing``,
     ``primitive_snap`` and ``test_time_mirror`` read them.  ``primitive``: the family of the fitted shape that replaced the
@@ -224,6 +227,27 @@ class Reconstruction:
             mask = mask[np.ix_(rows, cols)]
         return mask
 
+    def mask_overlay(self, side: int = MASK_OVERLAY_SIDE) -> np.ndarray:
+        """(h, w, 3) uint8: the photo at up to ``side`` pixels on its long side with the mask the networks used over
+        it: the background dimmed to a third and tinted blue, the mask's outline yellow.  What the add-on's panel
+        shows after a run (``mask_overlay.png`` of :meth:`save_intermediates`), so that a wrong mask is seen at once."""
+        import cv2  # noqa: PLC0415
+
+        if self.photo_mask is None or self.photo is None:
+            raise ValueError("this reconstruction keeps no mask and photo at the photo's pixels")
+        rgb = composite(self.photo)
+        h, w = rgb.shape[:2]
+        k = min(1.0, side / max(h, w))
+        size = (max(1, round(w * k)), max(1, round(h * k)))
+        small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA) if k < 1.0 else rgb.copy()
+        mask = cv2.resize(self.photo_mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+        out = small.astype(np.float32)
+        out[~mask] = out[~mask] * 0.35 + np.array([20.0, 40.0, 110.0], np.float32)
+        out = np.clip(out, 0, 255).astype(np.uint8)
+        contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(out, contours, -1, (255, 220, 0), max(1, round(max(size) / 160)))
+        return out
+
     def texture(self) -> PhotoTexture:
         """The mesh's colour from the photo (:mod:`.colour`): corner UVs into an atlas of the photo's crop (at up to
         2,048 px) and its smooth copy.
@@ -269,7 +293,8 @@ class Reconstruction:
         (max-projections along view −z, −x and −y, side by side), and
         ``mask_in_photo.png``: the mask at the photo's own size (white object
         on black, :meth:`mask_in_photo`), to correct in any editor and give
-        back with ``--mask``.
+        back with ``--mask``; ``mask_overlay.png``: the mask over the photo
+        (:meth:`mask_overlay`), to see at once whether it is right.
         """
         folder = Path(folder)
         try:
@@ -281,6 +306,8 @@ class Reconstruction:
         images = {name: _upscale(img) for name, img in self.intermediate_images().items()}
         if self.photo_mask is not None:
             images["mask_in_photo"] = self.mask_in_photo().astype(np.uint8) * 255  # the photo's own pixels, never scaled
+            if self.photo is not None:
+                images["mask_overlay"] = self.mask_overlay()
         for name in images:  # all checks before the first write
             check_output_path(folder / f"{name}.png", self.inputs)
         paths = []
@@ -440,7 +467,7 @@ class Reconstructor:
         alike (:class:`.options.OptionError`, a ValueError naming the option).  ``progress(stage, fraction)`` is
         called as each stage starts (fraction of the whole job done so far).  ``should_cancel()`` is polled at every
         stage boundary; when it returns True, :class:`Cancelled` is raised.  ``refine`` and ``seeding``: without a
-        mask file or alpha, find the mask by GrabCut (:func:`.preprocess.preprocess`); ``refine=False`` takes the
+        mask file or alpha, find the mask in the photo (the salient net's, :func:`.preprocess.preprocess`); ``refine=False`` takes the
         depth net's silhouette as it is.  ``box`` (x0, y0, x1, y1, the photo's pixels) and ``strokes_path`` (white
         object and black background strokes on grey, the photo's size): a person's guidance for the mask instead of
         the automatic one (:func:`.preprocess.preprocess`), over the photo's pixels as ``guidance_frame`` says

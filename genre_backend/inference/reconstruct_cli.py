@@ -9,13 +9,14 @@ atomically; every bad input gets one line on stderr naming the file and the
 problem (with its ``genre serve`` error code), the other images go on, and the
 exit status is 1 if any image failed (2 for bad arguments).  A doubtful mask
 (one that covers most of the photo or touches most of its border: probably
-the photo's frame, not the object; or a GrabCut mask whose colours barely
-separate from the background's, or an automatic one that runs along the
-photo's edge: :mod:`.segment`) gets a warning line on stderr; the mesh is
-still written.  ``--box`` (a box around the object, the photo's pixels) and
-``--strokes`` (an image the photo's size: white strokes on the object, black
-on the background, mid grey or transparency elsewhere) guide GrabCut instead
-of its automatic start; the result line then says ``mask: box``, ``mask:
+the photo's frame, not the object; or one whose outline the salient net is
+unsure of, that is one of several objects, cut off by the frame or tiny; or,
+without the net, a GrabCut mask whose colours barely separate from the
+background's or that runs along the photo's edge: :mod:`.segment`) gets a
+warning line on stderr; the mesh is still written.  ``--box`` (a box around
+the object, the photo's pixels) and ``--strokes`` (an image the photo's size:
+white strokes on the object, black on the background, mid grey or
+transparency elsewhere) guide the salient net's mask; the result line then says ``mask: box``, ``mask:
 strokes`` or ``mask: box+strokes``.
 
 Axes: OBJ and glb are written +y up (the view frame), as their importers
@@ -111,13 +112,13 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     parser.add_argument("--mask", metavar="M", help="mask file for the (single) image: white object on black, same size")
     parser.add_argument("--box", metavar="X0,Y0,X1,Y1",
                         help="a box around the object in the (single) photo's pixels (left, top, right, bottom; x right, "
-                             "y down): GrabCut finds the object inside it")
+                             "y down): the object is found inside it")
     parser.add_argument("--strokes", metavar="S",
                         help="strokes image for the (single) photo, the photo's size: white (>= 192) on the object, black "
-                             "(<= 63) on the background, mid grey (128) or transparent elsewhere; GrabCut keeps them")
+                             "(<= 63) on the background, mid grey (128) or transparent elsewhere; the mask keeps them")
     add_arguments(parser)  # every mesh option (genre_backend/inference/options.py) and --quality
     parser.add_argument("--no-refine", action="store_true",
-                        help="without --mask or alpha, use the depth net's silhouette as it is (default: find the object in the photo by GrabCut)")
+                        help="without --mask or alpha, use the depth net's silhouette as it is (default: find the object in the photo by the salient-object net)")
     parser.add_argument("--save-intermediates", metavar="DIR",
                         help="write PNGs of depth, mask, spherical maps and voxels here, and mask_in_photo.png: the mask at the photo's size, to correct and give back with --mask")
     parser.add_argument("--preview", action="store_true",
@@ -168,7 +169,7 @@ def _mask_inputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> t
         if args.mask:
             parser.error(f"give either --mask or {used}, not both")
         if args.no_refine:
-            parser.error(f"{used} guide GrabCut; --no-refine turns it off")
+            parser.error(f"{used} guide the mask found in the photo; --no-refine turns it off")
     if args.box is None:
         return None
     from ..validation import check_box

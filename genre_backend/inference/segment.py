@@ -101,10 +101,22 @@ __all__ = [
     "feature_grabcut",
     "guided_seeds",
     "segment",
+    "SALIENT_THRESHOLD",
+    "BOX_MARGIN",
+    "salient_labels",
+    "salient_doubt",
 ]
 
-SEEDINGS = ("border", "network", "auto")
-DEFAULT_SEEDING = "border"
+SEEDINGS = ("salient", "border", "network", "auto")
+DEFAULT_SEEDING = "salient"
+# the salient net's (min–max normalised) saliency above this is object
+SALIENT_THRESHOLD = 0.5
+# a box's crop for the net: the box grown by this fraction of its width and height on each side (clipped to the photo)
+BOX_MARGIN = 0.10
+# a box keeps the whole photo's net mask when at least this share of it lies in the box; else the net sees the box's crop
+BOX_KEEPS = 0.99
+# the salient net's cut with strokes: the weight of its log-odds beside the colour models' log-likelihoods
+SALIENT_PRIOR_WEIGHT = 5.0
 # GrabCut runs on the photo reduced to this many pixels on its long side
 WORK_SIDE = 320
 # the "border" seeding's rectangle of probable object is inset by this fraction of each side
@@ -484,7 +496,8 @@ def _spill_log_likelihood(features: np.ndarray, spill: np.ndarray | None, box_pi
 
 
 def feature_grabcut(rgb: np.ndarray, labels: np.ndarray, iterations: int | None = None,
-                    spill: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+                    spill: np.ndarray | None = None, prior: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """GrabCut whose colour models also see the photo's sharpness: :func:`grabcut_models`' answer.
 
     The same algorithm as OpenCV's (5-component Gaussian mixtures, learnt by assigning each pixel to
@@ -493,7 +506,8 @@ def feature_grabcut(rgb: np.ndarray, labels: np.ndarray, iterations: int | None 
     focus parts from a blurred background of its colours.  ``spill`` ((H, W) bool, sure background:
     :func:`box_prior`'s) adds to the background's model one fixed mixture learnt on its pixels, weighted
     by its share of the box (:func:`_spill_log_likelihood`): what the automatic cut joined to the object
-    out of the box is background inside it too.  The models returned are the colour part of the
+    out of the box is background inside it too.  ``prior`` ((H, W) float in [0, 1], the salient net's
+    saliency) adds :data:`SALIENT_PRIOR_WEIGHT` × its log-odds to each pixel's costs.  The models returned are the colour part of the
     object's and of the background's own mixture, in OpenCV's form, for :func:`model_overlap`.
     """
     cv2 = _cv2()
@@ -513,8 +527,12 @@ def feature_grabcut(rgb: np.ndarray, labels: np.ndarray, iterations: int | None 
             fit = [np.logaddexp.reduce(_component_log_likelihoods(m, features), axis=0) for m in (objects, backgrounds)]
             if spilt is not None:  # the background: its own mixture and the spill's, by their shares
                 fit[1] = np.logaddexp(fit[1] + np.log1p(-spilt[0]), spilt[1] + np.log(spilt[0]))
-            fg = _min_cut(-fit[0].reshape(fg.shape), -fit[1].reshape(fg.shape), edges, labels == cv2.GC_FGD,
-                          labels == cv2.GC_BGD)
+            object_cost, background_cost = -fit[0].reshape(fg.shape), -fit[1].reshape(fg.shape)
+            if prior is not None:
+                p = np.clip(prior, 1e-3, 1.0 - 1e-3)
+                object_cost, background_cost = (object_cost - SALIENT_PRIOR_WEIGHT * np.log(p),
+                                                background_cost - SALIENT_PRIOR_WEIGHT * np.log1p(-p))
+            fg = _min_cut(object_cost, background_cost, edges, labels == cv2.GC_FGD, labels == cv2.GC_BGD)
     except (cv2.error, ValueError):  # too few pixels of one kind for its mixture
         return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD), None, None
     return fg, _opencv_model(objects), _opencv_model(backgrounds)
@@ -540,13 +558,18 @@ class Segmentation:
     """A mask found by :func:`segment`.
 
     ``mask``: (H, W) bool at the photo's pixels (may be empty).
-    ``seeding``: ``"border"``, ``"network"``, ``"box"``, ``"strokes"`` or
-    ``"box+strokes"``.  ``doubt``: :func:`cut_doubt`'s warning, else None.
+    ``seeding``: ``"salient"``, ``"border"``, ``"network"``, ``"box"``,
+    ``"strokes"`` or ``"box+strokes"``.  ``doubt``: :func:`salient_doubt`'s
+    or :func:`cut_doubt`'s warning, else None.  ``fallback``: one line when
+    the salient net could not be loaded and GrabCut's mask was made instead,
+    else None.  ``net``: whether the salient net made or guided the mask.
     """
 
     mask: np.ndarray
     seeding: str
     doubt: str | None = None
+    fallback: str | None = None
+    net: bool = False
 
 
 def _shrink_marks(marks: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -557,24 +580,206 @@ def _shrink_marks(marks: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(marks.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.0
 
 
+# ---------------------------------------------------------------------------- the salient net's masks
+# the doubt of a net's mask: its outline's band (saliency between these) wider on average than MAX_UNSURE_WIDTH pixels
+# (at WORK_SIDE); a second part of the thresholded saliency at least MIN_SECOND_PART of the largest; a mask whose pixels on
+# the photo's edge are more than MAX_FRAME_CUT of its outline; one covering less than MIN_COVER of the photo
+UNSURE_LOW, UNSURE_HIGH = 0.1, 0.9
+MAX_UNSURE_WIDTH = 4.0
+MIN_SECOND_PART = 0.25
+MAX_FRAME_CUT = 0.10
+MIN_COVER = 0.01
+
+
+def _net_saliency(rgb: np.ndarray, size: tuple[int, int], window: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """The salient net's saliency of the (H, W, 3) uint8 photo at ``size`` (w, h), float32 in [0, 1].
+
+    ``window``: (c0, r0, c1, r1) of the photo (its own pixels): the net sees that crop alone, and the saliency is 0
+    outside it.  Raises :class:`.salient.SalientNetError` when the net cannot be loaded.
+    """
+    from . import salient  # noqa: PLC0415  (the net loads only when a photo needs a mask)
+
+    net = salient.load()
+    if window is None:
+        return net(rgb, size)
+    h, w = rgb.shape[:2]
+    c0, r0, c1, r1 = window
+    sw, sh = size
+    kx, ky = sw / w, sh / h
+    out = np.zeros((sh, sw), np.float32)
+    s0, t0 = int(round(c0 * kx)), int(round(r0 * ky))
+    s1, t1 = max(s0 + 1, int(round(c1 * kx))), max(t0 + 1, int(round(r1 * ky)))
+    out[t0:t1, s0:s1] = net(rgb[r0:r1, c0:c1], (s1 - s0, t1 - t0))
+    return out
+
+
+def _box_window(box: tuple[float, float, float, float], width: int, height: int) -> tuple[int, int, int, int]:
+    """A box (x0, y0, x1, y1) grown by :data:`BOX_MARGIN` of its size on each side → whole pixels (c0, r0, c1, r1) of the photo."""
+    x0, y0, x1, y1 = box
+    dx, dy = BOX_MARGIN * (x1 - x0), BOX_MARGIN * (y1 - y0)
+    c0, r0 = max(0, int(np.floor(x0 - dx))), max(0, int(np.floor(y0 - dy)))
+    c1, r1 = min(width, int(np.ceil(x1 + dx))), min(height, int(np.ceil(y1 + dy)))
+    return c0, r0, max(c0 + 1, c1), max(r0 + 1, r1)
+
+
+def _box_saliency(rgb: np.ndarray, whole: np.ndarray, inside: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+    """The saliency a box's mask is cut from: the whole photo's when its mask keeps to the box, else the box crop's.
+
+    ``whole``: (h, w) saliency of the whole photo; ``inside``: (h, w) bool, the box.  When the whole photo's mask
+    (its largest part) has at least :data:`BOX_KEEPS` of its pixels in the box, the box confirms it: that saliency
+    is kept (a box cannot make a right mask worse).  Else the net found something else, or something that runs on
+    out of the box (the squirrel's branch): it looks again at the box's crop, grown by :data:`BOX_MARGIN` (:func:`_box_window`).
+    """
+    auto = largest_part(whole > SALIENT_THRESHOLD)
+    if auto.any() and float((auto & inside).sum()) >= BOX_KEEPS * float(auto.sum()):
+        return whole
+    h, w = rgb.shape[:2]
+    return _net_saliency(rgb, whole.shape[::-1], _box_window(box, w, h))
+
+
+def salient_labels(prob: np.ndarray, box_labels: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) uint8 GrabCut labels from the net's saliency: probable object above :data:`SALIENT_THRESHOLD`,
+    probable background below; sure background where ``box_labels`` (:func:`box_seeds`) say so."""
+    cv2 = _cv2()
+    labels = np.where(prob > SALIENT_THRESHOLD, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+    if box_labels is not None:
+        labels[box_labels == cv2.GC_BGD] = cv2.GC_BGD
+    return labels
+
+
+def _parts(mask: np.ndarray) -> np.ndarray:
+    """The areas of a (H, W) bool mask's 8-connected parts, largest first."""
+    cv2 = _cv2()
+    n, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    return np.sort(stats[1:, cv2.CC_STAT_AREA])[::-1] if n > 1 else np.zeros(0, int)
+
+
+def _outline_length(mask: np.ndarray) -> int:
+    """The number of pixels on the outer outlines of a (H, W) bool mask's parts."""
+    cv2 = _cv2()
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    return sum(len(c) for c in contours)
+
+
+def _frame_cut(mask: np.ndarray) -> float:
+    """The (H, W) bool mask's pixels on the photo's one-pixel edge, as a share of its outline's length (0 … 1)."""
+    if not mask.any():
+        return 0.0
+    frame = np.concatenate([mask[0], mask[-1], mask[1:-1, 0], mask[1:-1, -1]])
+    return float(frame.sum()) / max(1, _outline_length(mask))
+
+
+def salient_doubt(prob: np.ndarray, mask: np.ndarray, window: np.ndarray | None = None) -> str | None:
+    """A one-line warning when the salient net's mask is doubtful, else None.
+
+    ``prob``: (H, W) saliency; ``mask``: the (H, W) bool mask made of it.  Doubtful (levels at the top of the
+    file, ``docs/masks.md``): the net is unsure of the outline (its pixels between :data:`UNSURE_LOW` and
+    :data:`UNSURE_HIGH` in the mask's bounding box, over the outline's length, are a band wider than
+    :data:`MAX_UNSURE_WIDTH` pixels);
+    it found a second large object (a part of the thresholded saliency of :data:`MIN_SECOND_PART` of the largest
+    or more); the mask is cut off by the frame (its pixels on the photo's edge are more than :data:`MAX_FRAME_CUT` of
+    its outline); it covers almost nothing (:data:`MIN_COVER`).  ``window``: (H, W) bool or None, the box the net
+    was given (its crop has a frame of its own): the frame is then not judged.  (Too much of the photo and the border: :func:`doubt`.)
+    """
+    facts = []
+    if mask.any():
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        near = prob[max(0, rows[0] - 2):rows[-1] + 3, max(0, cols[0] - 2):cols[-1] + 3]
+        width = float(((near > UNSURE_LOW) & (near < UNSURE_HIGH)).sum()) / max(1, _outline_length(mask))
+        if width > MAX_UNSURE_WIDTH:
+            facts.append(f"has an outline the salient net is unsure of (a band {width:.1f} px wide at {max(mask.shape)} px)")
+    parts = _parts(prob > SALIENT_THRESHOLD)
+    if len(parts) > 1 and parts[1] >= MIN_SECOND_PART * parts[0]:
+        facts.append(f"is one of {int((parts >= MIN_SECOND_PART * parts[0]).sum())} large objects the salient net found")
+    if window is None:
+        cut = _frame_cut(mask)
+        if cut > MAX_FRAME_CUT:
+            facts.append(f"is cut off by the photo's edge ({cut:.0%} of its outline)")
+    c = cover(mask)
+    if c < MIN_COVER:
+        facts.append(f"covers only {c:.1%} of the photo")
+    return f"the mask {'; it also '.join(facts)}" if facts else None
+
+
+def _fallback_line(exc: Exception, guided: bool) -> str:
+    """The one-line warning of a mask made by GrabCut because the salient net could not be loaded."""
+    return f"the salient-object net cannot be used ({exc}): the mask is GrabCut's" + ("" if guided else ", seeded by the photo's border")
+
+
+def _salient_cut(small: np.ndarray, prob: np.ndarray, box: tuple[float, float, float, float] | None,
+                 fg: np.ndarray | None, bg: np.ndarray | None) -> tuple[np.ndarray, str | None]:
+    """The net's (h, w) bool mask of the work-size photo ``small`` from its saliency ``prob`` and its doubt.
+
+    ``box`` (work-size pixels): a hard limit; ``fg``, ``bg``: the strokes at the work size, hard constraints of a
+    cut (:func:`feature_grabcut`) started from the net's labels, its log-odds the prior.  Without strokes the
+    saliency is cut at :data:`SALIENT_THRESHOLD`.
+    """
+    cv2 = _cv2()
+    sh, sw = prob.shape
+    box_labels = None if box is None else box_seeds(sh, sw, box)
+    window = None if box is None else box_labels != cv2.GC_BGD
+    if fg is None and bg is None:
+        cut = prob > SALIENT_THRESHOLD
+        if window is not None:
+            cut &= window
+    else:
+        cut = feature_grabcut(small, guided_seeds(salient_labels(prob, box_labels), fg, bg), prior=prob)[0]
+    mask = largest_part(cut, fg)
+    if bg is not None:  # background strokes stay background, even in a hole the filling closed
+        mask &= ~bg
+    return mask, (salient_doubt(prob, mask, window) if mask.any() else None)
+
+
+def _grabcut_cut(small: np.ndarray, seeding: str | None, prob: np.ndarray | None, box: tuple[float, float, float, float] | None,
+                 fg: np.ndarray | None, bg: np.ndarray | None) -> tuple[np.ndarray, str | None]:
+    """GrabCut's (h, w) bool mask of the work-size photo ``small`` and its doubt (without the net).
+
+    ``seeding``: ``"border"`` or ``"network"`` (``prob``: the depth net's silhouette at the work size), or None for
+    a person's guidance: ``box`` (work-size pixels; :func:`box_prior`, :func:`feature_grabcut`) and the strokes.
+    """
+    cv2 = _cv2()
+    sh, sw = small.shape[:2]
+    spill = band = None
+    if seeding is None:
+        labels = border_seeds(sh, sw)
+        if box is not None:
+            labels, spill = box_prior(small, box_seeds(sh, sw, box))
+        labels = guided_seeds(labels, fg, bg)
+        spill = None if spill is None else spill & (labels == cv2.GC_BGD)
+    elif seeding == "border":
+        labels = border_seeds(sh, sw)
+        band = max(1, min(BORDER_BAND, (min(sh, sw) - 1) // 4))
+    else:
+        labels = network_seeds(prob)
+        band = 1
+    cut, fgd, bgd = feature_grabcut(small, labels, spill=spill) if box is not None else grabcut_models(small, labels)
+    mask = largest_part(cut, fg)
+    return mask, (cut_doubt(small, mask, fgd, bgd, band) if mask.any() else None)
+
+
 def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str = DEFAULT_SEEDING,
             work_side: int | None = None, *, box: tuple[float, float, float, float] | None = None,
             object_strokes: np.ndarray | None = None, background_strokes: np.ndarray | None = None) -> Segmentation:
-    """The object's mask in a photo by GrabCut, and whether it is doubtful.
+    """The object's mask in a photo, and whether it is doubtful.
 
-    ``rgb``: (H, W, 3) uint8 photo.  ``probability``: (H, W) float in
-    [0, 1], the depth net's silhouette at the photo's pixels (needed by the
-    ``"network"`` and ``"auto"`` seedings).  ``seeding``: one of
-    :data:`SEEDINGS`; ``"auto"`` resolves to ``"border"`` when the network's
-    silhouette is doubtful (:func:`doubt`), else ``"network"``.  A person's
+    ``rgb``: (H, W, 3) uint8 photo.  ``seeding``: one of :data:`SEEDINGS`:
+    ``"salient"`` (the default) is the salient net's mask (:mod:`.salient`:
+    its saliency above :data:`SALIENT_THRESHOLD`), or GrabCut's ``"border"``
+    seeding when the net cannot be loaded (``fallback`` says so).
+    ``probability``: (H, W) float in [0, 1], the depth net's silhouette at
+    the photo's pixels (needed by the ``"network"`` and ``"auto"`` GrabCut
+    seedings; ``"auto"`` resolves to ``"border"`` when the network's
+    silhouette is doubtful (:func:`doubt`), else ``"network"``).  A person's
     ``box`` (x0, y0, x1, y1, the photo's pixels) and strokes
     (``object_strokes``, ``background_strokes``: (H, W) bool) replace the
-    seeding (:func:`box_seeds`, :func:`guided_seeds`; strokes without a box
-    correct the ``"border"`` seeding).  GrabCut runs at ``work_side`` pixels
-    on the photo's long side (default :data:`WORK_SIDE`); the largest part
-    and every part under an object stroke are kept, holes filled.  The
-    doubt (:func:`cut_doubt`) judges colours always and the edge for the
-    automatic seedings only.
+    seeding.  With the net, a box alone is the net's mask of the box's crop
+    grown by :data:`BOX_MARGIN`, cut to the box; strokes are hard
+    constraints of a cut (:func:`feature_grabcut`) started from the net's
+    labels (:func:`salient_labels`) with its log-odds as a prior.  Without
+    the net, GrabCut (:func:`box_prior`, :func:`guided_seeds`).  The work is
+    done at ``work_side`` pixels on the photo's long side (default
+    :data:`WORK_SIDE`); the largest part and every part under an object
+    stroke are kept, holes filled.
     """
     cv2 = _cv2()
     work_side = WORK_SIDE if work_side is None else work_side
@@ -582,42 +787,52 @@ def segment(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str
         raise ValueError(f"seeding: expected one of {', '.join(SEEDINGS)}, got {seeding!r}")
     h, w = rgb.shape[:2]
     guided = box is not None or object_strokes is not None or background_strokes is not None
+    fallback = None
     if guided:
         for name, marks in (("object_strokes", object_strokes), ("background_strokes", background_strokes)):
             if marks is not None and marks.shape != (h, w):
                 raise ValueError(f"{name}: expected the photo's {w}×{h} pixels, got {marks.shape[1]}×{marks.shape[0]}")
+        use_net = seeding == "salient"
         seeding = "+".join(n for n, v in (("box", box), ("strokes", object_strokes is not None or background_strokes is not None)) if v)
-    elif seeding != "border":
-        if probability is None or probability.shape != (h, w):
-            raise ValueError(f"seeding {seeding!r} needs the silhouette probability at the photo's {w}×{h} pixels")
-        if seeding == "auto":
-            seeding = "border" if doubt(probability > 0.5) else "network"
+    else:
+        use_net = seeding == "salient"
+        if seeding in ("network", "auto"):
+            if probability is None or probability.shape != (h, w):
+                raise ValueError(f"seeding {seeding!r} needs the silhouette probability at the photo's {w}×{h} pixels")
+            if seeding == "auto":
+                seeding = "border" if doubt(probability > 0.5) else "network"
     k = min(1.0, work_side / max(h, w))
     sw, sh = max(1, round(w * k)), max(1, round(h * k))
     small = cv2.resize(rgb, (sw, sh), interpolation=cv2.INTER_AREA) if k < 1.0 else rgb
-    fg_small = spill = None
-    band = None
+    prob = None
+    if use_net:
+        from .salient import SalientNetError  # noqa: PLC0415
+
+        try:
+            prob = _net_saliency(rgb, (sw, sh))
+            if box is not None:
+                inside = box_seeds(sh, sw, tuple(v * k for v in box)) != cv2.GC_BGD
+                prob = _box_saliency(rgb, prob, inside, box)
+        except SalientNetError as exc:
+            fallback = _fallback_line(exc, guided)
+            if not guided:
+                seeding = "border"
+    fg_small = bg_small = None
     if guided:
-        labels = border_seeds(sh, sw)
-        if box is not None:
-            labels, spill = box_prior(small, box_seeds(sh, sw, tuple(v * k for v in box)))
         fg_small = None if object_strokes is None else _shrink_marks(object_strokes, (sw, sh))
         bg_small = None if background_strokes is None else _shrink_marks(background_strokes, (sw, sh))
-        labels = guided_seeds(labels, fg_small, bg_small)
-        spill = None if spill is None else spill & (labels == cv2.GC_BGD)
-    elif seeding == "border":
-        labels = border_seeds(sh, sw)
-        band = max(1, min(BORDER_BAND, (min(sh, sw) - 1) // 4))
+    box_small = None if box is None else tuple(v * k for v in box)
+    if prob is not None:
+        mask, warning = _salient_cut(small, prob, box_small, fg_small, bg_small)
     else:
-        p = cv2.resize(probability.astype(np.float32), (sw, sh), interpolation=cv2.INTER_AREA) if k < 1.0 else probability
-        labels = network_seeds(p)
-        band = 1
-    cut, fgd, bgd = feature_grabcut(small, labels, spill=spill) if box is not None else grabcut_models(small, labels)
-    mask = largest_part(cut, fg_small)
-    warning = cut_doubt(small, mask, fgd, bgd, band) if mask.any() else None
+        small_prob = None
+        if seeding == "network" and not guided:
+            small_prob = cv2.resize(probability.astype(np.float32), (sw, sh), interpolation=cv2.INTER_AREA) if k < 1.0 \
+                else probability
+        mask, warning = _grabcut_cut(small, seeding if not guided else None, small_prob, box_small, fg_small, bg_small)
     if k < 1.0:
         mask = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR) > 0.5
-    return Segmentation(mask, seeding, warning)
+    return Segmentation(mask, seeding, warning, fallback, prob is not None)
 
 
 def refine_mask(rgb: np.ndarray, probability: np.ndarray | None = None, seeding: str = DEFAULT_SEEDING,

@@ -162,7 +162,7 @@ def test_reconstruct_starts_without_the_modules_it_does_not_use():
 
 @pytest.mark.slow
 def test_a_reconstruct_run_imports_none_of_the_modules_it_does_not_use(tmp_path):
-    """A whole `genre reconstruct` of the example photo with the shipped weights and their options (GrabCut mask,
+    """A whole `genre reconstruct` of the example photo with the shipped weights and their options (the salient net's mask,
     mirror averaging, cleanup), run by the command's own entry point in a fresh interpreter."""
     out = tmp_path / "sofa.obj"
     code = ("from genre_backend.cli import main\n"

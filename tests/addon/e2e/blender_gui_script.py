@@ -275,6 +275,8 @@ def watch():
     RESULT["mask_warning"] = status.mask_warning
     RESULT["mesh"] = {"name": obj.name, "vertices": len(obj.data.vertices), "faces": len(obj.data.polygons),
                       "camera": [c.name for c in obj.children]}
+    overlay = bpy.data.images.get("GenRe mask")  # the mask over the photo, which the panel shows under the result line
+    RESULT["mask_overlay"] = None if overlay is None else {"size": list(overlay.size), "packed": overlay.packed_file is not None}
     window, area, region, sidebar = view3d()
     if len(meshes) > 1:
         meshes[0].hide_set(True)  # the first result sits at the same place

@@ -12,7 +12,8 @@ result (including the seconds from the button press to the mesh in the
 scene) and exits non-zero on failure.  Outputs go to ``out/e2e/`` by default.
 
 A second run (``out/e2e/annotate/``; ``--scenario`` picks one or both) takes a
-real photo whose automatic mask is wrong (examples/photos/squirrel.jpg),
+real photo whose automatic mask is the weakest of our nine (examples/photos/squirrel.jpg: the salient net takes
+in the leaves in its hands and misses its tail's fuzzy edge; GrabCut's, before the net, was wrong),
 shows it in an Image Editor, draws its scribbles (examples/photos/strokes.json)
 and a box with the Annotate tool, presses Reconstruct and checks that the mask
 the backend used is closer to the hand mask (IoU) than the automatic one; a
@@ -38,7 +39,8 @@ SCRIPT = Path(__file__).resolve().with_name("blender_gui_script.py")
 # Training steps (depth, inpaint, refine) of the e2e weights: enough for the tiny box to look like a box.
 E2E_STEPS = (40, 40, 80)
 PHOTOS = REPO / "examples" / "photos"
-# The annotated run: a photo whose automatic mask is wrong, and a loop around the object for the Box layer
+# The annotated run: the photo whose automatic mask is the weakest (GrabCut's was wrong), and a loop around the
+# object for the Box layer
 # (the box of tests/backend/inference/test_masks.py; its scribbles are strokes.json's).
 ANNOTATED = "squirrel"
 ANNOTATED_BOX = [[127, 95], [364, 95], [364, 366], [127, 366], [127, 95]]
@@ -102,7 +104,7 @@ def run(out: Path, weights: Path, photo: Path, zip_path: Path, timeout: float = 
 
 def mask_ious(out: Path, photo: Path, hand: Path) -> dict:
     """IoU with the hand mask of the mask the backend used (``out/intermediates/mask_in_photo.png``) and of the
-    automatic mask (GrabCut seeded by the photo's border, what Reconstruct gives without an annotation)."""
+    automatic mask (the salient net's, what Reconstruct gives without an annotation)."""
     import numpy as np
     from PIL import Image
 
@@ -163,8 +165,12 @@ def run_annotated(out: Path, weights: Path, zip_path: Path, timeout: float, turn
             problems.append(f"Blender did not show the pixels as stored (426×535): {result.get('image_size')}")
         if "mask: box+strokes" not in result.get("message", ""):
             problems.append(f"the result line does not say 'mask: box+strokes': {result.get('message')}")
+        if not (result.get("mask_overlay") or {}).get("packed"):
+            problems.append(f"the panel has no picture of the mask used: {result.get('mask_overlay')}")
         result["mask_iou"] = ious = mask_ious(out, photo, PHOTOS / f"{ANNOTATED}_mask.png")  # (the backend's frame: upright)
-        if not ious["annotated"] > ious["automatic"] + 0.2:
+        # (the salient net's automatic mask 0.846, box and scribbles 0.885; with GrabCut's automatic mask, before
+        # the net, 0.404 against 0.874, and this margin was 0.2)
+        if not ious["annotated"] > ious["automatic"] + 0.02:
             problems.append(f"the annotated mask is not better than the automatic one (IoU with the hand mask): {ious}")
     result["problems"] = problems
     (out / "result.json").write_text(json.dumps(result, indent=2))

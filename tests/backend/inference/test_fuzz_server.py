@@ -590,7 +590,7 @@ def check_event(ev: dict, ready: dict) -> None:
     elif ev["type"] == "progress":
         assert ev["stage"] in STAGES and 0.0 <= ev["fraction"] <= 1.0, ev
     elif ev["type"] == "result":
-        assert ev["format"] in ("obj", "ply", "glb") and ev["mask_source"] in ("file", "alpha", "grabcut", "silhouette"), ev
+        assert ev["format"] in ("obj", "ply", "glb") and ev["mask_source"] in ("file", "alpha", "salient", "grabcut", "silhouette"), ev
         assert ev["faces"] > 0 and ev["vertices"] > 0 and 0 < ev["threshold"] < 1, ev
     elif ev["type"] == "version":
         assert {k: ev[k] for k in ready if k != "type"} == {k: v for k, v in ready.items() if k != "type"}, ev

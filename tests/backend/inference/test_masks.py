@@ -35,7 +35,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 # ---- GrabCut on a photo whose object is known --------------------------------------------------
 def test_grabcut_border_seeding_finds_the_object():
     rgb, truth = _photo()
-    mask, used = refine_mask(rgb)
+    mask, used = refine_mask(rgb, seeding="border")
     assert used == "border" and mask.shape == truth.shape and mask.dtype == bool
     assert _iou(mask, truth) >= 0.95
 
@@ -108,8 +108,8 @@ def test_mask_warning_when_the_silhouette_is_the_whole_frame(trained, photo, tmp
     res = rec.run(path, refine=False)  # the silhouette as it is: the whole photo
     assert res.mask_source == "silhouette" and res.photo_mask.all()
     assert res.mask_warning == "the mask covers 100% of the photo and touches 100% of its border: it is probably the photo's frame, not the object"
-    res = rec.run(path)  # refined: GrabCut, seeded from the photo's border since the silhouette is doubtful
-    assert res.mask_source == "grabcut" and res.mask_warning is None
+    res = rec.run(path)  # refined: the salient net's mask, whatever the silhouette
+    assert res.mask_source == "salient" and res.mask_warning is None
     assert _iou(res.photo_mask, truth) >= 0.9
     # the command line says so on stderr, and still writes the mesh
     original = Reconstructor._prepare
@@ -120,7 +120,7 @@ def test_mask_warning_when_the_silhouette_is_the_whole_frame(trained, photo, tmp
     assert f"warning: {path}: doubtful mask: the mask covers 100% of the photo" in err and "--mask" in err
     code = reconstruct_cli.main([str(path), "-o", str(tmp_path / "b.obj"), "--weights", str(trained[0])])
     out, err = capsys.readouterr()
-    assert code == 0 and "mask: grabcut" in out and "warning" not in err
+    assert code == 0 and "mask: salient" in out and "warning" not in err
 
 
 def _frame(model):
@@ -132,13 +132,28 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
     rec = Reconstructor(trained[0])
     path, _ = photo
     auto = rec.run(path)
-    assert auto.mask_source == "grabcut"
+    assert auto.mask_source == "salient"
     written = {p.name: p for p in auto.save_intermediates(tmp_path / "inter")}
     with Image.open(written["mask_in_photo.png"]) as im:
         assert im.size == (203, 151) and im.mode == "L"
         pixels = np.asarray(im)
     assert set(np.unique(pixels)) == {0, 255}
     assert np.array_equal(pixels == 255, auto.mask_in_photo()) and np.array_equal(auto.mask_in_photo(), auto.photo_mask)
+    # the mask over the photo (what the add-on's panel shows): the object's pixels as in the photo, bar its yellow
+    # outline; the background dimmed and tinted blue
+    with Image.open(written["mask_overlay.png"]) as im:
+        assert im.size == (203, 151) and im.mode == "RGB"
+        overlay = np.asarray(im).astype(int)
+    photo_rgb = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    from scipy.ndimage import binary_erosion
+
+    inner, outside = binary_erosion(auto.photo_mask, iterations=2), ~auto.photo_mask
+    assert np.array_equal(overlay[inner], photo_rgb[inner])
+    far = binary_erosion(outside, iterations=2)  # (clear of the outline)
+    dimmed = photo_rgb[far] * 0.35 + [20, 40, 110]
+    assert np.abs(overlay[far] - dimmed).max() <= 1
+    edge = auto.photo_mask & ~binary_erosion(auto.photo_mask)
+    assert (np.abs(overlay[edge] - [255, 220, 0]).sum(1) == 0).mean() > 0.8
     again = rec.run(path, mask_path=written["mask_in_photo.png"])
     assert again.mask_source == "file"
     assert again.crop_box == auto.crop_box
@@ -244,7 +259,7 @@ def _strokes_file(name: str, path: Path) -> Path:
 
 @pytest.mark.slow
 def test_real_photos_box_and_doubt_figures():
-    """The figures of docs/masks.md (scripts/mask_box.py): automatic vs box-alone masks against the hand masks, and the doubt."""
+    """GrabCut's figures in docs/masks.md (scripts/mask_box.py --grabcut: the fallback without the salient net)."""
     import sys
 
     sys.path.insert(0, str(PHOTOS.parents[1] / "scripts"))
@@ -252,7 +267,7 @@ def test_real_photos_box_and_doubt_figures():
         from mask_box import measure
     finally:
         sys.path.pop(0)
-    rows = {r["name"]: r for r in measure(PHOTOS)}
+    rows = {r["name"]: r for r in measure(PHOTOS, seeding="border")}
     assert len(rows) == 9
     auto = np.mean([r["auto_iou"] for r in rows.values()])
     box = np.mean([r["box_iou"] for r in rows.values()])
@@ -286,11 +301,14 @@ def test_cli_box_and_strokes_on_a_real_photo(trained, tmp_path, capsys):
                                      "--save-intermediates", str(tmp_path / name), *extra])
         out, err = capsys.readouterr()
         assert code == 0, err
-        assert f"mask: {'grabcut' if name == 'auto' else name}" in out
-        if name == "auto":  # the branch runs out of the photo: warned
-            assert "doubtful mask: the mask runs along the photo's edge" in err and "--box and --strokes" in err
+        assert f"mask: {'salient' if name == 'auto' else name}" in out
+        if name == "auto":  # the net is unsure of the tail's fuzzy edge and the leaves in its hands: warned
+            assert "doubtful mask: the mask has an outline the salient net is unsure of" in err and "--box and --strokes" in err
         ious[name] = _iou(np.asarray(Image.open(tmp_path / name / "mask_in_photo.png")) > 127, hand)
-    assert ious["auto"] < 0.45 and ious["box"] > 0.65 and ious["strokes"] > 0.75 and ious["box+strokes"] > 0.85, ious
+    # the salient net's masks (docs/masks.md): automatic 0.846; the box looks at its crop, since the whole photo's mask
+    # runs out of it (0.878); the scribbles, drawn for GrabCut's mistakes, move it a little (0.854, with the box 0.885)
+    assert ious["auto"] == pytest.approx(0.846, abs=0.01) and ious["box"] > ious["auto"] + 0.02, ious
+    assert ious["strokes"] > ious["auto"] and ious["box+strokes"] > 0.875, ious
     # refused before any work: with --mask, several images, --no-refine, a malformed box, a box off the photo
     for argv, text in (([str(photo), "--mask", str(PHOTOS / "squirrel_mask.png"), "--box", "1,1,9,9"], "either --mask or --box"),
                        ([str(photo), str(photo), "--strokes", str(strokes)], "--strokes applies to one image"),
@@ -360,7 +378,7 @@ def test_serve_box_and_strokes(trained, tmp_path):
         assert _iou(np.asarray(Image.open(tmp_path / "turned" / "mask_in_photo.png")) > 127, hand) > 0.75
         s.send({**base, "id": "auto", "output": str(tmp_path / "auto.obj")})
         ev = s.until(lambda e: e["type"] in ("result", "error") and e["id"] == "auto")[-1]
-        assert ev["mask_source"] == "grabcut" and ev["mask_warning"].startswith("the mask runs along the photo's edge")
+        assert ev["mask_source"] == "salient" and ev["mask_warning"].startswith("the mask has an outline the salient net is unsure of")
         s.send({"type": "shutdown", "id": "end"})
         s.until(lambda e: e["type"] == "bye")
     finally:

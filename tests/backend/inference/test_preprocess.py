@@ -171,7 +171,7 @@ def test_square_crop_box():
 
 def test_framing_puts_the_object_in_the_middle_at_object_fraction(tmp_path):
     img = load_image(_save(tmp_path, "p.png", _photo(box=(20, 10, 100, 50))))
-    for refine, source in ((False, "silhouette"), (True, "grabcut")):
+    for refine, source in ((False, "silhouette"), (True, "salient")):
         pre = preprocess(img, CFG, silhouette=_not_background, refine=refine)
         assert pre.mask_source == source and pre.rgb.shape == (3, S, S)
         assert (pre.mask is None) == (not refine)
@@ -202,7 +202,8 @@ def test_mask_order_file_alpha_silhouette(tmp_path):
     assert abs((x1 - x0) - CFG.geometry.object_fraction * S) <= 2
     pre = preprocess(rgba, CFG, silhouette=no_silhouette)
     assert pre.mask_source == "alpha" and pre.mask.sum() > 0
-    assert preprocess(rgb, CFG, silhouette=_not_background).mask_source == "grabcut"
+    assert preprocess(rgb, CFG, silhouette=_not_background).mask_source == "salient"
+    assert preprocess(rgb, CFG, silhouette=_not_background, seeding="border").mask_source == "grabcut"
     assert preprocess(rgb, CFG, silhouette=_not_background, refine=False).mask_source == "silhouette"
 
 

@@ -91,7 +91,7 @@ def photos(trained, tmp_path_factory):
 def test_reconstructs_a_rendered_view_in_the_view_frame(rec, photos, trained, tmp_path):
     stages = []
     res = rec.run(photos["rgb"], progress=lambda s, f: stages.append((s, f)))
-    assert res.mask_source == "grabcut"
+    assert res.mask_source == "salient"
     assert [s for s, _ in stages] == list(STAGES[:-1])
     fractions = [f for _, f in stages]
     assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] < 1.0
@@ -129,12 +129,12 @@ def test_mask_source_order(rec, photos):
     assert rec.run(photos["rgb"], mask_path=photos["mask"]).mask_source == "file"
     assert rec.run(photos["rgba"], mask_path=photos["mask"]).mask_source == "file"
     assert rec.run(photos["rgba"]).mask_source == "alpha"
-    assert rec.run(photos["rgb"]).mask_source == "grabcut"
+    assert rec.run(photos["rgb"]).mask_source == "salient"
     assert rec.run(photos["rgb"], refine=False).mask_source == "silhouette"
     # an opaque alpha channel is no mask: the photo is segmented
     opaque = photos["rgba"].with_name("opaque.png")
     Image.open(photos["rgb"]).convert("RGBA").save(opaque)
-    assert rec.run(opaque).mask_source == "grabcut"
+    assert rec.run(opaque).mask_source == "salient"
 
 
 @pytest.mark.parametrize("kind", ["gray16", "gray", "palette", "cmyk", "animated"])
@@ -184,7 +184,7 @@ def test_cli_writes_each_format(trained, photos, tmp_path, capsys):
     for fmt in ("obj", "ply", "glb"):
         code, out, err = _cli(capsys, photos["rgb"], "-o", tmp_path / f"m.{fmt}", "--weights", trained[0], "--threshold", 0.5)
         assert code == 0, err
-        assert "mask: grabcut" in out
+        assert "mask: salient" in out
         assert len(trimesh.load(tmp_path / f"m.{fmt}", force="mesh").faces) > 0
     with pytest.raises(SystemExit) as exc:  # argparse: the format contradicts the extension
         _cli(capsys, photos["rgba"], "-o", tmp_path / "x.obj", "--format", "ply", "--weights", trained[0])

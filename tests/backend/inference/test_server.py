@@ -158,7 +158,7 @@ def test_reconstruct_reports_progress_and_result(server, files, trained):
     assert all(e["id"] == "job1" for e in events)
     fr = [e["fraction"] for e in progress]
     assert fr == sorted(fr) and 0 <= fr[0] and fr[-1] <= 1
-    assert result["mesh"] == str(out) and result["format"] == "ply" and result["mask_source"] == "grabcut"
+    assert result["mesh"] == str(out) and result["format"] == "ply" and result["mask_source"] == "salient"
     assert result["threshold"] == 0.45  # the option, not the weights' level (0.5 here)
     assert result["hole_closing"] == 2 and result["silhouette_carve"] is True and result["visible_fusion"] is True  # likewise
     assert result["primitive"] in ("box", "cylinder", "cone", "torus", "ellipsoid") and result["primitive_snap"] == 0.99  # (so loose a tolerance always snaps)
@@ -211,7 +211,7 @@ def test_result_says_when_the_mask_is_doubtful(server, files):
     assert r["mask_warning"] == "the mask covers 100% of the photo and touches 100% of its border: it is probably the photo's frame, not the object"
     server.send({"type": "reconstruct", "id": "auto", "image": str(files["rgb"]), "output": str(files["out"] / "g.obj")})
     r = server.until(lambda e: e["type"] in ("result", "error"))[-1]
-    assert r["type"] == "result" and r["mask_source"] == "grabcut" and r["mask_warning"] is None
+    assert r["type"] == "result" and r["mask_source"] == "salient" and r["mask_warning"] is None
 
 
 @pytest.mark.parametrize(
