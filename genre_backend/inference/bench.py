@@ -683,14 +683,6 @@ def _main_geometry(args: argparse.Namespace) -> int:
 
 def main(argv: list[str], prog: str = "genre bench") -> int:
     """``genre bench``: parse ``argv`` and run the command it names; the exit status."""
-    if argv[:1] == ["train"]:  # the training side's throughput, from the registered 'train' command
-        from ..cli import commands
-
-        train = commands().get("train")
-        if train is None:
-            print(f"{prog} train: the training package is not installed (pip install -e '.[train]')", file=sys.stderr)
-            return 2
-        return int(train.load()(["bench", *argv[1:]], prog="genre train") or 0)
     parser = _parser(prog)
     args = parser.parse_args(argv)
     if getattr(args, "threads", None):

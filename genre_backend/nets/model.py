@@ -92,11 +92,12 @@ class GenRe(nn.Module):
         out["masked_depth"] = self.masked_depth(out["depth"], mask)
         out["partial_sph"] = self.partial_sph(out["masked_depth"])
         if full_sph is None:
-            full_sph = self.inpaint_net(out["partial_sph"])
+            out["full_sph"] = self.inpaint_net(out["partial_sph"])
             if self.config.geometry.sph_keep_seen:  # the seen side is the partial map's own
                 seen = out["partial_sph"] < self.config.geometry.sph_nohit_min
-                full_sph = torch.where(seen, out["partial_sph"], full_sph)
-        out["full_sph"] = full_sph
+                out["full_sph"] = torch.where(seen, out["partial_sph"], out["full_sph"])
+        else:
+            out["full_sph"] = full_sph
         out["vox_sph"] = self.sph_voxels(out["full_sph"])
         out["vox_depth"] = self.depth_voxels(out["masked_depth"])
         out["logits"] = self.refine(out["vox_sph"], out["vox_depth"])

@@ -61,7 +61,7 @@ from .burst import Speed, ViewMaker, _step_loss, apply_speed, run_command
 from .checkpoint import cpu_seconds, optimizer_state, optimizer_tensors, read_state, write_state
 from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
 
-__all__ = ["SessionSpec", "lr_at", "run_session", "main"]
+__all__ = ["SessionSpec", "SampleStream", "lr_at", "run_session", "main"]
 
 NETS = ("inpaint", "both")
 WEIGHTS, LOG = "weights.safetensors", "log.csv"
@@ -150,18 +150,56 @@ def _write_log(path: Path, rows: list[dict]) -> None:
     os.replace(tmp, path)
 
 
-def run_session(spec: SessionSpec, say=print) -> dict:
-    """Train until the budget ends or a signal comes; returns the summary (also in state.json)."""
+class SampleStream:
+    """A session's batches: ``fresh`` views made a step (a function of (seed, step) alone, partial maps included),
+    kept for the recipe's ``buffer_steps`` steps, and each step's batch its fresh views plus views drawn from the
+    buffer, mirrored at random when only the inpainting net trains (a view's reflection is a view of the reflected
+    shape).  :meth:`resume` remakes the buffer an unbroken run would hold at a step."""
+
+    def __init__(self, maker: ViewMaker, model: GenRe, recipe: BurstRecipe, batch: int, seed: int, inpaint_only: bool):
+        self.maker, self.model, self.recipe, self.batch, self.seed = maker, model, recipe, batch, seed
+        self.inpaint_only = inpaint_only
+        self.fresh = max(1, batch // recipe.reuse)
+        self.keep = ("partial", "full_sph", "teacher") if inpaint_only else None
+        self.buffer: deque = deque(maxlen=max(1, recipe.buffer_steps))
+
+    def make(self, k: int) -> dict:
+        """Step ``k``'s fresh views."""
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + k)
+        shape, az, el = self.maker.draw(gen, self.fresh, self.recipe)
+        sample = self.maker.make(shape, az, el, self.recipe.depth_noise, gen)
+        with torch.no_grad():
+            sample["partial"] = self.model.partial_sph(sample["depth"])  # (the projection only: no parameters)
+        if self.recipe.sph_teacher > 0:
+            sample["teacher"] = torch.rand(self.fresh, generator=gen) < self.recipe.sph_teacher
+        return sample if self.keep is None else {name: v for name, v in sample.items() if name in self.keep}
+
+    def resume(self, step: int) -> None:
+        for k in range(max(0, step - self.buffer.maxlen + 1), step):
+            self.buffer.append(self.make(k))
+
+    def batch_of(self, k: int, fresh: dict) -> dict:
+        """Step ``k``'s batch, ``fresh`` being :meth:`make`'s views of step ``k``."""
+        self.buffer.append(fresh)
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + k + 2**40)
+        sizes = [len(entry["full_sph"]) for entry in self.buffer]
+        flat = torch.cat([torch.stack([torch.full((n,), e), torch.arange(n)], 1) for e, n in enumerate(sizes)])
+        current = flat[-sizes[-1]:]
+        more = self.batch - len(current)
+        extra = flat[torch.randint(len(flat), (more,), generator=gen)] if more > 0 else flat[:0]
+        pick = torch.cat([current, extra])[:self.batch]
+        out = {name: torch.stack([self.buffer[int(e)][name][int(i)] for e, i in pick]) for name in fresh}
+        if self.inpaint_only:
+            flip = torch.rand(len(pick), generator=gen) < 0.5
+            for name in ("partial", "full_sph"):
+                out[name] = torch.where(flip[:, None, None], mirror_sph(out[name]), out[name])
+        return out
+
+
+def _set_up(spec: SessionSpec, recipe: BurstRecipe, device: torch.device, folder: Path, say):
+    """The model (resumed or from ``--init``), its optimiser, the view maker and the state's meta."""
     from training.data.corpus import data_dir
 
-    t0 = time.time()
-    torch.set_num_threads(spec.threads or os.cpu_count() or 1)
-    recipe = get_burst_recipe(spec.recipe)
-    device = torch.device("cuda" if spec.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if spec.device == "auto" else spec.device))
-    speed = Speed.for_device(device)
-    folder = Path(spec.out) / spec.nets
-    folder.mkdir(parents=True, exist_ok=True)
     resumed = _load_state(folder)
     if resumed is None:
         init = resolve_weights(spec.init)
@@ -170,7 +208,7 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     else:
         model, opt_state, meta0 = resumed
         say(f"session: resuming {folder} at step {meta0['step']} (from {meta0.get('init')})")
-    model = apply_speed(model.to(device), speed)
+    model = apply_speed(model.to(device), Speed.for_device(device))
     grid_cache = spec.grid_cache or str(data_dir() / "cache" / "distance_grids")
     maker = ViewMaker(read_pack(spec.pack), model.config, device, recipe.grid_factor, spec.shapes, progress=say,
                       voxels=spec.nets == "both", grid_cache=grid_cache, targets="exact" if device.type == "cpu" else "grid")
@@ -186,83 +224,55 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     model.eval()
     for net in trained:
         net.train()
+    return model, opt, maker, meta0
+
+
+def run_session(spec: SessionSpec, say=print) -> dict:
+    """Train until the budget ends or a signal comes; returns the summary (also in the checkpoint's state.json)."""
+    t0 = time.time()
+    torch.set_num_threads(spec.threads or os.cpu_count() or 1)
+    recipe = get_burst_recipe(spec.recipe)
+    device = torch.device("cuda" if spec.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if spec.device == "auto" else spec.device))
+    speed = Speed.for_device(device)
+    folder = Path(spec.out) / spec.nets
+    folder.mkdir(parents=True, exist_ok=True)
+    model, opt, maker, meta0 = _set_up(spec, recipe, device, folder, say)
     batch = spec.batch_size or recipe.batch_size
     step, samples, cpu_before = int(meta0["step"]), int(meta0["samples"]), float(meta0["cpu_s"])
     rows = _trim_log(folder / LOG, step)
+    stream = SampleStream(maker, model, recipe, batch, spec.seed, spec.nets == "inpaint")
+    stream.resume(step)
     say(f"session: {spec.nets} on {device} ({torch.get_num_threads()} threads), {speed}, batch {batch}, "
         f"{len(maker)} shapes, recipe {recipe.name}; set-up {time.time() - t0:.0f} s")
-
     stop = {"signal": None}
-
-    def on_signal(signum, _frame):
-        stop["signal"] = signum
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.signal(s, lambda signum, _frame: stop.update(signal=signum)) for s in (signal.SIGINT, signal.SIGTERM)}
     session_start, session_step0, last_ck = time.time(), step, time.time()
     deadline = None if spec.hours is None else session_start + spec.hours * 3600.0
 
-    fresh = max(1, batch // recipe.reuse)  # views made per step
-    keep = ("partial", "full_sph", "teacher") if spec.nets == "inpaint" else None
-
-    def make(k: int) -> dict:
-        """Step ``k``'s fresh views, partial maps included (a function of (seed, k) alone)."""
-        gen = torch.Generator().manual_seed(spec.seed * 1_000_003 + k)
-        shape, az, el = maker.draw(gen, fresh, recipe)
-        sample = maker.make(shape, az, el, recipe.depth_noise, gen)
-        with torch.no_grad():
-            sample["partial"] = model.partial_sph(sample["depth"])  # (the projection only: no parameters)
-        if recipe.sph_teacher > 0:
-            sample["teacher"] = torch.rand(fresh, generator=gen) < recipe.sph_teacher
-        return sample if keep is None else {k2: v for k2, v in sample.items() if k2 in keep}
-
-    buffer: deque = deque(maxlen=max(1, recipe.buffer_steps))
-
-    def batch_of(k: int) -> dict:
-        """Step ``k``'s batch: its fresh views and the rest drawn from the buffer's, mirrored at random when only
-        the inpainting net trains (the reflection of a view is a view of the reflected shape)."""
-        gen = torch.Generator().manual_seed(spec.seed * 1_000_003 + k + 2**40)
-        sizes = [len(entry["full_sph"]) for entry in buffer]
-        flat = torch.cat([torch.stack([torch.full((n,), e), torch.arange(n)], 1) for e, n in enumerate(sizes)])
-        current = flat[-sizes[-1]:]
-        extra = flat[torch.randint(len(flat), (batch - len(current),), generator=gen)] if batch > len(current) else flat[:0]
-        pick = torch.cat([current, extra])[:batch]
-        out = {name: torch.stack([buffer[int(e)][name][int(i)] for e, i in pick]) for name in buffer[-1]}
-        if spec.nets == "inpaint":
-            flip = torch.rand(len(pick), generator=gen) < 0.5
-            for name in ("partial", "full_sph"):
-                out[name] = torch.where(flip[:, None, None], mirror_sph(out[name]), out[name])
-        return out
-
-    for k in range(max(0, step - buffer.maxlen + 1), step):  # a resumed run's buffer is what an unbroken one holds
-        buffer.append(make(k))
-
-    def meta(final: bool) -> dict:
-        elapsed = time.time() - session_start
-        done = step - session_step0
-        return {"step": step, "samples": samples, "cpu_s": cpu_before + cpu_seconds(), "init": meta0.get("init"),
-                "recipe": recipe.name, "nets": spec.nets, "batch": batch, "device": str(device),
-                "threads": torch.get_num_threads(), "speed": speed.__dict__, "final": final,
-                "session_steps": done, "session_samples_per_s": done * batch / max(elapsed, 1e-9)}
-
-    def checkpoint(final: bool) -> None:
-        m = meta(final)
+    def checkpoint(final: bool) -> dict:
+        elapsed, done = time.time() - session_start, step - session_step0
+        m = {"step": step, "samples": samples, "cpu_s": cpu_before + cpu_seconds(), "init": meta0.get("init"),
+             "recipe": recipe.name, "nets": spec.nets, "batch": batch, "device": str(device),
+             "threads": torch.get_num_threads(), "speed": speed.__dict__, "final": final,
+             "session_steps": done, "session_samples_per_s": done * batch / max(elapsed, 1e-9)}
         _save_state(folder, model, opt, m)
         save_model(model, folder / WEIGHTS, {"session": {k: m[k] for k in ("step", "samples", "recipe", "nets", "init")}},
                    half=True)
         _write_log(folder / LOG, rows)
+        return m
 
     pool = ThreadPoolExecutor(1)
     try:
-        upcoming = pool.submit(make, step)
+        upcoming = pool.submit(stream.make, step)
         while stop["signal"] is None and (deadline is None or time.time() < deadline) and \
                 (spec.max_steps is None or step < spec.max_steps):
-            buffer.append(upcoming.result())
-            upcoming = pool.submit(make, step + 1)
-            sample = batch_of(step)
+            fresh = upcoming.result()
+            upcoming = pool.submit(stream.make, step + 1)
             lr = lr_at(recipe, step)
             for group in opt.param_groups:
                 group["lr"] = lr
-            loss, terms = _step_loss(model, sample, recipe, speed=speed, refiner=spec.nets == "both")
+            loss, terms = _step_loss(model, stream.batch_of(step, fresh), recipe, speed=speed, refiner=spec.nets == "both")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -282,8 +292,7 @@ def run_session(spec: SessionSpec, say=print) -> dict:
         pool.shutdown(wait=True)
         for s, h in old.items():
             signal.signal(s, h)
-    checkpoint(True)
-    summary = meta(True)
+    summary = checkpoint(True)
     why = f"signal {stop['signal']}" if stop["signal"] else "budget"
     say(f"session: stopped ({why}) at step {step}; {summary['session_samples_per_s']:.1f} samples/s; state in {folder}")
     return summary
