@@ -241,12 +241,9 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     batch = spec.batch_size or recipe.batch_size
     step, samples, cpu_before = int(meta0["step"]), int(meta0["samples"]), float(meta0["cpu_s"])
     rows = _trim_log(folder / LOG, step)
-    stream = SampleStream(maker, model, recipe, batch, spec.seed, spec.nets == "inpaint")
-    stream.resume(step)
-    say(f"session: {spec.nets} on {device} ({torch.get_num_threads()} threads), {speed}, batch {batch}, "
-        f"{len(maker)} shapes, recipe {recipe.name}; set-up {time.time() - t0:.0f} s")
-    stop = {"signal": None}
+    stop = {"signal": None}  # (a signal while the buffer is remade ends the run at its first step, state unchanged)
     old = {s: signal.signal(s, lambda signum, _frame: stop.update(signal=signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+    stream = SampleStream(maker, model, recipe, batch, spec.seed, spec.nets == "inpaint")
     session_start, session_step0, last_ck = time.time(), step, time.time()
     deadline = None if spec.hours is None else session_start + spec.hours * 3600.0
 
@@ -264,6 +261,10 @@ def run_session(spec: SessionSpec, say=print) -> dict:
 
     pool = ThreadPoolExecutor(1)
     try:
+        stream.resume(step)
+        say(f"session: {spec.nets} on {device} ({torch.get_num_threads()} threads), {speed}, batch {batch}, "
+            f"{len(maker)} shapes, recipe {recipe.name}; set-up {time.time() - t0:.0f} s")
+        session_start = last_ck = time.time()  # (the samples/s leave the set-up out)
         upcoming = pool.submit(stream.make, step)
         while stop["signal"] is None and (deadline is None or time.time() < deadline) and \
                 (spec.max_steps is None or step < spec.max_steps):
