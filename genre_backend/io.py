@@ -93,7 +93,8 @@ def is_temporary_name(name: str) -> bool:
     return pid.isdigit() and bool(dash) and len(rand) == _RANDOM_CHARS and rand.isascii() and (rand.replace("_", "").isalnum())
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (another user's counts as running)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -125,7 +126,7 @@ def remove_dead_temporaries(path: str | os.PathLike) -> int:
             mine = entry.stat(follow_symlinks=False).st_uid == os.geteuid() and entry.is_file(follow_symlinks=False)
         except OSError:
             continue
-        if mine and pid_text.isdigit() and int(pid_text) != os.getpid() and not _pid_alive(int(pid_text)):
+        if mine and pid_text.isdigit() and int(pid_text) != os.getpid() and not pid_alive(int(pid_text)):
             try:
                 os.unlink(entry.path)
                 removed += 1

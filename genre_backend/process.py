@@ -172,22 +172,14 @@ def is_private_folder_name(name: str, prefix: str) -> int | None:
     return int(pid)
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # (EPERM: alive, another user's)
-        return True
-    return True
-
-
 def remove_dead_folders(prefix: str, root: str | os.PathLike) -> int:
     """Remove the folders ``root/PREFIX<pid>-XXXXXXXX`` of this user whose process no longer runs (one killed
     before it could remove its own); returns how many.  A link, a file, another user's folder, a live process's
     or any other name is never touched."""
     import shutil
     import stat
+
+    from .io import pid_alive
 
     removed = 0
     try:
@@ -202,7 +194,7 @@ def remove_dead_folders(prefix: str, root: str | os.PathLike) -> int:
             st = entry.stat(follow_symlinks=False)
         except OSError:
             continue
-        if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.geteuid() or _pid_alive(pid):
+        if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.geteuid() or pid_alive(pid):
             continue
         shutil.rmtree(entry.path, ignore_errors=True)
         removed += not os.path.lexists(entry.path)
