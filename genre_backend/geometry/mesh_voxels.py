@@ -125,7 +125,7 @@ def dilate(grid: torch.Tensor, times: int) -> torch.Tensor:
 
     ``times`` dilations by the 3×3×3 cube are one dilation by the cube of side
     2·times + 1, which is separable: three 1D max-pools, one per axis (at 128³
-    and 5 times, 40× faster than :func:`dilate_reference` on a CPU).
+    and 5 times, 4.8 s against 1.5 s in one profile of a busy 2-core CPU: ~3× faster than :func:`dilate_reference`).
     """
     if isinstance(times, bool) or not isinstance(times, int) or times < 0:
         raise ValueError(f"shell_dilation: expected a non-negative int, got {times!r}")
