@@ -18,6 +18,7 @@ import os
 import sys
 import time
 from collections import Counter, defaultdict
+from pathlib import Path
 
 __all__ = ["main", "format_stats", "format_credits"]
 
@@ -163,6 +164,10 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p = sub.add_parser("credits", parents=[common], help="Markdown list of the shapes of a split with creator and licence")
     p.add_argument("--split", default="train", help="split or group (default: train)")
     p.add_argument("--out", default=None, help="write here (default: standard output)")
+    p = sub.add_parser("flat-test", parents=[common], help="flat shapes lying on the ground, for genre eval's flat-from-above group "
+                                         "(training/data/sources/thin.py; in no training set): OUT/manifest.json + meshes")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--per-kind", type=int, default=6, help="shapes of each flat kind (plate, card, book, leaf; default 6)")
     sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/cli.py)")
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")
     sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/data/show.py)")
@@ -274,8 +279,32 @@ def _from_manifest(args: argparse.Namespace, prog: str) -> int:
     return 0
 
 
+def _flat_test(args: argparse.Namespace, prog: str) -> int:
+    """``genre data flat-test``: the flat-from-above eval shapes as GLB files and a manifest (split ``flat-test``)."""
+    from genre_backend.io import atomic_write_json
+
+    from .sources.thin import FLAT_KINDS, FLAT_TEST_SEED, flat_test_shape
+
+    if not 1 <= args.per_kind <= 100:
+        print(f"{prog}: --per-kind must be in 1..100, got {args.per_kind}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    (out / "shapes").mkdir(parents=True, exist_ok=True)
+    entries = []
+    for kind in FLAT_KINDS:
+        for k in range(args.per_kind):
+            sid, cls, mesh = flat_test_shape(kind, k)
+            mesh.export(out / "shapes" / f"{sid}.glb")
+            entries.append({"id": sid, "class": cls, "split": "flat-test", "groups": ["flat-from-above"],
+                            "mesh": f"shapes/{sid}.glb", "source": "procedural-thin", "licence": "CC0",
+                            "extents": [round(float(e), 6) for e in mesh.extents]})
+    atomic_write_json(out / "manifest.json", {"seed": FLAT_TEST_SEED, "shapes": entries})
+    print(f"{prog}: {len(entries)} flat shapes lying on the ground plane in {out}")
+    return 0
+
+
 _COMMANDS = {"fetch": _fetch, "backgrounds": _backgrounds, "build": _build, "stats": _from_manifest,
-             "credits": _from_manifest}
+             "credits": _from_manifest, "flat-test": _flat_test}
 
 
 def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dict | None = None) -> int:

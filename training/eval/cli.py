@@ -25,7 +25,7 @@ from .protocol import GROUPS, ROWS, find_eval_views
 from .rows import Models
 from .runner import ModelSpec, evaluate_views
 from .statistics import CLOSED_SHARE, aggregate, choose_thresholds
-from .report import format_table, write_csv
+from .report import flatness_table, format_table, write_csv
 
 __all__ = ['HINTS', 'main']
 
@@ -77,7 +77,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--train-shapes", help="file of training shape ids (default: every shape in --train-views)")
     p.add_argument("--manifest", help="manifest JSON for classes and splits (default $GENRE_HOME/corpus/manifest.json if present)")
     p.add_argument("--out", help="results folder (default $GENRE_HOME/results/<run name>; results/ in the repository holds the committed ones)")
-    p.add_argument("--groups", default="test,unseen,unseen-pix3d", help="groups to evaluate: test (seen-test), unseen, unseen-pix3d (Table 1, the default); product-test (the product model's test split)")
+    p.add_argument("--groups", default="test,unseen,unseen-pix3d", help="groups to evaluate: test (seen-test), unseen, unseen-pix3d (Table 1, the default); product-test (the product model's test split); flat-from-above (genre data flat-test's shapes)")
     p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
     p.add_argument("--thresholds-from", help="thresholds.json of a run on seen-test data (when this run has none)")
@@ -317,6 +317,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
               f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
               "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")
     table = format_table(per_class, group_means, choice, models.rows(), header) + _shipped_threshold_note(records, choice)
+    table += flatness_table(records, choice, models.rows())
     table += _figures(args, out, per_class, models, views, choice, train_ids, gallery_keys)
     atomic_write_text(out / "table.md", table)
     print(table)

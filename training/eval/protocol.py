@@ -28,11 +28,11 @@ FLOOR = "Noise floor (truth resampled)"
 
 # Table 1's three; the product model's test split; and its training split (the fit diagnostic: a fixed sample of
 # training views, CD beside the test split's: while both are alike and far from the floor, the model underfits)
-GROUPS = ("test", "unseen", "unseen-pix3d", "product-test", "product-train")
+GROUPS = ("test", "unseen", "unseen-pix3d", "product-test", "product-train", "flat-from-above")
 
 
 GROUP_LABEL = {"test": "seen-test", "unseen": "unseen", "unseen-pix3d": "unseen-pix3d", "product-test": "product-test",
-               "product-train": "product-train"}
+               "product-train": "product-train", "flat-from-above": "flat-from-above"}
 
 
 EMPTY_CD = 1.0  # the CD given to a threshold whose mesh is empty (normalised clouds: a large error)
@@ -58,10 +58,12 @@ def threshold_key(t: float) -> str:
 
 
 def metric_columns(thresholds: list[float]) -> list[str]:
-    return [f"{m}@{threshold_key(t)}" for t in thresholds for m in (*METRICS, "empty", "closed")]
+    return [f"{m}@{threshold_key(t)}" for t in thresholds for m in (*METRICS, "empty", "closed", "dw")]
 
 
-BASE_COLUMNS = ["key", "shape", "view", "class", "groups", "azimuth", "elevation", "row", "depth_abs_err", "retrieved"]
+# dw_true, dw@t: the truth's and the prediction's depth ÷ width (height along the object's up over the width
+# across it, genre_backend.geometry.metrics.depth_over_width), reported for the flat-from-above group
+BASE_COLUMNS = ["key", "shape", "view", "class", "groups", "azimuth", "elevation", "row", "depth_abs_err", "retrieved", "dw_true"]
 
 
 @dataclass(frozen=True)
@@ -100,7 +102,7 @@ def find_eval_views(roots: list[Path], manifest: dict | None, groups: tuple[str,
             if not cls or not split:
                 continue
             # the manifest's groups (the product split is a property of the whole corpus), else the class's
-            gs = tuple(g for g in (entry.get("groups") or groups_of(cls, split)) if g in groups)
+            gs = tuple(g for g in (entry.get("groups") or meta.get("groups") or groups_of(cls, split)) if g in groups)
             if not gs:
                 continue
             if max_views is not None and per_shape[ref.shape_id] >= max_views:

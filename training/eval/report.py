@@ -10,9 +10,9 @@ from pathlib import Path
 
 from genre_backend.io import atomic_write, atomic_write_text
 
-from .protocol import FLOOR, GROUPS, GROUP_LABEL, POINTS_LARGE, POINTS_SMALL, REPRESENTATION
+from .protocol import FLOOR, GROUPS, GROUP_LABEL, POINTS_LARGE, POINTS_SMALL, REPRESENTATION, threshold_key
 
-__all__ = ['format_table', 'pyplot', 'save_figure', 'write_csv']
+__all__ = ['flatness_table', 'format_table', 'pyplot', 'save_figure', 'write_csv']
 
 
 def write_csv(path: Path, rows: list[dict], columns: list[str] | None = None) -> None:
@@ -90,6 +90,40 @@ def format_table(per_class: list[dict], groups: dict, choice: dict, rows: list[s
                 tc = "–" if row in (FLOOR, "Nearest training shape") else f"{e['threshold_per_class']:.2f}"
                 lines.append(f"| {row} | {c} | {e['shapes']} | {e['views']} | {_fmt(e['cd1k_seen'], e['cd1k_seen_ci95'])} | {_fmt(e['cd1k_per_class'])} | {tc} | "
                              f"{_fmt(e['cd10k_seen'])} | {_fmt(e['f1_seen'])} | {_fmt(e['f2_seen'])} | {e['empty_seen']} |")
+    return "\n".join(lines) + "\n"
+
+
+def flatness_table(records: list[dict], choice: dict, rows: list[str], group: str = "flat-from-above") -> str:
+    """Depth ÷ width of the views of ``group`` (Markdown, empty when none): per row, at its seen t*.
+
+    The ratio of a view is the prediction's depth ÷ width over the truth's
+    (``dw@t`` over ``dw_true``, :func:`genre_backend.geometry.metrics.depth_over_width`);
+    the medians are over views, "within 2×" counts views whose ratio lies in [0.5, 2].
+    """
+    import numpy as np
+
+    views = [r for r in records if group in r["groups"].split("|")]
+    if not views:
+        return ""
+    lines = ["", f"## {GROUP_LABEL.get(group, group)}: depth ÷ width (seen t*)", "",
+             "Depth: the height along the object's up; width: the largest spread across it (trimmed 0.2 %). "
+             "Ratio: the prediction's over the truth's, per view; 1 is right.", "",
+             "| method | views | depth ÷ width (median) | truth (median) | ratio (median) | within 2× | CD (mean) |",
+             "|---|---|---|---|---|---|---|"]
+    for row in list(rows) + [FLOOR]:
+        t = threshold_key(choice["seen"].get(row, math.nan)) if row in choice["seen"] else None
+        recs = [r for r in views if r["row"] == row]
+        if not recs or t is None:
+            continue
+        pred = np.array([float(r[f"dw@{t}"]) for r in recs])
+        true = np.array([float(r["dw_true"]) for r in recs])
+        ratio = pred / true
+        ok = np.isfinite(ratio)
+        within = int(((ratio >= 0.5) & (ratio <= 2.0) & ok).sum())
+        cd = float(np.mean([float(r[f"cd1k@{t}"]) for r in recs]))
+        med = lambda a: float(np.median(a[np.isfinite(a)])) if np.isfinite(a).any() else math.nan  # noqa: E731
+        lines.append(f"| {row} | {len(recs)} | {_fmt(med(pred))} | {_fmt(med(true))} | {_fmt(med(ratio))} | "
+                     f"{within} / {len(recs)} | {_fmt(cd)} |")
     return "\n".join(lines) + "\n"
 
 

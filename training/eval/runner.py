@@ -15,6 +15,7 @@ where it stopped.
 from __future__ import annotations
 
 import csv
+import math
 import os
 from collections import defaultdict
 from dataclasses import dataclass
@@ -35,7 +36,7 @@ from .report import write_csv
 __all__ = ['EMPTY', 'ModelSpec', 'Truth', 'is_closed', 'evaluate_views', 'grid_path', 'mesh_metrics', 'score_grid', 'score_view']
 
 
-EMPTY = {"cd1k": EMPTY_CD, "cd10k": EMPTY_CD, "f1": 0.0, "f2": 0.0, "empty": 1.0, "closed": 0.0}
+EMPTY = {"cd1k": EMPTY_CD, "cd10k": EMPTY_CD, "f1": 0.0, "f2": 0.0, "empty": 1.0, "closed": 0.0, "dw": math.nan}
 
 
 def is_closed(faces) -> bool:
@@ -110,6 +111,12 @@ class Truth:
         stored, again = self.object_points(view)
         pose = lambda p: frame.object_to_view(p.double()[None], rot)[0].float()  # noqa: E731
         return pose(stored), pose(again)
+
+    @staticmethod
+    def up(view: EvalView) -> torch.Tensor:
+        """The object frame's up (+Z) in the view's frame, (3,)."""
+        rot = torch.tensor(view.meta["rotation_cam_to_obj"], dtype=torch.float64)
+        return rot[2].float()
 
 
 def grid_path(grids_dir: Path, key: str) -> Path:
@@ -186,7 +193,8 @@ def score_view(models: Models, view: EvalView, sample: dict, truth: Truth, devic
     pred = predict(models, sample, device)
     base = {"key": view.key, "shape": view.shape_dir.name, "view": view.view, "class": view.cls, "groups": "|".join(view.groups),
             "azimuth": view.meta.get("azimuth_deg", ""), "elevation": view.meta.get("elevation_deg", ""), "depth_abs_err": "", "retrieved": ""}
-    target = CloudScorer(gt_small, gt_large)
+    target = CloudScorer(gt_small, gt_large, up=truth.up(view))
+    base["dw_true"] = f"{target.dw_true:.6g}"
     floor = {**target.metrics(again_small, again_large), "closed": float("nan")}
     results = {FLOOR: {t: floor for t in thresholds}}
     for row in models.rows():

@@ -30,6 +30,7 @@ chosen engine, 130 or 143 when interrupted (SIGINT, SIGTERM).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import faulthandler
 import json
 import os
@@ -91,6 +92,9 @@ def _build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--limit", type=_positive, default=None, help="render only the first K shapes")
     p.add_argument("--shard", type=_parse_shard, default=(0, 1), metavar="I/N", help="render every N-th shape from I")
     p.add_argument("--split", default=None, help="only manifest shapes of this split or group (e.g. train, unseen)")
+    p.add_argument("--elevation", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
+                   help="camera elevations in degrees, in place of the preset's (e.g. 60 88: views from above); "
+                        "recorded in render_settings.json")
     p.add_argument("--classes", nargs="+", default=None, metavar="CLASS",
                    help="only manifest shapes of these classes (e.g. primitive: more views of some shapes)")
     p.add_argument("--samples", type=_positive, default=RenderSettings.samples,
@@ -177,6 +181,10 @@ def _shapes_to_render(args: argparse.Namespace):
 
     try:
         config = get_preset(args.preset)
+        if args.elevation is not None:
+            lo, hi = args.elevation
+            config = dataclasses.replace(config, camera=dataclasses.replace(config.camera, elevation_min_deg=lo,
+                                                                             elevation_max_deg=hi))
         shapes = read_shapes(args.shapes)
     except ValueError as exc:
         raise _Refused(str(exc)) from None

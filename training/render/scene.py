@@ -813,6 +813,7 @@ def render_shape(
             "shape_id": shape.id,
             "class": shape.cls,
             "split": shape.split,
+            "groups": list(shape.groups),
             "mesh": str(shape.path),
             "view": k,
             "preset": getattr(renderer.config, "preset", None),

@@ -5,8 +5,10 @@ import trimesh
 
 from genre_backend.config import get_preset
 from genre_backend.geometry.metrics import (
+    CloudScorer,
     chamfer_distance,
     chamfer_distance_reference,
+    depth_over_width,
     mesh_chamfer,
     normalize_points,
     sample_surface,
@@ -86,3 +88,36 @@ def test_threshold_sweep_covers_the_configured_range():
     # a binary shell's two sheets tighten toward the shell's voxel centres as the threshold rises
     assert all(0.0 < v < 0.2 for v in result.values())
     assert result[0.9] < result[0.7] < result[0.5] < result[0.3]
+
+
+def _random_rotation(seed: int) -> torch.Tensor:
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64))
+    return q * torch.sign(torch.det(q))
+
+
+def test_depth_over_width_of_boxes_and_a_sphere():
+    """A lying card's height over its caliper width, in any pose; turned on its side; a sphere's is 1."""
+    card = trimesh.creation.box(extents=(0.8, 0.6, 0.08))
+    pts = torch.from_numpy(trimesh.sample.sample_surface(card, 20000, seed=1)[0])
+    rot = _random_rotation(5)
+    posed = pts @ rot.T
+    up = rot[:, 2]
+    assert depth_over_width(posed, up) == pytest.approx(0.08 / 1.0, rel=0.03)  # the 0.8 x 0.6 card's diagonal is 1
+    assert depth_over_width(posed, -3 * up) == pytest.approx(depth_over_width(posed, up))  # sign and length of up
+    # on its long side: height 0.8 over the caliper width of a 0.6 x 0.08 rectangle (its diagonal 0.605)
+    assert depth_over_width(posed, rot[:, 0]) == pytest.approx(0.8 / np.hypot(0.6, 0.08), rel=0.04)
+    sphere = torch.from_numpy(trimesh.sample.sample_surface(trimesh.creation.icosphere(4), 20000, seed=2)[0])
+    assert depth_over_width(sphere, torch.tensor([0.3, -0.2, 0.9])) == pytest.approx(1.0, rel=0.03)
+    with pytest.raises(ValueError, match="zero width"):
+        depth_over_width(torch.zeros(10, 3), torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_cloud_scorer_reports_depth_over_width_with_an_up():
+    card = trimesh.creation.box(extents=(0.8, 0.6, 0.08))
+    gt = torch.from_numpy(trimesh.sample.sample_surface(card, 10000, seed=1)[0]).float()
+    blob = torch.from_numpy(trimesh.sample.sample_surface(trimesh.creation.icosphere(3), 10000, seed=3)[0]).float() * 0.5
+    up = torch.tensor([0.0, 0.0, 1.0])
+    scorer = CloudScorer(gt[:1024], gt, up=up)
+    assert scorer.dw_true == pytest.approx(0.08, rel=0.05)
+    assert scorer.metrics(blob[:1024], blob)["dw"] == pytest.approx(1.0, rel=0.05)
+    assert "dw" not in CloudScorer(gt[:1024], gt).metrics(blob[:1024], blob)

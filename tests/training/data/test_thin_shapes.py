@@ -79,3 +79,52 @@ def test_pack_adds_thin_shapes_and_still_holds_no_test_shape(tmp_path):
         build_pack(manifest, tmp_path / "bad", split="product-test", thin=2)
     with pytest.raises(ValueError, match="thin"):
         build_pack(manifest, tmp_path / "bad", thin=-1)
+
+
+# ---------------------------------------------------------------- the flat-from-above eval shapes
+
+
+def test_lying_rotation_is_a_rotation_that_puts_the_thinnest_axis_up():
+    rng = np.random.default_rng(3)
+    box = trimesh.creation.box(extents=(0.9, 0.5, 0.05))
+    q = rng.normal(size=4)
+    from training.data.sources.procedural import quaternion_matrix
+    from training.data.sources.thin import lying_rotation
+
+    turned = np.asarray(box.vertices) @ quaternion_matrix(q).T  # some pose
+    for flip in (False, True):
+        r = lying_rotation(turned, yaw=0.0, flip=flip)
+        assert np.allclose(r @ r.T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(r), 1.0)
+        ext = np.ptp(turned @ r.T, axis=0)
+        assert np.allclose(ext, (0.9, 0.5, 0.05), atol=1e-6)  # largest along X, thinnest along Z (yaw 0)
+
+
+def test_flat_test_shapes_lie_flat_and_are_not_training_shapes():
+    from training.data.sources.thin import FLAT_KINDS, flat_test_shape
+
+    pack_vertices = [m.vertices for _, _, m in thin_shapes(2)]
+    for kind in FLAT_KINDS:
+        for k in range(2):
+            sid, cls, mesh = flat_test_shape(kind, k)
+            assert sid == f"flat-{kind}-{k:03d}" and cls == f"thin-{kind}"
+            ext = mesh.extents
+            assert np.isclose(np.linalg.norm(ext), 1.0) and ext[2] < 0.2 * max(ext[0], ext[1])  # lying flat
+            assert not any(v.shape == mesh.vertices.shape and np.allclose(v, mesh.vertices) for v in pack_vertices)
+            again = flat_test_shape(kind, k)[2]
+            assert np.array_equal(again.vertices, mesh.vertices)
+    with pytest.raises(ValueError, match="not a flat kind"):
+        flat_test_shape("rod", 0)
+
+
+def test_genre_data_flat_test_writes_a_manifest_the_renderer_reads(tmp_path):
+    from training.data.cli import main
+    from training.data.views import read_shapes
+
+    assert main(["flat-test", "--out", str(tmp_path), "--per-kind", "1"]) == 0
+    shapes = read_shapes(tmp_path / "manifest.json")
+    assert [s.id for s in shapes] == ["flat-plate-000", "flat-card-000", "flat-book-000", "flat-leaf-000"]
+    for s in shapes:
+        assert s.split == "flat-test" and s.groups == ("flat-from-above",) and s.path.is_file()
+        mesh = trimesh.load(s.path, force="mesh")
+        assert mesh.extents[2] < 0.2 * mesh.extents[:2].max()
+    assert main(["flat-test", "--out", str(tmp_path), "--per-kind", "0"]) == 2

@@ -16,6 +16,7 @@ from support.tiny_data import TINY, copy_tiny_views
 from genre_backend.geometry.metrics import CloudScorer
 from training.eval.cli import main
 from training.eval.protocol import EMPTY_CD, FLOOR, ROWS, EvalView
+from training.eval.report import flatness_table
 from training.eval.runner import Truth, mesh_metrics, score_grid
 from training.eval.statistics import aggregate, choose_thresholds
 from training.learn.train import TrainConfig, train
@@ -229,6 +230,29 @@ def test_a_perfect_prediction_sits_on_the_resampling_floor(tiny):
     perfect = mesh_metrics(verts, np.asarray(mesh.faces), CloudScorer(gt[:1024], gt))
     assert perfect["cd1k"] == pytest.approx(floor["cd1k"], rel=0.25)
     assert perfect["f2"] > 0.95
+    # the object's up in the view frame: the view-frame vertices' spread along it is the object-frame z spread
+    up = Truth.up(view).double()
+    assert float(up.norm()) == pytest.approx(1.0)
+    assert float(np.ptp(verts @ up.numpy())) == pytest.approx(float(np.ptp(np.asarray(mesh.vertices)[:, 2])), rel=1e-6)
+    scorer = CloudScorer(gt[:1024], gt, up=Truth.up(view))
+    assert mesh_metrics(verts, np.asarray(mesh.faces), scorer)["dw"] == pytest.approx(scorer.dw_true, rel=0.05)
+
+
+def test_the_flatness_table_gives_each_rows_median_ratio_at_its_seen_threshold():
+    def rec(row, true, pred45, pred50):
+        return {"row": row, "groups": "flat-from-above", "dw_true": str(true), "dw@0.45": str(pred45), "dw@0.50": str(pred50),
+                "cd1k@0.45": "0.1", "cd1k@0.50": "0.2"}
+
+    records = [rec("GenRe", 0.1, 0.8, 0.15), rec("GenRe", 0.1, 0.9, 0.3), rec("GenRe", 0.2, 0.3, 0.1), rec("GenRe", 0.1, "nan", 0.1),
+               rec(FLOOR, 0.1, 0.1, 0.1), {**rec("GenRe", 0.1, 0.1, 0.1), "groups": "product-test"}]
+    choice = {"seen": {"GenRe": 0.45, FLOOR: 0.45}}
+    table = flatness_table(records, choice, ["GenRe"])
+    # ratios at 0.45: 8, 9, 1.5, nan → median of the finite ones 8; within 2x: 1 of 4
+    assert "| GenRe | 4 | 0.800 | 0.100 | 8.000 | 1 / 4 | 0.100 |" in table
+    assert f"| {FLOOR} | 1 | 0.100 | 0.100 | 1.000 | 1 / 1 | 0.100 |" in table
+    choice["seen"]["GenRe"] = 0.5  # ratios 1.5, 3, 0.5, 1 → median 1.25; within 2x: 3
+    assert "| GenRe | 4 | 0.125 | 0.100 | 1.250 | 3 / 4 | 0.200 |" in flatness_table(records, choice, ["GenRe"])
+    assert flatness_table([r for r in records if r["groups"] == "product-test"], choice, ["GenRe"]) == ""
 
 
 @pytest.mark.slow

@@ -254,6 +254,18 @@ def test_cli_renders_resumes_and_records_failures(renderer, sphere_path, tmp_pat
     assert "2 views of 1 shapes are missing: 1 shapes failed" in captured.err
     # Other settings into the same folder are refused.
     assert render_cli.main(argv[:-3] + ["--seed", "6", "--no-progress"], "genre data render") == 2
+    assert render_cli.main(argv + ["--elevation", "70", "80"], "genre data render") == 2
+    # --elevation: views from above, the range recorded; an empty or out-of-range one is refused
+    (shapes / "broken.obj").unlink()
+    above = tmp_path / "above"
+    high = ["--shapes", str(shapes), "--out", str(above), "--views", "2", "--seed", "5", "--no-progress", "--elevation", "70", "80"]
+    assert render_cli.main(high, "genre data render") == 0
+    for k in range(2):
+        assert 70.0 <= view_files.load_view(above / "ball__s", k)["camera"]["elevation_deg"] <= 80.0
+    settings = json.loads((above / "render_settings.json").read_text())["camera"]
+    assert (settings["elevation_min_deg"], settings["elevation_max_deg"]) == (70.0, 80.0)
+    for bad in (["80", "70"], ["10", "95"]):
+        assert render_cli.main(high[:-2] + bad, "genre data render") == 2  # (refused before anything is written)
 
 
 @pytest.mark.slow

@@ -65,7 +65,8 @@ import trimesh
 
 from .procedural import _extrusion_mesh, _rounded_rectangle, quaternion_matrix
 
-__all__ = ["GENERATOR_VERSION", "KINDS", "MAX_FACES", "SUBKINDS", "thin_shape", "thin_shapes"]
+__all__ = ["FLAT_KINDS", "FLAT_TEST_SEED", "GENERATOR_VERSION", "KINDS", "MAX_FACES", "SUBKINDS", "flat_test_shape", "lying_rotation",
+           "thin_shape", "thin_shapes"]
 
 KINDS: tuple[str, ...] = ("plate", "card", "book", "leaf", "bowl", "rod")
 SUBKINDS: dict[str, tuple[str, ...]] = {
@@ -423,29 +424,70 @@ def _normalised(mesh: trimesh.Trimesh, rotation: np.ndarray) -> trimesh.Trimesh:
     return trimesh.Trimesh(v, np.asarray(mesh.faces, dtype=np.int64), process=False)
 
 
-def thin_shape(kind: str, k: int, seed: int = 0) -> tuple[str, str, trimesh.Trimesh]:
-    """Shape ``k`` of ``kind``: ``(id, class, mesh)``, ``id = thin-<kind>-<k:03d>``, ``class = thin-<kind>``."""
+def _built(kind: str, k: int, seed: int) -> tuple[np.random.Generator, trimesh.Trimesh]:
+    """Shape ``k`` of ``kind`` in its builder's own frame, and the generator that drew it (its pose comes next)."""
     if kind not in KINDS:
         raise ValueError(f"unknown thin kind {kind!r}; known: {', '.join(KINDS)}")
     rng = np.random.default_rng([int(seed), KINDS.index(kind), int(k)])
     subkinds = SUBKINDS[kind]
     sub = subkinds[k % len(subkinds)]
-    mesh = None
     for _ in range(_MAX_TRIES):
         try:
             mesh = _BUILDERS[kind](sub, rng)
         except ValueError:  # a drawn profile crossed itself: draw again
             continue
         if 0 < len(mesh.faces) <= MAX_FACES:
-            break
-        mesh = None
-    if mesh is None:
-        raise RuntimeError(f"thin-{kind}-{k:03d}: no valid {sub} in {_MAX_TRIES} draws")
+            return rng, mesh
+    raise RuntimeError(f"thin-{kind}-{k:03d}: no valid {sub} in {_MAX_TRIES} draws")
+
+
+def thin_shape(kind: str, k: int, seed: int = 0) -> tuple[str, str, trimesh.Trimesh]:
+    """Shape ``k`` of ``kind``: ``(id, class, mesh)``, ``id = thin-<kind>-<k:03d>``, ``class = thin-<kind>``."""
+    rng, mesh = _built(kind, k, seed)
     while True:
         q = rng.normal(size=4)
         if np.linalg.norm(q) > 1e-3:
             break
     return f"thin-{kind}-{k:03d}", f"thin-{kind}", _normalised(mesh, quaternion_matrix(q))
+
+
+def lying_rotation(vertices: np.ndarray, yaw: float, flip: bool) -> np.ndarray:
+    """The (3, 3) rotation that lays a shape flat: its thinnest principal axis along +Z, turned ``yaw`` about Z.
+
+    The principal axes are the eigenvectors of the vertices' covariance; the
+    largest lies along X before the yaw; ``flip`` turns the shape upside down
+    (a half turn about X).
+    """
+    v = np.asarray(vertices, np.float64)
+    v = v - v.mean(axis=0)
+    _, vectors = np.linalg.eigh(v.T @ v)  # ascending: the thinnest axis first
+    axes = np.stack([vectors[:, 2], vectors[:, 1], vectors[:, 0]])  # rows: largest → X, middle → Y, thinnest → Z
+    if np.linalg.det(axes) < 0:
+        axes[1] *= -1
+    c, s = math.cos(yaw), math.sin(yaw)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    if flip:
+        turn = turn @ np.diag([1.0, -1.0, -1.0])
+    return turn @ axes
+
+
+FLAT_KINDS: tuple[str, ...] = ("plate", "card", "book", "leaf")  # what lies flat on a table (bowls are deep; rods are not flat)
+FLAT_TEST_SEED = 20261128  # not the pack's seed (0): no flat test shape is a training shape
+
+
+def flat_test_shape(kind: str, k: int, seed: int = FLAT_TEST_SEED) -> tuple[str, str, trimesh.Trimesh]:
+    """Shape ``k`` of a flat ``kind`` lying on the ground plane, for ``genre eval``'s flat-from-above group.
+
+    Drawn from another seed than the pack's thin shapes, and posed lying flat
+    (:func:`lying_rotation`, a random yaw, upside down for half of them)
+    instead of in a random pose, so that a camera from 60-88° elevation sees
+    it from above.  ``id = flat-<kind>-<k:03d>``, class ``thin-<kind>``.
+    """
+    if kind not in FLAT_KINDS:
+        raise ValueError(f"{kind!r} is not a flat kind; flat kinds: {', '.join(FLAT_KINDS)}")
+    rng, mesh = _built(kind, k, seed)
+    rotation = lying_rotation(mesh.vertices, float(rng.uniform(0.0, 2 * math.pi)), bool(rng.random() < 0.5))
+    return f"flat-{kind}-{k:03d}", f"thin-{kind}", _normalised(mesh, rotation)
 
 
 def thin_shapes(count_per_kind: int = 40, seed: int = 0) -> list[tuple[str, str, trimesh.Trimesh]]:
