@@ -2,7 +2,8 @@
 
 For each stage (depth, inpaint, refine, joint) and each way of running the
 nets — fp32 contiguous (the plain path, what ``genre train`` runs), channels-last,
-bf16 autocast, both — it times forward plus backward plus an Adam step on
+bf16 autocast, both, channels-last with the refiner compiled (``torch.compile``) — it
+times forward plus backward plus an Adam step on
 inputs of the model's shapes, after warm-up steps, and prints the median
 samples/s and its ratio to the plain path.  The ways are interleaved round by
 round so that a busy machine slows them alike.  ``--pack`` also times the
@@ -26,9 +27,11 @@ from genre_backend.geometry.spherical import pad_sph
 from genre_backend.io import resolve_weights
 from genre_backend.nets.model import GenRe, load_model
 
-__all__ = ["WAYS", "STAGES", "step_seconds", "main"]
+__all__ = ["WAYS", "STAGES", "StepTimer", "step_seconds", "main"]
 
-WAYS = {"fp32": (False, False), "channels-last": (True, False), "bf16": (False, True), "channels-last+bf16": (True, True)}
+# way → (channels-last, bf16 autocast, the refiner compiled with torch.compile)
+WAYS = {"fp32": (False, False, False), "channels-last": (True, False, False), "bf16": (False, True, False),
+        "channels-last+bf16": (True, True, False), "channels-last+compile": (True, False, True)}
 STAGES = ("depth", "inpaint", "refine", "joint")
 
 
@@ -68,29 +71,39 @@ def _trained(model: GenRe, stage: str) -> list[torch.nn.Module]:
             "joint": [model.depth_net, model.inpaint_net, model.refiner]}[stage]
 
 
+class StepTimer:
+    """One stage run one way: a model and its optimiser, built once (a compiled refiner compiles once), timed step by step."""
+
+    def __init__(self, weights: str, stage: str, way: str, batch: int, seed: int = 0):
+        self.stage, (self.channels_last, self.bf16, compiled) = stage, WAYS[way]
+        self.model = load_model(resolve_weights(weights))
+        if self.channels_last:
+            self.model.depth_net.to(memory_format=torch.channels_last)
+            self.model.inpaint_net.to(memory_format=torch.channels_last)
+            self.model.refiner.to(memory_format=torch.channels_last_3d)
+        if compiled:
+            self.model.refiner.compile()
+        self.opt = torch.optim.Adam([p for n in _trained(self.model, stage) for p in n.parameters()], lr=1e-5)
+        self.model.train()
+        self.x = _inputs(self.model, batch, torch.Generator().manual_seed(seed))
+
+    def seconds(self, steps: int, warmup: int = 0) -> list[float]:
+        """Seconds of each of ``steps`` training steps after ``warmup`` untimed ones."""
+        times = []
+        for k in range(warmup + steps):
+            t = time.perf_counter()
+            loss = _forward(self.model, self.stage, self.x, self.channels_last, self.bf16)
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            self.opt.step()
+            if k >= warmup:
+                times.append(time.perf_counter() - t)
+        return times
+
+
 def step_seconds(weights: str, stage: str, way: str, batch: int, steps: int, warmup: int = 2, seed: int = 0) -> list[float]:
     """Seconds of each of ``steps`` training steps (after ``warmup``) of ``stage`` run the ``way`` named."""
-    channels_last, bf16 = WAYS[way]
-    model = load_model(resolve_weights(weights))
-    if channels_last:
-        model.depth_net.to(memory_format=torch.channels_last)
-        model.inpaint_net.to(memory_format=torch.channels_last)
-        model.refiner.to(memory_format=torch.channels_last_3d)
-    nets = _trained(model, stage)
-    params = [p for n in nets for p in n.parameters()]
-    opt = torch.optim.Adam(params, lr=1e-5)
-    model.train()
-    x = _inputs(model, batch, torch.Generator().manual_seed(seed))
-    times = []
-    for k in range(warmup + steps):
-        t = time.perf_counter()
-        loss = _forward(model, stage, x, channels_last, bf16)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if k >= warmup:
-            times.append(time.perf_counter() - t)
-    return times
+    return StepTimer(weights, stage, way, batch, seed).seconds(steps, warmup)
 
 
 def _maker_seconds(pack: str, weights: str, batch: int, steps: int, voxels: bool, shapes: int) -> list[float]:
@@ -134,11 +147,17 @@ def main(argv: list[str] | None = None, prog: str = "genre bench train") -> int:
             ap.error(f"unknown stage or way {name!r}")
     print(f"device: cpu, {torch.get_num_threads()} threads, torch {torch.__version__}; batch {args.batch}; "
           f"median of {args.rounds} rounds × {args.steps} steps", flush=True)
+    timers, warm = {}, {}
+    for stage in stages:
+        for way in ways:
+            t = time.perf_counter()
+            timers[(stage, way)] = timer = StepTimer(args.weights, stage, way, args.batch)
+            timer.seconds(0, warmup=2)  # (a compiled refiner compiles here)
+            warm[(stage, way)] = time.perf_counter() - t
     results: dict[tuple[str, str], list[float]] = {}
     for _ in range(args.rounds):
-        for stage in stages:
-            for way in ways:
-                results.setdefault((stage, way), []).extend(step_seconds(args.weights, stage, way, args.batch, args.steps))
+        for key, timer in timers.items():
+            results.setdefault(key, []).extend(timer.seconds(args.steps))
     print(f"\n| stage | {' | '.join(ways)} |\n| --- |{' --- |' * len(ways)}")
     for stage in stages:
         plain = statistics.median(results[(stage, ways[0])])
@@ -147,6 +166,7 @@ def main(argv: list[str] | None = None, prog: str = "genre bench train") -> int:
             med = statistics.median(results[(stage, way)])
             cells.append(f"{args.batch / med:.2f}/s ({plain / med:.2f}×)")
         print(f"| {stage} | {' | '.join(cells)} |")
+    print("set-up and two warm-up steps (s): " + "; ".join(f"{s}/{w} {v:.0f}" for (s, w), v in warm.items()))
     if args.pack:
         for voxels in (False, True):
             t = _maker_seconds(args.pack, args.weights, args.batch, args.rounds * args.steps, voxels, args.pack_shapes)

@@ -416,6 +416,9 @@ class Speed:
     inpaint_bf16: bool = False
     refiner_channels_last: bool = False
     refiner_bf16: bool = False
+    # torch.compile of the refiner (in place: its state_dict keys stay): fuses the elementwise layers between
+    # its 3D convolutions, which at 64^3 are memory-bound; costs minutes of compiling at the first step
+    refiner_compile: bool = False
 
     @classmethod
     def for_device(cls, device: torch.device) -> "Speed":
@@ -473,11 +476,13 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None
 
 
 def apply_speed(model: GenRe, speed: Speed) -> GenRe:
-    """The nets' parameters in the memory format ``speed`` names (channels-last 2D / 3D)."""
+    """The nets' parameters in the memory format ``speed`` names (channels-last 2D / 3D); the refiner compiled if it says."""
     if speed.inpaint_channels_last:
         model.inpaint_net.to(memory_format=torch.channels_last)
     if speed.refiner_channels_last:
         model.refiner.to(memory_format=torch.channels_last_3d)
+    if speed.refiner_compile:
+        model.refiner.compile()
     return model
 
 

@@ -93,11 +93,14 @@ def test_the_distance_grid_cache_returns_what_it_would_make(prim_pack, tmp_path)
     assert len({p.parent for p in tmp_path.rglob("*.npz")}) == 2
 
 
-def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack):
-    """The CPU's fast path (CPU_SPEED: channels-last; bf16 autocast where it is on) against fp32 contiguous: the
-    same losses over the first five steps of training from the same weights on the same samples, within 3 %.
-    Measured with channels-last alone: 2e-4 at the first step (other convolution kernels, other rounding),
-    1.7 % by the fifth (Adam's steps amplify the difference in small gradients)."""
+@pytest.mark.parametrize("fast", ["cpu", pytest.param("compiled", marks=pytest.mark.slow)])
+def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack, fast):
+    """The CPU's fast path (CPU_SPEED: channels-last; bf16 autocast where it is on; or with the refiner compiled)
+    against fp32 contiguous: the same losses over the first five steps of training from the same weights on the
+    same samples, within 3 %. Measured with channels-last alone: 2e-4 at the first step (other convolution
+    kernels, other rounding), 1.7 % by the fifth (Adam's steps amplify the difference in small gradients)."""
+    import dataclasses
+
     from training.data.pack import read_pack
     from training.learn.burst import CPU_SPEED, REFERENCE_SPEED, ViewMaker, _step_loss, apply_speed
     from training.learn.recipe import get_burst_recipe
@@ -106,7 +109,8 @@ def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack):
     pack = read_pack(prim_pack[0])
     maker = ViewMaker(pack, TINY, torch.device("cpu"), grid_factor=2)
     curves = {}
-    for name, speed in (("plain", REFERENCE_SPEED), ("fast", CPU_SPEED)):
+    fast_speed = CPU_SPEED if fast == "cpu" else dataclasses.replace(CPU_SPEED, refiner_compile=True)
+    for name, speed in (("plain", REFERENCE_SPEED), ("fast", fast_speed)):
         model = apply_speed(load_model(prim_pack[1]), speed)
         model.train()
         params = [p for n in (model.inpaint_net, model.refiner) for p in n.parameters()]
@@ -121,6 +125,7 @@ def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack):
             opt.step()
             losses.append(float(loss.detach()))
         curves[name] = losses
+        assert not any("_orig_mod" in k for k in model.state_dict())  # a compiled net saves under its own names
     assert all(math.isfinite(x) for x in curves["fast"])
     assert abs(curves["plain"][0] - curves["fast"][0]) <= 1e-3 * curves["plain"][0]  # the same weights, one pass
     for a, b in zip(curves["plain"], curves["fast"]):
