@@ -20,8 +20,9 @@ if sys.argv[1:2] == ["serve"]:  # genre serve: SIGINT and SIGTERM taken over fir
 
     install_stop_handlers(at_once=stopped_lines)
 
+from collections.abc import Callable  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
-from typing import Callable, NoReturn  # noqa: E402
+from typing import NoReturn  # noqa: E402
 
 from . import __version__  # noqa: E402
 from .process import exit_process, open_missing_streams, say  # noqa: E402

@@ -357,7 +357,7 @@ class GenreConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "GenreConfig":
+    def from_dict(cls, data: dict[str, Any]) -> GenreConfig:
         """Build a config from :meth:`to_dict` output, rejecting unknown keys."""
         return _from_dict(cls, data, "config")
 

@@ -46,7 +46,6 @@ most ``CD_TOLERANCE`` on the group given by ``--choose-group``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from collections import defaultdict

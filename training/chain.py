@@ -48,9 +48,9 @@ import shlex
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from genre_backend.io import atomic_write, atomic_write_json
 

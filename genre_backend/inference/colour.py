@@ -270,7 +270,7 @@ def fill_outside_mask(image: np.ndarray, mask: np.ndarray, source: np.ndarray) -
     return filled
 
 
-def hidden_edge_jumps(texture: "PhotoTexture", faces: np.ndarray) -> np.ndarray:
+def hidden_edge_jumps(texture: PhotoTexture, faces: np.ndarray) -> np.ndarray:
     """Colour jumps (E_h,) float64: mean |ΔRGB| (0-255) of the vertex colours across each edge of ``faces``
     (F, 3) whose two ends are hidden (not ``texture.seen``)."""
     rgb = texture.vertex_colours()[:, :3].astype(np.float64)

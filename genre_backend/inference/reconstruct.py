@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -403,7 +403,7 @@ class Reconstructor:
         self._first_pass = None
 
     @classmethod
-    def from_model(cls, model: GenRe, device: str | torch.device = "cpu") -> "Reconstructor":
+    def from_model(cls, model: GenRe, device: str | torch.device = "cpu") -> Reconstructor:
         """Wrap a model built in memory (benchmarks); ``weights_path`` is None."""
         self = cls.__new__(cls)
         self.device = resolve_device(device)
@@ -523,7 +523,7 @@ class Reconstructor:
             primitive=mesh["primitive"],
         )
 
-    def _networks(self, pre: Preprocessed, opts: MeshOptions, stage: "_StageClock", path) -> dict[str, torch.Tensor]:
+    def _networks(self, pre: Preprocessed, opts: MeshOptions, stage: _StageClock, path) -> dict[str, torch.Tensor]:
         """The networks on one framed photo (S = image size, H = spherical map size, N = voxel grid size): ``depth``
         (1, 1, S, S), ``silhouette_logits`` (1, 1, S, S), ``mask`` (1, 1, S, S) bool, ``masked_depth`` (1, 1, S, S),
         ``partial_sph`` and ``full_sph`` (1, 1, H, H), ``vox_sph``, ``vox_depth`` and ``logits`` (1, 1, N, N, N)."""

@@ -13,4 +13,4 @@ __all__ = ["stopped_lines"]
 def stopped_lines(reason: str) -> tuple[str, str]:
     """(the stderr line, the one stdout line) of a server stopped by the signal ``reason`` (``"SIGINT"``,
     ``"SIGTERM"``) before ``ready``: ``bye`` with the signal's name, exactly as ``json.dumps`` writes it."""
-    return f"genre serve: INFO {reason} while starting: stopping", '{"type": "bye", "id": null, "reason": "%s"}' % reason
+    return f"genre serve: INFO {reason} while starting: stopping", f'{{"type": "bye", "id": null, "reason": "{reason}"}}'

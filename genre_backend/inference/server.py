@@ -119,7 +119,7 @@ class Server:
         self.out = out
         self.device = device
         self.lock = threading.Lock()
-        self.jobs: "queue.Queue[Job | None]" = queue.Queue()
+        self.jobs: queue.Queue[Job | None] = queue.Queue()
         self.pending: dict[str, Job] = {}  # queued or running, by id
         self.pending_lock = threading.Lock()
         self.running: Job | None = None

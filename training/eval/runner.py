@@ -125,7 +125,7 @@ def _write_grid(grids_dir: Path, key: str, prob: torch.Tensor) -> None:
 
 
 @torch.no_grad()
-def _save_grids(models: Models, views: list["EvalView"], grids_dir: Path, device) -> None:
+def _save_grids(models: Models, views: list[EvalView], grids_dir: Path, device) -> None:
     """GenRe's grid of each view that has none yet (its metrics are already in the CSV)."""
     from ..data.dataset import ViewDataset
     from ..data.views import ViewRef

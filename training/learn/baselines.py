@@ -214,7 +214,7 @@ class NearestIndex:
         return atomic_write_bytes(path, save({"thumbs": self.thumbs.contiguous(), "rotations": self.rotations.contiguous()}, metadata=meta))
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "NearestIndex":
+    def load(cls, path: str | os.PathLike) -> NearestIndex:
         from safetensors import safe_open
 
         path = Path(path)

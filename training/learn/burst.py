@@ -418,7 +418,7 @@ class Speed:
     refiner_bf16: bool = False
 
     @classmethod
-    def for_device(cls, device: torch.device) -> "Speed":
+    def for_device(cls, device: torch.device) -> Speed:
         return CUDA_SPEED if device.type == "cuda" else CPU_SPEED
 
 

@@ -358,7 +358,7 @@ def test_serve_box_and_strokes(trained, tmp_path):
                 "strokes image is 535×426, the image is 426×535 as stored")]
         for i, (fields, code, text) in enumerate(bad):
             s.send({**base, "id": f"bad{i}", "output": str(tmp_path / f"bad{i}.obj"), **fields})
-            events = s.until(lambda e: e["type"] in ("result", "error") and e["id"] == f"bad{i}")
+            events = s.until(lambda e, i=i: e["type"] in ("result", "error") and e["id"] == f"bad{i}")
             ev = events[-1]
             assert ev["type"] == "error" and ev["code"] == code and text in ev["message"], (fields, ev)
             stages = {e["stage"] for e in events if e["type"] == "progress"}
@@ -367,7 +367,7 @@ def test_serve_box_and_strokes(trained, tmp_path):
         for name, fields in (("box", {"box": [127, 95, 364, 366]}), ("strokes", {"strokes": str(strokes)}),
                              ("box+strokes", {"box": [127.0, 95.0, 364.0, 366.0], "strokes": str(strokes)})):
             s.send({**base, "id": name, "output": str(tmp_path / f"{name}.obj"), **fields})
-            ev = s.until(lambda e: e["type"] in ("result", "error") and e["id"] == name)[-1]
+            ev = s.until(lambda e, name=name: e["type"] in ("result", "error") and e["id"] == name)[-1]
             assert ev["type"] == "result" and ev["mask_source"] == name and ev["faces"] > 0, ev
         # scribbles over the stored pixels of a turned file (as Blender shows it): turned with the photo
         s.send({**base, "id": "turned", "image": str(turned), "output": str(tmp_path / "turned.obj"), "guidance_frame": "stored",

@@ -136,7 +136,7 @@ def test_product_chain_starts_from_the_shipped_default_weights_under_the_home(tm
     # the refiner grown: the refine stage of product_full from the shipped weights, scored, then no joint round
     steps, resolved = plan("product-full")
     assert [(r["stage"], r["recipe"], r["init"]) for r in resolved] == [("refine", "product_full", default)]
-    assert f"--weights $GENRE_HOME/runs/product_full/refine/best.safetensors" in steps["eval_refine"]
+    assert "--weights $GENRE_HOME/runs/product_full/refine/best.safetensors" in steps["eval_refine"]
     assert "--label refine" in steps["curve_refine"] and "--run $GENRE_HOME/runs/product_full" in steps["curve_refine"]
     assert "results/product/refine " in steps["compare"] and "primitives/refine " in steps["compare_primitives"]
     assert not home.exists()
