@@ -34,7 +34,7 @@ neighbours rose on busy photos; faces at the outline with a hidden corner
 smeared the photo across the front (the bus's front error 9.64/255).  Before
 that (each hidden vertex took the UV of the nearest seen vertex in 3D),
 78–91 % of the hidden vertices read the outline's blend with the backdrop.
-The figures are in the README's *What to expect* (``scripts/hidden_colour.py``).
+The figures are in docs/lab/hidden-colour.md (``scripts/hidden_colour.py``).
 
 UVs follow the glTF/OBJ convention used by Blender: ``u`` left → right,
 ``v`` bottom → top of the texture image.

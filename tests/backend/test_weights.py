@@ -1,6 +1,6 @@
 """The shipped weights: two named files (`default`, the product model; `protocol`, the research weights), found by name.
 
-README, "Which weights": `protocol` is trained on the seen classes only and behind every Table-1 number;
+docs/reconstruct.md, "Which weights": `protocol` is trained on the seen classes only and behind every Table-1 number;
 `default` is what users get (make demo, the add-on), the product model trained on every class
 (genre chain product), at the level of the weights it started from (results/decisions.md).
 """

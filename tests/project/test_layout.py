@@ -134,7 +134,7 @@ def test_cli_lists_the_training_commands_without_importing_them():
 
 # Modules `genre reconstruct` of a photo has no use for (matplotlib: the --preview sheet and the intermediates'
 # PNGs; trimesh: PLY/GLB files and fitted shapes; training: the data/train/eval commands; …): none may be imported
-# by the command's start or by a whole run; each costs a cold start up to seconds (docs/benchmarks.md).
+# by the command's start or by a whole run; each costs a cold start up to seconds (docs/lab/benchmarks.md).
 NOT_FOR_RECONSTRUCT = ("matplotlib", "training", "bpy", "trimesh", "networkx", "scipy.optimize", "shapely", "manifold3d",
                        "igl", "tensorboard")
 

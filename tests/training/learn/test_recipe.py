@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[3]
 # batch 4, Adam betas (0.5, 0.9), surface weight 10) ...
 HISTORIC_DEFAULTS = {"steps": 1000, "batch_size": 4, "beta1": 0.5, "beta2": 0.9, "surface_weight": 10.0}
 HISTORIC_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5, "completion": 1e-4, "onestep": 1e-3}
-# ... and the research chain (then scripts/train_default.sh) passed these flags to each stage (as of commit e91e108).
+# ... and the research chain (then a shell script, train_default.sh) passed these flags to each stage (as of commit e91e108).
 HISTORIC_SCRIPT_FLAGS = {
     "depth": ["--steps", "6000"],
     "inpaint": ["--steps", "3000"],
