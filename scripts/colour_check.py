@@ -25,7 +25,7 @@ CASES = [("examples/sofa.png", None), ("examples/photos/apple.jpg", "examples/ph
 def main() -> int:
     from genre_backend.inference.blender import photo_colour_error
     from genre_backend.inference.reconstruct import Reconstructor
-    from genre_backend.io import resolve_weights
+    from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")

@@ -61,7 +61,7 @@ sys.path.insert(0, str(ROOT))
 
 from genre_backend.inference.preprocess import load_image, load_mask, preprocess  # noqa: E402
 from genre_backend.inference.reconstruct import Reconstructor  # noqa: E402
-from genre_backend.io import resolve_weights  # noqa: E402
+from genre_backend.weights_file import resolve_weights  # noqa: E402
 from genre_backend.inference.segment import SEEDINGS, border_touch, cover, doubt  # noqa: E402
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -143,7 +143,7 @@ def gallery(rows: list[dict], path: Path, size: int, samples: int) -> None:
     import matplotlib.pyplot as plt
 
     from genre_backend.inference.blender import render_meshes
-    from genre_backend.io import atomic_write_bytes as write_bytes_atomic
+    from genre_backend.atomic import atomic_write_bytes as write_bytes_atomic
 
     meshes = []
     for r in rows:
@@ -260,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"doubtful automatic masks: before {sum(bool(r['warning_before']) for r in rows)}, after {sum(bool(r['warning']) for r in rows)} of {len(rows)}; "
           f"masks covering > 85 % without a warning: {sum(r['cover_after'] > 0.85 and not r['warning'] for r in rows)}")
 
-    from genre_backend.io import atomic_write_bytes as write_bytes_atomic
+    from genre_backend.atomic import atomic_write_bytes as write_bytes_atomic
 
     args.out.mkdir(parents=True, exist_ok=True)
     seed_cols = [s for s in (*SEEDINGS, "auto*") if f"iou_{s}" in rows[0]]

@@ -46,7 +46,7 @@ def _fit(image: np.ndarray, tile: int) -> Image.Image:
 def main() -> int:
     from genre_backend.inference.blender import render_views
     from genre_backend.inference.reconstruct import Reconstructor
-    from genre_backend.io import resolve_weights
+    from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=REPO / "docs" / "gallery.png")

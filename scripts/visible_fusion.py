@@ -61,7 +61,7 @@ from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 from genre_backend.inference.colour import zbuffer  # noqa: E402
 from genre_backend.inference.reconstruct import mesh_of_probability  # noqa: E402
-from genre_backend.io import resolve_weights  # noqa: E402
+from genre_backend.weights_file import resolve_weights  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 

@@ -30,7 +30,7 @@ OBJ and glTF land.  ``up="y"`` writes a PLY in the view frame itself.
 on its back).
 
 Every file is written atomically (temporary file in the same folder, then
-rename: :func:`genre_backend.io.atomic_write_bytes`), and every path is
+rename: :func:`genre_backend.atomic.atomic_write_bytes`), and every path is
 checked first (:func:`check_output_path`): an input is never overwritten,
 nor a device or FIFO.
 """
@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write_all, atomic_write_bytes, tmp_prefix
+from ..atomic import atomic_write_all, atomic_write_bytes, tmp_prefix
 
 __all__ = [
     "MESH_FORMATS",
@@ -182,7 +182,7 @@ def check_outputs(mesh: str | os.PathLike, fmt: str | None = None, textured: boo
 
 
 def _write(path: Path, data: bytes) -> None:
-    """:func:`genre_backend.io.atomic_write_bytes`, with an OS error as a one-line :class:`OutputError`."""
+    """:func:`genre_backend.atomic.atomic_write_bytes`, with an OS error as a one-line :class:`OutputError`."""
     try:
         atomic_write_bytes(path, data)
     except OSError as exc:

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from ..config import GenreConfig
-from ..io import DEFAULT_WEIGHTS_NAME, named_weights
+from ..weights_file import DEFAULT_WEIGHTS_NAME, named_weights
 from ..geometry.cleanup import CleanReport, clean_mesh
 from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
 from .mesh_export import MESH_FORMATS, OutputError, check_output_path, resolve_format, resolve_up, short, write_mesh, write_png
@@ -66,7 +66,7 @@ for _s in STAGES:
     _acc += _STAGE_WEIGHT[_s]
 del _acc, _s
 
-DEFAULT_WEIGHTS = named_weights(DEFAULT_WEIGHTS_NAME)  # the product weights; --weights protocol|FILE picks others (io.resolve_weights)
+DEFAULT_WEIGHTS = named_weights(DEFAULT_WEIGHTS_NAME)  # the product weights; --weights protocol|FILE picks others (weights_file.resolve_weights)
 # the long side of the mask-over-photo picture save_intermediates writes (mask_overlay.png; the add-on shows it)
 MASK_OVERLAY_SIDE = 320
 

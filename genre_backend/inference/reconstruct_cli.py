@@ -236,7 +236,7 @@ def _output_folder(spec: ReconstructSpec) -> int:
 
 def _load(spec: ReconstructSpec):
     """The :class:`.reconstruct.Reconstructor` of ``spec.weights``, or the exit status 1 after one line on stderr."""
-    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
+    from ..weights_file import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
     from .reconstruct import Reconstructor, error_code
 
     try:

@@ -509,7 +509,7 @@ def _main(argv: list[str] | None, prog: str, out: TextIO | None) -> int:
 
 
 def _load_and_serve(args, out: TextIO, stdin: TextIO, fatal) -> int:
-    from ..io import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
+    from ..weights_file import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
 
     try:
         weights = resolve_weights(args.weights)

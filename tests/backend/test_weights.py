@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from genre_backend.io import WEIGHTS_DIR, WEIGHTS_NAMES, WeightsError, named_weights, resolve_weights, weights_extra
+from genre_backend.weights_file import WEIGHTS_DIR, WEIGHTS_NAMES, WeightsError, named_weights, resolve_weights, weights_extra
 
 REPO = Path(__file__).resolve().parents[2]
 MAX_SHIPPED_BYTES = 40_000_000  # both safetensors together (the repository stays small enough to clone)

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from genre_backend.io import WeightsError
+from genre_backend.weights_file import WeightsError
 from genre_backend.nets.model import GenRe, load_model, save_model
 from support.server import ServerProcess
 from support.tiny_data import TINY

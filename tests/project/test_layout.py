@@ -1,7 +1,7 @@
 """The package layering: every module imports, the backend never imports training, stages stay in order.
 
 Layers (a module may import only its own layer and those before it):
-  genre_backend: config, validation, io → frame → geometry → nets → inference (cli on top)
+  genre_backend: config, validation, atomic, weights_file, process → frame → geometry → nets → inference (cli on top)
   training: data → render → learn → eval → chain (any of them may import the backend)
 The add-on (blender_addon) imports neither package: it talks to the backend over a pipe.
 """
@@ -20,7 +20,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 BACKEND_LAYERS = {
-    "genre_backend.config": 0, "genre_backend.validation": 0, "genre_backend.io": 0,
+    "genre_backend.config": 0, "genre_backend.validation": 0, "genre_backend.atomic": 0, "genre_backend.weights_file": 0,
     "genre_backend.process": 0,
     "genre_backend.frame": 1, "genre_backend.geometry": 2, "genre_backend.nets": 3,
     "genre_backend.inference": 4, "genre_backend.cli": 5,

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from genre_backend.io import atomic_write_bytes, atomic_write_text
+from genre_backend.atomic import atomic_write_bytes, atomic_write_text
 
 from .sources import ShapeRecord, rotation_to_list
 from .views import read_manifest

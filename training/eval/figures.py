@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from genre_backend.io import atomic_write_text
+from genre_backend.atomic import atomic_write_text
 
 from .protocol import FLOOR, GROUPS, GROUP_LABEL, resolve_mesh
 from ..data.views import view_paths

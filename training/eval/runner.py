@@ -118,7 +118,7 @@ def grid_path(grids_dir: Path, key: str) -> Path:
 
 
 def _write_grid(grids_dir: Path, key: str, prob: torch.Tensor) -> None:
-    from genre_backend.io import atomic_savez
+    from genre_backend.atomic import atomic_savez
 
     grids_dir.mkdir(exist_ok=True)
     atomic_savez(grid_path(grids_dir, key), prob=prob.numpy().astype(np.float16))

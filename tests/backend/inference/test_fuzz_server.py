@@ -45,7 +45,7 @@ from hypothesis import HealthCheck, assume, example, given, note, settings
 from hypothesis import strategies as st
 
 from genre_backend.inference.options import OPTIONS, QUALITIES
-from genre_backend.io import is_temporary_name
+from genre_backend.atomic import is_temporary_name
 from support.server import ServerProcess
 
 EXAMPLES = int(os.environ.get("GENRE_FUZZ_EXAMPLES", "800"))

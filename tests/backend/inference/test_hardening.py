@@ -15,7 +15,8 @@ import torch
 from genre_backend.config import GenreConfig
 from genre_backend.inference import reconstruct_cli
 from genre_backend.inference.reconstruct import OutputError, check_output_path
-from genre_backend.io import TMP_MARK, WeightsError, atomic_write_bytes, remove_dead_temporaries, tmp_prefix
+from genre_backend.atomic import TMP_MARK, atomic_write_bytes, remove_dead_temporaries, tmp_prefix
+from genre_backend.weights_file import WeightsError
 from genre_backend.nets.model import WEIGHTS_FORMAT, load_model
 from support.server import ServerProcess
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from genre_backend.io import TMP_MARK
+from genre_backend.atomic import TMP_MARK
 from support.faults import SLOW_WRITES as _SLOW_WRITES
 from support.faults import all_lines as _all_lines
 from support.faults import env as _env
