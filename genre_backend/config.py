@@ -219,7 +219,7 @@ class GeometryConfig:
     threshold_step: float = 0.05
     default_threshold: float = 0.5
     chamfer_points: int = 1024
-    # Framing of photos (genre_backend.inference.preprocess): the square crop around the object
+    # Framing of photos (genre_backend.photo.preprocess): the square crop around the object
     # is sized so that the mask's longest side spans this fraction of the image.
     # Measured medians: 0.50 over 88 real default renders (aircraft), 0.66 over the
     # box/table test renders; canonical renders (diagonal 1 at distance 2.2) span 0.45-0.7.

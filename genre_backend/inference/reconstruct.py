@@ -35,11 +35,11 @@ from ..config import GenreConfig
 from ..weights_file import DEFAULT_WEIGHTS_NAME, named_weights
 from ..geometry.cleanup import CleanReport, clean_mesh
 from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
-from .mesh_export import MESH_FORMATS, OutputError, check_output_path, resolve_format, resolve_up, short, write_mesh, write_png
-from .colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
+from ..output.mesh_export import MESH_FORMATS, OutputError, check_output_path, resolve_format, resolve_up, short, write_mesh, write_png
+from ..output.colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
 from .options import MeshOptions, mesh_of_probability
-from .preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess, uncrop
-from .segment import DEFAULT_SEEDING, doubt
+from ..photo.preprocess import ImageError, MIN_OBJECT_PIXELS, LoadedImage, Preprocessed, composite, crop_resize, load_image, preprocess, uncrop
+from ..photo.segment import DEFAULT_SEEDING, doubt
 
 __all__ = [
     "STAGES",
@@ -106,7 +106,7 @@ def resolve_device(device: str | torch.device) -> torch.device:
 
 def _colour(values: np.ndarray, valid: np.ndarray, lo: float, hi: float, cmap: str) -> np.ndarray:
     """(H, W) floats → (H, W, 3) uint8 colour map; invalid pixels black."""
-    from .blender import private_matplotlib_config
+    from ..output.blender import private_matplotlib_config
 
     private_matplotlib_config()  # (never $HOME/.config/matplotlib)
     import matplotlib
@@ -131,9 +131,9 @@ class Reconstruction:
     ``"box"``, ``"strokes"``, ``"box+strokes"`` or ``"silhouette"``.  ``photo_mask``: (H, W) bool, the mask the networks
     used at the decoded photo's pixels (:meth:`mask_in_photo` gives it at
     the photo's own size).  ``mask_warning``: one line when that mask is
-    doubtful (:func:`genre_backend.inference.segment.doubt`: it covers most
-    of the photo or touches most of its border; :func:`~genre_backend.inference.segment.cut_doubt`:
-    GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.inference.segment.salient_doubt`:
+    doubtful (:func:`genre_backend.photo.segment.doubt`: it covers most
+    of the photo or touches most of its border; :func:`~genre_backend.photo.segment.cut_doubt`:
+    GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.photo.segment.salient_doubt`:
     the salient net's mask; or the net could not be loaded and GrabCut's mask was used), else None.
     ``options``: the mesh options as the mesh was made (:class:`.options.MeshOptions`, resolved against the weights:
     no field ``None``); ``threshold``, ``hole_closing``, ``silhouette_carve``, ``visible_fusion``, ``pit_sealing``,
@@ -318,11 +318,11 @@ class Reconstruction:
         return paths
 
     def save_preview(self, path: str | os.PathLike, samples: int = 16, texture: bool = False) -> Path:
-        """Write one PNG a person can judge the result by (:func:`genre_backend.inference.preview.preview_image`).
+        """Write one PNG a person can judge the result by (:func:`genre_backend.output.preview.preview_image`).
 
         ``texture``: the mesh views show the photo's colour (:meth:`texture`).
         """
-        from .preview import preview_image
+        from ..output.preview import preview_image
 
         path = Path(path)
         check_output_path(path, self.inputs)

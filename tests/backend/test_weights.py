@@ -85,7 +85,7 @@ def test_weights_resolve_by_name_or_path(tmp_path, monkeypatch):
 
 
 def test_reconstruct_and_serve_name_the_choices_for_an_unknown_name(capsys):
-    from genre_backend.inference import reconstruct_cli, server
+    from genre_backend.frontends import reconstruct_cli, server
 
     assert reconstruct_cli.main([str(REPO / "examples" / "sofa.png"), "--weights", "product"]) == 1
     err = capsys.readouterr().err.strip().splitlines()

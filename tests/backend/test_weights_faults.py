@@ -264,7 +264,8 @@ def test_anything_else_raised_while_the_model_is_built_is_weights_error(good, mo
 
 
 def test_an_unexpected_error_at_load_is_still_one_line(good, tmp_path, monkeypatch, capsys):
-    from genre_backend.inference import reconstruct, reconstruct_cli
+    from genre_backend.inference import reconstruct
+    from genre_backend.frontends import reconstruct_cli
 
     def fail(*args, **kwargs):
         raise OSError("disk on fire\nmore")

@@ -1,4 +1,4 @@
-"""Fault injection helpers shared by the fault suite (``tests/backend/inference/test_refuse_and_stop.py`` and
+"""Fault injection helpers shared by the fault suite (``tests/backend/frontends/test_refuse_and_stop.py`` and
 ``test_stop_edges.py`` beside it): ``genre`` run as a subprocess with hooks that slow its writes, and folder
 listings to compare before and after."""
 

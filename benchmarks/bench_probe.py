@@ -46,7 +46,11 @@ def warm(image: str, weights: str) -> None:
 
     t0 = time.perf_counter()
     from genre_backend.inference.reconstruct import Reconstructor
-    from genre_backend.weights_file import resolve_weights
+
+    try:
+        from genre_backend.weights_file import resolve_weights
+    except ImportError:  # a checkout from before genre_backend.io was split (an --against one)
+        from genre_backend.io import resolve_weights
 
     t1 = time.perf_counter()
     rec = Reconstructor(resolve_weights(weights))

@@ -1,4 +1,4 @@
-"""Colour from the photo (genre_backend.inference.colour), mesh files that carry it, and its check through Blender."""
+"""Colour from the photo (genre_backend.output.colour), mesh files that carry it, and its check through Blender."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import trimesh
 from PIL import Image
 
 from genre_backend.config import CameraConfig
-from genre_backend.inference.colour import (front_faces, harmonic_fill, hidden_edge_jumps, mesh_edges, photo_texture, project,
+from genre_backend.output.colour import (front_faces, harmonic_fill, hidden_edge_jumps, mesh_edges, photo_texture, project,
                                            sample_bilinear, zbuffer, zbuffer_reference)
-from genre_backend.inference.mesh_export import OutputError, mesh_files, write_mesh
+from genre_backend.output.mesh_export import OutputError, mesh_files, write_mesh
 
 CAM = CameraConfig()
 
@@ -283,7 +283,7 @@ def test_textured_files_in_each_format_read_back(tmp_path):
 
 def test_textured_mesh_rendered_through_the_camera_reproduces_the_texture():
     """Blender (Workbench, flat) renders the sphere with its corner UVs: inside the seen cap, the photo comes back."""
-    from genre_backend.inference.blender import render_textured
+    from genre_backend.output.blender import render_textured
 
     v, f = _sphere(subdivisions=5)
     yy, xx = np.mgrid[0:256, 0:256]
@@ -303,8 +303,8 @@ def test_textured_mesh_rendered_through_the_camera_reproduces_the_texture():
 def test_textured_files_import_into_blender_with_their_uvs(tmp_path):
     """Blender's own importers (default settings) read the textured OBJ and glTF with every face corner's UV as
     written (the glTF's split vertices included), and the PLY's vertex colours."""
-    from genre_backend.inference.blender import import_bpy, quiet_stdout
-    from genre_backend.inference.mesh_export import Y_UP_TO_Z_UP
+    from genre_backend.output.blender import import_bpy, quiet_stdout
+    from genre_backend.output.mesh_export import Y_UP_TO_Z_UP
 
     bpy = import_bpy()
     v, f = _sphere(subdivisions=2)
@@ -347,7 +347,7 @@ def test_shipped_model_coloured_mesh_reproduces_the_photo_through_its_camera(pho
     """The issue's check: render the textured mesh (flat, unlit) through the matching camera; inside the
     mask, where the mesh covers it, the mean absolute error to the photo is at most 8/255; one part.
     (``scripts/colour_check.py`` prints the figures.)"""
-    from genre_backend.inference.blender import photo_colour_error
+    from genre_backend.output.colour_check import photo_colour_error
     from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, Reconstructor
 
     result = Reconstructor(DEFAULT_WEIGHTS).run(REPO / photo, mask_path=None if mask is None else REPO / mask)

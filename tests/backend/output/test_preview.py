@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from genre_backend.geometry.analytic import sphere_silhouette_radius_px
-from genre_backend.inference.blender import render_meshes, render_views
+from genre_backend.output.blender import render_meshes, render_views
 from genre_backend.config import CameraConfig
 
 SIZE = 96
@@ -108,7 +108,7 @@ REPO = __import__("pathlib").Path(__file__).resolve().parents[3]
 @pytest.fixture(scope="module")
 def sofa_sheets():
     """(layout, untextured sheet, textured sheet) of the shipped model's demo reconstruction."""
-    from genre_backend.inference.preview import preview_image, preview_layout
+    from genre_backend.output.preview import preview_image, preview_layout
     from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, Reconstructor
 
     result = Reconstructor(DEFAULT_WEIGHTS).run(REPO / "examples/sofa.png")
@@ -122,7 +122,7 @@ def _mesh_pixels(sheet, box):
 
 
 def test_preview_mesh_views_fill_the_sheet(sofa_sheets):
-    from genre_backend.inference.preview import MESH_VIEWS, SHEET
+    from genre_backend.output.preview import MESH_VIEWS, SHEET
 
     layout, plain, textured = sofa_sheets
     assert plain.shape == textured.shape == (SHEET[1], SHEET[0], 3)
@@ -148,7 +148,7 @@ def test_preview_mesh_views_fill_the_sheet(sofa_sheets):
 
 
 def test_textured_preview_is_coloured_where_the_plain_one_is_clay(sofa_sheets):
-    from genre_backend.inference.preview import MESH_VIEWS
+    from genre_backend.output.preview import MESH_VIEWS
 
     layout, plain, textured = sofa_sheets
 

@@ -28,7 +28,7 @@ FALLBACK_PREFIX = "genre-blender-p"
 SESSION_PREFIX = "genre-bpy-"
 _session_base: list[Path] = []
 
-__all__ = ["prepare_blender_environment", "blender_session_folder", "factory_reset", "own_private_folder", "private_scratch", "quiet_stdout", "import_bpy", "render_meshes", "render_views", "PREVIEW_VIEWS", "render_textured", "photo_colour_error"]
+__all__ = ["prepare_blender_environment", "blender_session_folder", "factory_reset", "own_private_folder", "private_scratch", "quiet_stdout", "import_bpy", "render_meshes", "render_views", "PREVIEW_VIEWS", "render_textured"]
 
 
 def prepare_blender_environment(cache_dir: str | os.PathLike | None = None) -> Path:
@@ -464,26 +464,3 @@ def render_textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, tex
             rgba = np.asarray(im.convert("RGBA"))
     return rgba[..., :3].copy(), rgba[..., 3] == 255
 
-
-def photo_colour_error(result, size: int = 256) -> tuple[float, float]:
-    """How well a reconstruction's colour from the photo reproduces it: ``(mean absolute error in 0–255,
-    coverage)``.
-
-    ``result``: a :class:`~.reconstruct.Reconstruction`.  Its textured mesh is
-    rendered unlit through the matching camera (:func:`render_textured`) and
-    compared with the photo's crop inside the object mask, where the mesh
-    covers it; ``coverage`` is the share of the mask the mesh covers.
-    """
-    from PIL import Image
-
-    from .preprocess import crop_resize
-
-    tex = result.texture()
-    rgb, covered = render_textured(result.vertices, result.faces, tex.face_uv, tex.image, size, result.config.camera)
-    side = tex.photo.shape[0]
-    photo = crop_resize(tex.photo, (0, 0, side, side), size, (0, 0, 0))
-    mask = np.asarray(Image.fromarray(result.intermediates["mask"].numpy().astype(np.uint8) * 255).resize((size, size), Image.NEAREST)) > 0
-    inside = mask & covered
-    if not inside.any():
-        return float("nan"), 0.0
-    return float(np.abs(rgb[inside].astype(np.float64) - photo[inside]).mean()), float(inside.sum() / max(mask.sum(), 1))

@@ -282,7 +282,7 @@ def test_preview_with_the_shared_cache_name_taken_removes_its_fallback_folder(tr
 # its temp folders, and waits to be killed.
 _BLENDER_THEN_WAIT = """
 import os, sys, time
-from genre_backend.inference import blender
+from genre_backend.output import blender
 bpy = blender.import_bpy()
 blender.factory_reset(bpy)
 print(sorted(os.listdir(os.environ["TMPDIR"])), flush=True)

@@ -39,9 +39,9 @@ from pathlib import Path
 
 import torch
 
-from ..geometry.analytic import sphere_depth
-from ..config import PRESETS, get_preset
-from ..validation import check_threshold
+from genre_backend.geometry.analytic import sphere_depth
+from genre_backend.config import PRESETS, get_preset
+from genre_backend.validation import check_threshold
 
 __all__ = ["main", "geometry_benchmark", "inference_benchmark"]
 
@@ -79,9 +79,9 @@ def geometry_benchmark(preset: str, repeats: int = 5) -> list[dict]:
 
 def _time_map_ops(add: Callable, g, cam, depth: torch.Tensor, r: float) -> None:
     """Depth (1, N, N) → spherical map → voxels → mesh, and the voxels' first hits: one ``add`` per op."""
-    from ..geometry.mesh_voxels import voxels_to_mesh
-    from ..geometry.spherical import depth_to_sph, depth_to_triangles, raycast_triangles_reference, sph_to_points, sph_to_voxels
-    from ..geometry.voxels import points_to_voxels_reference, ray_first_hit, ray_first_hit_reference
+    from genre_backend.geometry.mesh_voxels import voxels_to_mesh
+    from genre_backend.geometry.spherical import depth_to_sph, depth_to_triangles, raycast_triangles_reference, sph_to_points, sph_to_voxels
+    from genre_backend.geometry.voxels import points_to_voxels_reference, ray_first_hit, ray_first_hit_reference
 
     # depth → partial spherical map; the reference ray-casts a few map rows against all triangles
     tris, _ = depth_to_triangles(depth, cam, g.depth_edge_max_ratio)
@@ -119,7 +119,7 @@ def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float)
     """The visible face's holes and pits filled in a sphere's (V, V, V) distance grid: one ``add`` per op."""
     import dataclasses
 
-    from ..geometry.mesh_voxels import depth_to_distance, fuse_visible_surface, seal_pits
+    from genre_backend.geometry.mesh_voxels import depth_to_distance, fuse_visible_surface, seal_pits
 
     # the holes in the visible face (geometry.visible_fusion): the depth map's own distance grid; the whole
     # fusion into a grid with a tunnel through the sphere's front
@@ -148,9 +148,9 @@ def _time_ground_truth_ops(add: Callable, g, r: float) -> None:
     """Ground truth from a sphere mesh (offline data preparation) and the Chamfer distance: one ``add`` per op."""
     import trimesh
 
-    from ..geometry.mesh_voxels import mesh_to_distance, mesh_to_shell, point_mesh_distance_reference
-    from ..geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
-    from ..geometry.spherical import mesh_to_sph
+    from genre_backend.geometry.mesh_voxels import mesh_to_distance, mesh_to_shell, point_mesh_distance_reference
+    from genre_backend.geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
+    from genre_backend.geometry.spherical import mesh_to_sph
 
     # ground truth from a mesh (offline data preparation)
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=r)
@@ -221,8 +221,8 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
     import tempfile
     import threading
 
-    from ..nets.model import GenRe
-    from .reconstruct import STAGES, Reconstructor
+    from genre_backend.nets.model import GenRe
+    from genre_backend.inference.reconstruct import STAGES, Reconstructor
 
     base_rss = _rss_bytes()
     torch.manual_seed(0)
@@ -337,7 +337,7 @@ _TARGETS_S = {"default": 1.0, "paper": 8.0}  # CPU targets of the issue (2-core 
 
 
 def _print_inference(summary: dict) -> None:
-    from .reconstruct import STAGES
+    from genre_backend.inference.reconstruct import STAGES
 
     s = summary
     mirrored = ", averaged with the mirror image" if s.get("test_time_mirror") else ""

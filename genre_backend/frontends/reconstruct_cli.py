@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None, prog: str = "genre reconstruct") -> int:
 
 def _parser(prog: str) -> argparse.ArgumentParser:
     """``genre reconstruct``'s arguments: the photos, their mask inputs, every mesh option of the record, the rest."""
-    from .options import add_arguments
+    from ..inference.options import add_arguments
 
     parser = argparse.ArgumentParser(prog=prog, description="Turn photos of objects into meshes (posed as seen, in the view frame).")
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (PNG, JPEG, …); RGBA images use their alpha as the mask")
@@ -182,9 +182,9 @@ def _mask_inputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> t
 
 def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
     """The command line as a :class:`ReconstructSpec`; bad arguments exit 2 with argparse's message."""
-    from .mesh_export import resolve_up
-    from .options import OptionError, from_arguments
-    from .reconstruct import MESH_FORMATS
+    from ..output.mesh_export import resolve_up
+    from ..inference.options import OptionError, from_arguments
+    from ..inference.reconstruct import MESH_FORMATS
 
     parser = _parser(prog)
     args = parser.parse_args(argv)
@@ -237,7 +237,7 @@ def _output_folder(spec: ReconstructSpec) -> int:
 def _load(spec: ReconstructSpec):
     """The :class:`.reconstruct.Reconstructor` of ``spec.weights``, or the exit status 1 after one line on stderr."""
     from ..weights_file import DEFAULT_WEIGHTS_NAME, WEIGHTS_NAMES, WeightsError, resolve_weights
-    from .reconstruct import Reconstructor, error_code
+    from ..inference.reconstruct import Reconstructor, error_code
 
     try:
         weights = resolve_weights(spec.weights)
@@ -297,8 +297,8 @@ def reconstruct_all(spec: ReconstructSpec) -> int:
 
 def _reconstruct_one(spec: ReconstructSpec, rec, image: Path, out: Path, say: Callable[..., None]) -> bool:
     """Write one photo's mesh (and its intermediates and preview) and say so; a bad input is one line, False."""
-    from .mesh_export import check_outputs
-    from .reconstruct import error_code
+    from ..output.mesh_export import check_outputs
+    from ..inference.reconstruct import error_code
 
     textured = bool(spec.options.texture)
     try:

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from genre_backend.config import GenreConfig
-from genre_backend.inference import reconstruct_cli
+from genre_backend.frontends import reconstruct_cli
 from genre_backend.inference.reconstruct import OutputError, check_output_path
 from genre_backend.atomic import TMP_MARK, atomic_write_bytes, remove_dead_temporaries, tmp_prefix
 from genre_backend.weights_file import WeightsError

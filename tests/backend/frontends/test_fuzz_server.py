@@ -601,7 +601,7 @@ def resolve(work: Path, path: str) -> str:
 
 
 def test_the_fuzzer_draws_every_option_the_server_accepts():
-    from genre_backend.inference.server import _OPTION_KEYS
+    from genre_backend.frontends.server import _OPTION_KEYS
 
     assert set(OPTION_KEYS) == set(_OPTION_KEYS) and set(OPTION_KEYS) <= set(PARTS)
     assert {"threshold", "hole_closing", "silhouette_carve", "visible_fusion", "pit_sealing", "primitive_snap", "test_time_mirror",

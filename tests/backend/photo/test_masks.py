@@ -9,10 +9,10 @@ import pytest
 import torch
 from PIL import Image
 
-from genre_backend.inference import reconstruct_cli
-from genre_backend.inference.preprocess import load_image, load_mask
+from genre_backend.frontends import reconstruct_cli
+from genre_backend.photo.preprocess import load_image, load_mask
 from genre_backend.inference.reconstruct import Reconstructor
-from genre_backend.inference.segment import border_touch, cover, doubt, refine_mask
+from genre_backend.photo.segment import border_touch, cover, doubt, refine_mask
 
 
 def _photo(w: int = 240, h: int = 180, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -161,7 +161,7 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
     assert torch.equal(again.intermediates["rgb"], auto.intermediates["rgb"])
     # without refinement the crop comes from the first silhouette pass and the mask from the second;
     # that mask, in the photo's pixels and cropped again by the same square, is the network's mask
-    from genre_backend.inference.preprocess import crop_resize
+    from genre_backend.photo.preprocess import crop_resize
 
     plain = rec.run(path, refine=False)
     back = tmp_path / "plain_mask.png"
@@ -174,7 +174,7 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
 
 # ---- the doubt of a cut, box and strokes ------------------------------------------------------
 def test_edge_run_and_model_overlap():
-    from genre_backend.inference.segment import cut_doubt, edge_run, grabcut_models, model_overlap, border_seeds
+    from genre_backend.photo.segment import cut_doubt, edge_run, grabcut_models, model_overlap, border_seeds
 
     m = np.zeros((20, 30), bool)
     m[5:15, 5:25] = True
@@ -199,7 +199,7 @@ def test_edge_run_and_model_overlap():
 
 
 def test_box_and_strokes_seeding():
-    from genre_backend.inference.segment import segment
+    from genre_backend.photo.segment import segment
 
     rgb, truth = _photo(seed=3)
     rows, cols = np.flatnonzero(truth.any(axis=1)), np.flatnonzero(truth.any(axis=0))
@@ -288,7 +288,7 @@ def test_real_photos_box_and_doubt_figures():
 
 @pytest.mark.slow
 def test_cli_box_and_strokes_on_a_real_photo(trained, tmp_path, capsys):
-    from genre_backend.inference.preprocess import load_mask
+    from genre_backend.photo.preprocess import load_mask
 
     photo = PHOTOS / "squirrel.jpg"
     image = load_image(photo)
@@ -404,7 +404,7 @@ def _stored_copy(im: Image.Image, orientation: int, path: Path) -> Path:
 def test_upright_array_and_box_match_pillows_exif_transpose(tmp_path):
     from PIL import ImageOps
 
-    from genre_backend.inference.preprocess import stored_size, upright_array, upright_box
+    from genre_backend.photo.preprocess import stored_size, upright_array, upright_box
 
     rng = np.random.default_rng(0)
     upright = Image.fromarray(rng.integers(0, 255, (7, 11, 3), dtype=np.uint8))  # 11 wide, 7 high
@@ -438,7 +438,7 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
     only partly, IoU 0.35-0.84: the vertical mirror's box overlaps the right one, and since the box's cut models
     the automatic cut's spill out of the box it reaches 0.84 against 0.87, hence a margin of 0.03)."""
     from genre_backend.config import GenreConfig
-    from genre_backend.inference.preprocess import ImageError, preprocess
+    from genre_backend.photo.preprocess import ImageError, preprocess
 
     config = GenreConfig()
     with Image.open(PHOTOS / "squirrel.jpg") as im:
@@ -478,7 +478,7 @@ def test_the_box_cut_without_sharpness_is_opencvs_grabcut(name, monkeypatch):
     """segment.feature_grabcut (GrabCut over PyMaxflow with a sharpness feature) against its reference, OpenCV's
     GrabCut, from the same labels: with the sharpness weighted 0 the two cuts agree (IoU ≥ 0.99; they differ in
     the mixtures' start and the floating point, and on the robin, whose cut is unstable, they part to 0.89)."""
-    from genre_backend.inference import segment as S
+    from genre_backend.photo import segment as S
 
     with Image.open(next(PHOTOS.glob(f"{name}.*"))) as im:
         im = im.convert("RGB")

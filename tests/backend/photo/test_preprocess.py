@@ -11,7 +11,7 @@ from PIL import Image, ImageOps
 
 from genre_backend.config import get_preset
 from support.files import huge_png
-from genre_backend.inference.preprocess import (
+from genre_backend.photo.preprocess import (
     NEUTRAL_BACKGROUND,
     ImageError,
     crop_resize,

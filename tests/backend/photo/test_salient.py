@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from genre_backend.inference import salient
-from genre_backend.inference import segment as S
-from genre_backend.inference.preprocess import composite, load_image, load_mask
+from genre_backend.photo import salient
+from genre_backend.photo import segment as S
+from genre_backend.photo.preprocess import composite, load_image, load_mask
 
 ROOT = Path(__file__).resolve().parents[3]
 PHOTOS = ROOT / "examples" / "photos"
@@ -61,7 +61,7 @@ def test_the_installed_file_is_the_pinned_wheels_and_its_md5_is_rembgs(fresh_net
 
 
 def test_finding_and_loading_the_net_never_imports_the_wheels_package():
-    code = ("import sys; from genre_backend.inference import salient; salient.load(); "
+    code = ("import sys; from genre_backend.photo import salient; salient.load(); "
             "print('rembg' in sys.modules, any(m.startswith('rembg.') for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT).stdout
     assert out.split() == ["False", "False"]
@@ -91,7 +91,7 @@ def test_a_damaged_or_missing_file_is_refused_and_the_mask_falls_back_to_grabcut
 
 
 def test_the_net_loads_once_and_only_when_a_mask_is_asked_for(fresh_net):
-    code = ("import sys; from genre_backend.inference import preprocess, reconstruct, segment, salient; "
+    code = ("import sys; from genre_backend.photo import preprocess, segment, salient; from genre_backend.inference import reconstruct; "
             "print(salient._loaded is None, 'cv2' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT).stdout
     assert out.split() == ["True", "False"]

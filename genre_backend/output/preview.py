@@ -7,7 +7,7 @@ views of the mesh, which take about 60 % of the sheet: from the photo's own
 viewpoint (where it should match the photo's silhouette), from the object's
 right (the camera turned 90° about the photo's vertical) and from behind,
 where the parts GenRe had to hallucinate show.  The mesh views are rendered
-with Blender's Workbench (:func:`genre_backend.inference.blender.render_views`),
+with Blender's Workbench (:func:`genre_backend.output.blender.render_views`),
 framed to fill their panels at one common scale, and carry the photo's colour
 (:meth:`~.reconstruct.Reconstruction.texture`) when ``textured``.
 """

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from genre_backend.inference import blender
+from genre_backend.output import blender
 
 REPO = Path(__file__).resolve().parents[3]
 VICTIM_TEXT = b"the user's precious file\n"
@@ -155,7 +155,7 @@ def test_no_fixed_temporary_names_are_left_in_the_sources():
     goes through mkstemp / mkdtemp / TemporaryDirectory."""
     import re
 
-    allowed = {("genre_backend/inference/blender.py", "prepare_blender_environment"),
+    allowed = {("genre_backend/output/blender.py", "prepare_blender_environment"),
                ("blender_addon/backend.py", "private_temp_root")}
     pattern = re.compile(r"gettempdir\(|[\"']/tmp\b|/var/tmp")
     found = set()

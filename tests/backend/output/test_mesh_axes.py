@@ -2,7 +2,7 @@
 
 A tall thin box (taller than wide, in the view frame: +y up, +z toward the camera) with a marker on top
 (toward +y) and a nose in front (toward +z) is written as obj, ply and glb by
-:func:`genre_backend.inference.mesh_export.write_mesh`, imported into bpy with Blender's own importers at
+:func:`genre_backend.output.mesh_export.write_mesh`, imported into bpy with Blender's own importers at
 their default settings (``wm.obj_import``, ``wm.ply_import``, ``import_scene.gltf``), and its world-space
 bounding box compared: tallest along +Z, the marker at the top (+Z), the nose toward −Y (Blender's front),
 and the same box for every format.  A PLY written ``up="y"`` (the view frame) lies on its back: the reason
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from genre_backend.inference.mesh_export import Y_UP_TO_Z_UP, resolve_up, write_mesh
+from genre_backend.output.mesh_export import Y_UP_TO_Z_UP, resolve_up, write_mesh
 
 # the test mesh, view frame: body x ±0.1, y ±0.4, z ±0.05; marker on top up to y 0.6; nose in front out to z 0.25
 BODY = ((-0.1, -0.4, -0.05), (0.1, 0.4, 0.05))
@@ -38,7 +38,7 @@ def _test_mesh() -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def bpy():
-    from genre_backend.inference.blender import import_bpy, quiet_stdout
+    from genre_backend.output.blender import import_bpy, quiet_stdout
 
     bpy = import_bpy()
     with quiet_stdout(True):
@@ -48,7 +48,7 @@ def bpy():
 
 def _imported_box(bpy, path) -> tuple[np.ndarray, np.ndarray]:
     """Import ``path`` into an empty scene with Blender's default settings; (min, max) of every mesh vertex in world space."""
-    from genre_backend.inference.blender import quiet_stdout
+    from genre_backend.output.blender import quiet_stdout
 
     for obj in list(bpy.data.objects):
         bpy.data.objects.remove(obj, do_unlink=True)
@@ -150,7 +150,7 @@ def test_save_mesh_writes_the_axis_asked_for(demo_result, tmp_path):
 
 
 def test_reconstruct_cli_up(tmp_path, capsys):
-    from genre_backend.inference import reconstruct_cli
+    from genre_backend.frontends import reconstruct_cli
 
     with pytest.raises(SystemExit) as exc:  # before any work: the axis contradicts the format
         reconstruct_cli.main([str(DEMO), "-o", str(tmp_path / "x.obj"), "--up", "z"])
@@ -166,7 +166,7 @@ def test_serve_up_option(tmp_path):
     import json
 
     from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, Reconstructor
-    from genre_backend.inference.server import Server
+    from genre_backend.frontends.server import Server
 
     requests = [
         {"type": "reconstruct", "id": "bad-axis", "image": str(DEMO), "output": str(tmp_path / "x.ply"), "options": {"up": "x"}},

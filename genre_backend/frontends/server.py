@@ -40,7 +40,7 @@ _PATH_OPTIONS = ("save_intermediates",)
 
 
 def _option_keys() -> tuple[str, ...]:
-    from .options import BY_NAME
+    from ..inference.options import BY_NAME
 
     return (*BY_NAME, "quality", *_PATH_OPTIONS)
 
@@ -146,7 +146,7 @@ class Server:
         self.emit({"type": "error", "id": req_id, "code": code, "message": _cap(message)})
 
     def info(self) -> dict:
-        from .options import schema
+        from ..inference.options import schema
 
         return {
             "protocol": PROTOCOL_VERSION,
@@ -205,7 +205,7 @@ class Server:
     @staticmethod
     def _guidance_frame(msg: dict, rid: Any) -> str:
         """The request's ``guidance_frame`` (the pixels its box and strokes are over), checked; "upright" when absent."""
-        from .preprocess import GUIDANCE_FRAMES
+        from ..photo.preprocess import GUIDANCE_FRAMES
 
         frame = msg.get("guidance_frame")
         if frame is None:
@@ -226,8 +226,8 @@ class Server:
             options = {}
         elif not isinstance(options, dict):  # false, 0, "" and [] included
             raise RequestError("bad_field", f"field 'options' must be an object, got {_show(options, 60)}", rid)
-        from .mesh_export import resolve_format
-        from .options import OptionError, parse_request_options
+        from ..output.mesh_export import resolve_format
+        from ..inference.options import OptionError, parse_request_options
 
         try:
             record = parse_request_options(options, show=_show, extra=_PATH_OPTIONS)
@@ -345,8 +345,8 @@ class Server:
         self.emit(event)
 
     def _run(self, job: Job) -> None:
-        from .mesh_export import check_outputs
-        from .reconstruct import STAGE_START, Cancelled, error_code
+        from ..output.mesh_export import check_outputs
+        from ..inference.reconstruct import STAGE_START, Cancelled, error_code
 
         if job.cancel.is_set():
             self._end(job, {"type": "cancelled", "id": job.id})
@@ -518,7 +518,7 @@ def _load_and_serve(args, out: TextIO, stdin: TextIO, fatal) -> int:
     name = args.weights or DEFAULT_WEIGHTS_NAME
     if name in WEIGHTS_NAMES and not weights.is_file():
         return fatal("bad_weights", f"no {name} weights at {weights}: the trained weights are not installed yet; train them with 'genre train' and pass --weights")
-    from .reconstruct import Reconstructor
+    from ..inference.reconstruct import Reconstructor
 
     try:
         rec = Reconstructor(weights, args.device)
