@@ -59,7 +59,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from genre_backend.photo.preprocess import load_image, load_mask, preprocess  # noqa: E402
+from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
+from genre_backend.photo.preprocess import preprocess  # noqa: E402
 from genre_backend.inference.reconstruct import Reconstructor  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
 from genre_backend.photo.segment import SEEDINGS, border_touch, cover, doubt  # noqa: E402

@@ -37,7 +37,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from genre_backend.photo.preprocess import composite, load_image, load_mask, mask_bbox  # noqa: E402
+from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
+from genre_backend.photo.preprocess import composite, mask_bbox  # noqa: E402
 from genre_backend.photo.segment import doubt, segment  # noqa: E402
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")

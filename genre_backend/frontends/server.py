@@ -205,7 +205,7 @@ class Server:
     @staticmethod
     def _guidance_frame(msg: dict, rid: Any) -> str:
         """The request's ``guidance_frame`` (the pixels its box and strokes are over), checked; "upright" when absent."""
-        from ..photo.preprocess import GUIDANCE_FRAMES
+        from ..photo.decode import GUIDANCE_FRAMES
 
         frame = msg.get("guidance_frame")
         if frame is None:

@@ -18,7 +18,7 @@ def photo_colour_error(result, size: int = 256) -> tuple[float, float]:
     """How well a reconstruction's colour from the photo reproduces it: ``(mean absolute error in 0–255,
     coverage)``.
 
-    ``result``: a :class:`~genre_backend.inference.reconstruct.Reconstruction`.  Its textured mesh is
+    ``result``: a :class:`~genre_backend.inference.result.Reconstruction`.  Its textured mesh is
     rendered unlit through the matching camera (:func:`render_textured`) and
     compared with the photo's crop inside the object mask, where the mesh
     covers it; ``coverage`` is the share of the mask the mesh covers.

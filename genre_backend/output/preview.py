@@ -9,7 +9,7 @@ right (the camera turned 90° about the photo's vertical) and from behind,
 where the parts GenRe had to hallucinate show.  The mesh views are rendered
 with Blender's Workbench (:func:`genre_backend.output.blender.render_views`),
 framed to fill their panels at one common scale, and carry the photo's colour
-(:meth:`~.reconstruct.Reconstruction.texture`) when ``textured``.
+(:meth:`~genre_backend.inference.result.Reconstruction.texture`) when ``textured``.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def preview_layout() -> dict[str, tuple[int, int, int, int]]:
 
 
 def preview_image(result, samples: int = 16, textured: bool = False) -> np.ndarray:
-    """(810, 1500, 3) uint8: the preview of a :class:`genre_backend.inference.reconstruct.Reconstruction`.
+    """(810, 1500, 3) uint8: the preview of a :class:`genre_backend.inference.result.Reconstruction`.
 
     ``textured``: the mesh views show the photo's colour (as ``--texture``
     writes it), else a neutral clay.  ``samples`` is kept for callers of

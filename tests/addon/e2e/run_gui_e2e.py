@@ -108,7 +108,8 @@ def mask_ious(out: Path, photo: Path, hand: Path) -> dict:
     import numpy as np
     from PIL import Image
 
-    from genre_backend.photo.preprocess import composite, load_image, load_mask
+    from genre_backend.photo.decode import load_image, load_mask
+    from genre_backend.photo.preprocess import composite
     from genre_backend.photo.segment import segment
 
     image = load_image(photo)

@@ -17,7 +17,7 @@ from PIL import Image
 from genre_backend.frontends import reconstruct_cli
 from genre_backend.nets.model import WEIGHTS_FORMAT, WeightsError, load_model
 from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
-from genre_backend.photo.preprocess import ImageError
+from genre_backend.photo.decode import ImageError
 from support.files import huge_png
 from support.tiny_data import TINY
 

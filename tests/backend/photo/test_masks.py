@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 
 from genre_backend.frontends import reconstruct_cli
-from genre_backend.photo.preprocess import load_image, load_mask
+from genre_backend.photo.decode import load_image, load_mask
 from genre_backend.inference.reconstruct import Reconstructor
 from genre_backend.photo.segment import border_touch, cover, doubt, refine_mask
 
@@ -288,7 +288,7 @@ def test_real_photos_box_and_doubt_figures():
 
 @pytest.mark.slow
 def test_cli_box_and_strokes_on_a_real_photo(trained, tmp_path, capsys):
-    from genre_backend.photo.preprocess import load_mask
+    from genre_backend.photo.decode import load_mask
 
     photo = PHOTOS / "squirrel.jpg"
     image = load_image(photo)
@@ -404,7 +404,7 @@ def _stored_copy(im: Image.Image, orientation: int, path: Path) -> Path:
 def test_upright_array_and_box_match_pillows_exif_transpose(tmp_path):
     from PIL import ImageOps
 
-    from genre_backend.photo.preprocess import stored_size, upright_array, upright_box
+    from genre_backend.photo.decode import stored_size, upright_array, upright_box
 
     rng = np.random.default_rng(0)
     upright = Image.fromarray(rng.integers(0, 255, (7, 11, 3), dtype=np.uint8))  # 11 wide, 7 high
@@ -438,7 +438,8 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
     only partly, IoU 0.35-0.84: the vertical mirror's box overlaps the right one, and since the box's cut models
     the automatic cut's spill out of the box it reaches 0.84 against 0.87, hence a margin of 0.03)."""
     from genre_backend.config import GenreConfig
-    from genre_backend.photo.preprocess import ImageError, preprocess
+    from genre_backend.photo.decode import ImageError
+    from genre_backend.photo.preprocess import preprocess
 
     config = GenreConfig()
     with Image.open(PHOTOS / "squirrel.jpg") as im:

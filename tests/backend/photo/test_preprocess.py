@@ -11,11 +11,10 @@ from PIL import Image, ImageOps
 
 from genre_backend.config import get_preset
 from support.files import huge_png
+from genre_backend.photo.decode import ImageError, load_image
 from genre_backend.photo.preprocess import (
     NEUTRAL_BACKGROUND,
-    ImageError,
     crop_resize,
-    load_image,
     mask_bbox,
     preprocess,
     square_crop_box,

@@ -12,7 +12,8 @@ import pytest
 
 from genre_backend.photo import salient
 from genre_backend.photo import segment as S
-from genre_backend.photo.preprocess import composite, load_image, load_mask
+from genre_backend.photo.decode import load_image, load_mask
+from genre_backend.photo.preprocess import composite
 
 ROOT = Path(__file__).resolve().parents[3]
 PHOTOS = ROOT / "examples" / "photos"
@@ -91,7 +92,7 @@ def test_a_damaged_or_missing_file_is_refused_and_the_mask_falls_back_to_grabcut
 
 
 def test_the_net_loads_once_and_only_when_a_mask_is_asked_for(fresh_net):
-    code = ("import sys; from genre_backend.photo import preprocess, segment, salient; from genre_backend.inference import reconstruct; "
+    code = ("import sys; from genre_backend.photo import decode, preprocess, segment, salient; from genre_backend.inference import reconstruct; "
             "print(salient._loaded is None, 'cv2' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT).stdout
     assert out.split() == ["True", "False"]
