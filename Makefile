@@ -1,9 +1,11 @@
 # Quick start: `make demo` (set up, then run the main job) and `make test`
 # (set up, then run the whole test suite).  Set-up happens on first use.
 # `make test-fast`: every test not marked slow (pyproject.toml), the loop while working.
-# Both run two pytest-xdist workers, a test file each at a time (docs/testing.md).
+# Both run `ruff check` first (its rules: pyproject.toml), then two pytest-xdist workers, a test file each at a
+# time (docs/testing.md).
 PYTEST = .venv/bin/python -m pytest -n 2 --dist loadfile
-.PHONY: setup demo demo-geometry test test-fast bench clean
+RUFF = .venv/bin/python -m ruff check --no-cache .
+.PHONY: setup demo demo-geometry test test-fast lint bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -20,11 +22,16 @@ demo-geometry: setup
 
 test:
 	@bash scripts/setup.sh --test
+	$(RUFF)
 	$(PYTEST)
 
 test-fast:
 	@bash scripts/setup.sh --test
+	$(RUFF)
 	$(PYTEST) -m "not slow"
+
+lint:
+	$(RUFF)
 
 bench: setup
 	.venv/bin/genre bench geometry

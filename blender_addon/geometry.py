@@ -69,7 +69,7 @@ def read_obj(path: str | os.PathLike) -> MeshData:
     faces: list[tuple[int, ...]] = []
     face_uvs: list[tuple[int, ...]] = []
     try:
-        fh = open(path, "r", encoding="utf-8", errors="replace")
+        fh = open(path, encoding="utf-8", errors="replace")
     except OSError as exc:
         raise MeshFileError(f"cannot read the mesh {path}: {exc.strerror or exc}") from None
     with fh:

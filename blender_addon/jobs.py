@@ -92,8 +92,8 @@ def row_overrides(rows) -> dict[str, Any]:
     for row in rows:
         if not row.override:
             continue
-        value = {"float": lambda: round(float(row.float_value), 6), "int": lambda: int(row.int_value), "bool": lambda: bool(row.bool_value),
-                 "choice": lambda: str(row.choice_value)}.get(row.kind, lambda: None)()
+        value = {"float": lambda r: round(float(r.float_value), 6), "int": lambda r: int(r.int_value), "bool": lambda r: bool(r.bool_value),
+                 "choice": lambda r: str(r.choice_value)}.get(row.kind, lambda r: None)(row)
         entry = {"type": row.kind, "label": row.label, "name": row.name, "min": row.lo, "max": row.hi,
                  "min_open": row.lo_open, "max_open": row.hi_open, "choices": json.loads(row.choices or "null")}
         problem = check_value(entry, value)
@@ -130,7 +130,7 @@ def _check_file(path: str, what: str) -> None:
         raise UserError(f"{what} is not readable: {path}")
 
 
-def _image_file_on_disk(image: "bpy.types.Image") -> str:
+def _image_file_on_disk(image: bpy.types.Image) -> str:
     """The file an image datablock shows, when it is an unmodified file on disk; else ''."""
     if image.source != "FILE" or image.packed_file is not None or image.is_dirty:
         return ""
@@ -138,7 +138,7 @@ def _image_file_on_disk(image: "bpy.types.Image") -> str:
     return path if path and os.path.isfile(path) else ""
 
 
-def _save_image_copy(image: "bpy.types.Image", path: str) -> None:
+def _save_image_copy(image: bpy.types.Image, path: str) -> None:
     """Write an image datablock's pixels to a PNG (packed, generated or painted images), leaving the datablock as it is."""
     width, height = image.size
     if width == 0 or height == 0:

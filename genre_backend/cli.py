@@ -4,10 +4,11 @@ Subcommands are :class:`Command` records: a name, a one-line summary and a
 loader that imports the command's module only when it runs, so that
 ``genre --version`` and ``genre --help`` stay instant (torch and bpy load only
 when a command needs them).  The backend registers its own commands here
-(``reconstruct``, ``serve``, ``bench``); other packages add theirs through the
+(``reconstruct``, ``serve``); other packages add theirs through the
 ``genre.commands`` entry-point group (the training side registers ``data``,
-``train``, ``eval`` and ``chain`` in ``training/commands.py``, named in pyproject.toml).
-The backend never imports the training side.
+``train``, ``eval`` and ``chain`` in ``training/commands.py``, the benchmarks
+``bench`` in ``benchmarks/commands.py``; both named in pyproject.toml).
+The backend never imports the training side or the benchmarks.
 """
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ from __future__ import annotations
 import sys
 
 if sys.argv[1:2] == ["serve"]:  # genre serve: SIGINT and SIGTERM taken over first, before even this module's imports
-    from .inference.serve_stop import stopped_lines
+    from .frontends.serve_stop import stopped_lines
     from .process import install_stop_handlers
 
     install_stop_handlers(at_once=stopped_lines)
 
+from collections.abc import Callable  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
-from typing import Callable, NoReturn  # noqa: E402
+from typing import NoReturn  # noqa: E402
 
 from . import __version__  # noqa: E402
 from .process import exit_process, open_missing_streams, say  # noqa: E402
@@ -47,28 +49,21 @@ class Command:
 
 
 def _reconstruct() -> MainFn:
-    from .inference import reconstruct_cli
+    from .frontends import reconstruct_cli
 
     return reconstruct_cli.main
 
 
 def _serve() -> MainFn:
-    from .inference import server
+    from .frontends import server
 
     return server.main
-
-
-def _bench() -> MainFn:
-    from .inference import bench
-
-    return bench.main
 
 
 def backend_commands() -> list[Command]:
     return [
         Command("reconstruct", "turn photos into meshes", _reconstruct, quick_exit=True),
         Command("serve", "run the JSON-over-stdio reconstruction server", _serve, quick_exit=True),
-        Command("bench", "print speed figures (geometry, inference)", _bench),
     ]
 
 
@@ -87,7 +82,7 @@ def _plugin_commands() -> list[Command]:
 
 
 def commands() -> dict[str, Command]:
-    """Every available subcommand by name: the registered ones (data, train, eval), then the backend's.  A
+    """Every available subcommand by name: the registered ones (bench, data, train, eval, chain), then the backend's.  A
     registered command never replaces one of the backend's (which :func:`main` runs without looking up the
     registered ones)."""
     backend = backend_commands()

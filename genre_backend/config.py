@@ -134,13 +134,13 @@ class GeometryConfig:
     voxel_size: int = 64  # voxels over the cube [-0.5, 0.5]^3
     # Spherical map → points: values ≥ sph_nohit_min count as "no hit"; the map is
     # resampled sph_supersample times finer first so that the points leave no
-    # holes in the voxel grid (docs/reconstruct-settings.md, "The network levels").
+    # holes in the voxel grid (docs/lab/reconstruct-settings.md, "The network levels").
     sph_nohit_min: float = 0.9999
     sph_supersample: int = 2
     # The inpainting net's "hit" head (network.inpaint_head): a ray of the full map hits the
     # surface where the head's hit probability exceeds this.  A dropped part of the back costs
     # Chamfer far more than a point near the true radius; at 0.2 nearly every ray hits
-    # (measured: docs/reconstruct-settings.md, "The network levels").
+    # (measured: docs/lab/reconstruct-settings.md, "The network levels").
     sph_hit_probability: float = 0.2
     # Depth → surface triangulation: a triangle of neighbouring pixels is kept only
     # if its longest 3D edge is at most this many times the pixel footprint at its
@@ -161,7 +161,7 @@ class GeometryConfig:
     # The distance target's surface (geometry.mesh_voxels.onto_surface): the sheets are moved back
     # toward the surface but stop this many voxels short of it, so that a part thinner than a voxel
     # (a wing, a sheet) keeps a thickness of twice this instead of collapsing into two coincident
-    # sheets with opposite normals (its cost: docs/reconstruct-settings.md, "The network levels").
+    # sheets with opposite normals (its cost: docs/lab/reconstruct-settings.md, "The network levels").
     surface_margin: float = 0.25
     # The distance target's holes (geometry.mesh_voxels.fill_enclosed): a blurry prediction leaves
     # gaps in the tube around the surface, through which the tube's inner sheet joins the outer one
@@ -173,13 +173,13 @@ class GeometryConfig:
     # a ramp that falls from 1 to 0 across the object's outline (one voxel wide, 0.5 on the outline)
     # before the mesh is made, in reconstruction and in evaluation (every learned row alike; never
     # in training).  The refiner's blur spills past the outline the photo shows (measured:
-    # docs/reconstruct-settings.md, "Trimmed to the outline").  Weights stored without the key: off.
+    # docs/lab/reconstruct-settings.md, "Trimmed to the outline").  Weights stored without the key: off.
     silhouette_carve: bool = False
     # Holes in the face the camera sees (geometry.mesh_voxels.fuse_visible_surface): the object's pixels
     # whose ray meets nothing above the level get the masked depth map's own surface (its distance
     # target, max with the refiner's) before the mesh is made, in reconstruction and in evaluation
     # (every row with a depth map alike). Chosen per weights on seen-test views by
-    # scripts/visible_fusion.py (docs/reconstruct-settings.md, "Holes in the side the photo shows").
+    # scripts/visible_fusion.py (docs/lab/reconstruct-settings.md, "Holes in the side the photo shows").
     # Weights stored without the key: off.
     visible_fusion: bool = False
     # Pits in the face the camera sees (geometry.mesh_voxels.seal_pits): a blurry front wall whose
@@ -188,7 +188,7 @@ class GeometryConfig:
     # deeper than 2 voxels and at most about twice this many voxels across are filled with the front
     # around them before the mesh is made, in reconstruction and in evaluation (every row with a mask
     # alike, after any fusion).  0: off.  Chosen by the rule in results/decisions.md
-    # (scripts/visible_fusion.py --pit-sealing; docs/reconstruct-settings.md, "Pits in the side the
+    # (scripts/visible_fusion.py --pit-sealing; docs/lab/reconstruct-settings.md, "Pits in the side the
     # photo shows").  Weights stored without the key: 0 (off).
     pit_sealing: int = 0
     # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
@@ -219,7 +219,7 @@ class GeometryConfig:
     threshold_step: float = 0.05
     default_threshold: float = 0.5
     chamfer_points: int = 1024
-    # Framing of photos (genre_backend.inference.preprocess): the square crop around the object
+    # Framing of photos (genre_backend.photo.preprocess): the square crop around the object
     # is sized so that the mask's longest side spans this fraction of the image.
     # Measured medians: 0.50 over 88 real default renders (aircraft), 0.66 over the
     # box/table test renders; canonical renders (diagonal 1 at distance 2.2) span 0.45-0.7.
@@ -357,7 +357,7 @@ class GenreConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "GenreConfig":
+    def from_dict(cls, data: dict[str, Any]) -> GenreConfig:
         """Build a config from :meth:`to_dict` output, rejecting unknown keys."""
         return _from_dict(cls, data, "config")
 

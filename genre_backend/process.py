@@ -179,7 +179,7 @@ def remove_dead_folders(prefix: str, root: str | os.PathLike) -> int:
     import shutil
     import stat
 
-    from .io import pid_alive
+    from .atomic import pid_alive
 
     removed = 0
     try:
@@ -235,10 +235,10 @@ def exit_process(code: int, quick: bool):  # -> NoReturn
     ``quick`` (a one-shot command such as ``genre reconstruct``, once it has returned; ``genre serve`` once it
     has said ``bye``), with no other thread left: the exit functions (``atexit``) run and the standard streams
     are flushed, then the process ends at once (``os._exit``), without the interpreter's tear-down of every
-    module: torch's alone takes about 0.5 s of a cold ``genre reconstruct`` (docs/benchmarks.md), and the
+    module: torch's alone takes about 0.5 s of a cold ``genre reconstruct`` (docs/lab/benchmarks.md), and the
     tear-down puts SIGINT and SIGTERM back to their defaults, so a second signal there would kill the process
     instead of being ignored.  Every file a command writes is closed by then (the one atomic write,
-    :mod:`genre_backend.io`).  Otherwise, or with a thread still running: ``sys.exit(code)``.
+    :mod:`genre_backend.atomic`).  Otherwise, or with a thread still running: ``sys.exit(code)``.
     """
     if not quick or threading.active_count() > 1:
         sys.exit(code)

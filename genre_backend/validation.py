@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import TYPE_CHECKING, Sequence
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     import torch
@@ -123,7 +124,7 @@ def check_box(name: str, value) -> tuple[float, float, float, float]:
 
     Accepts a sequence of four reals (bools refused) or the command line's text ``"x0,y0,x1,y1"``;
     returns floats.  Whether the box meets the photo is checked once the photo is decoded
-    (:func:`genre_backend.inference.preprocess.photo_box`).
+    (:func:`genre_backend.photo.decode.photo_box`).
     """
     if isinstance(value, str):
         parts = [p.strip() for p in value.split(",")]

@@ -7,7 +7,7 @@ For ``examples/sofa.png`` (automatic mask) and the real photos
 ``examples/photos/apple.jpg`` and ``orange.jpg`` (hand masks): the
 reconstruction's textured mesh rendered unlit through the matching camera
 (Blender Workbench), against the photo inside the mask; mean absolute error
-(0–255) and the share of the mask the mesh covers.  ``tests/backend/inference/test_colour.py``
+(0–255) and the share of the mask the mesh covers.  ``tests/backend/output/test_colour.py``
 holds the error to ≤ 8.
 """
 
@@ -23,9 +23,9 @@ CASES = [("examples/sofa.png", None), ("examples/photos/apple.jpg", "examples/ph
 
 
 def main() -> int:
-    from genre_backend.inference.blender import photo_colour_error
+    from genre_backend.output.colour_check import photo_colour_error
     from genre_backend.inference.reconstruct import Reconstructor
-    from genre_backend.io import resolve_weights
+    from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")

@@ -10,7 +10,7 @@ shipped weights (or ``--weights``):
   --no-refine``) and *after* (the default automatic mask: GrabCut's when
   ``results/photos/`` was written, the salient net's since issue 48,
   ``docs/masks.md``), both at the photo's pixels; with ``--seedings`` also the IoU of each GrabCut seeding
-  (``border``, ``network``, ``auto``: :mod:`genre_backend.inference.segment`;
+  (``border``, ``network``, ``auto``: :mod:`genre_backend.photo.segment`;
   ``auto`` judges the silhouette of the whole photo, the first pass) and
   ``auto*``: the same rule judged on the silhouette the old pipeline used as
   mask (the second pass, the *before* mask): border seeding when that is
@@ -59,10 +59,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from genre_backend.inference.preprocess import load_image, load_mask, preprocess  # noqa: E402
+from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
+from genre_backend.photo.preprocess import preprocess  # noqa: E402
 from genre_backend.inference.reconstruct import Reconstructor  # noqa: E402
-from genre_backend.io import resolve_weights  # noqa: E402
-from genre_backend.inference.segment import SEEDINGS, border_touch, cover, doubt  # noqa: E402
+from genre_backend.weights_file import resolve_weights  # noqa: E402
+from genre_backend.photo.segment import SEEDINGS, border_touch, cover, doubt  # noqa: E402
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 ROUND_AXES = 1.15  # the up axis is ill-defined when its spread is within 15 % of another's
@@ -142,8 +143,8 @@ def gallery(rows: list[dict], path: Path, size: int, samples: int) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from genre_backend.inference.blender import render_meshes
-    from genre_backend.io import atomic_write_bytes as write_bytes_atomic
+    from genre_backend.output.blender import render_meshes
+    from genre_backend.atomic import atomic_write_bytes as write_bytes_atomic
 
     meshes = []
     for r in rows:
@@ -260,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"doubtful automatic masks: before {sum(bool(r['warning_before']) for r in rows)}, after {sum(bool(r['warning']) for r in rows)} of {len(rows)}; "
           f"masks covering > 85 % without a warning: {sum(r['cover_after'] > 0.85 and not r['warning'] for r in rows)}")
 
-    from genre_backend.io import atomic_write_bytes as write_bytes_atomic
+    from genre_backend.atomic import atomic_write_bytes as write_bytes_atomic
 
     args.out.mkdir(parents=True, exist_ok=True)
     seed_cols = [s for s in (*SEEDINGS, "auto*") if f"iou_{s}" in rows[0]]

@@ -5,7 +5,7 @@
 
 For ``examples/sofa.png`` (automatic mask, as ``make demo``) and real photos
 of ``examples/photos`` (hand masks), reconstructs the mesh and its
-:class:`~genre_backend.inference.colour.PhotoTexture`, and prints:
+:class:`~genre_backend.output.colour.PhotoTexture`, and prints:
 
 * ``jump``: mean |ΔRGB| (0-255, mean of the three channels) over the mesh
   edges whose two ends are both hidden (not seen by the photo), the vertex
@@ -17,7 +17,7 @@ of ``examples/photos`` (hand masks), reconstructs the mesh and its
   that is an atlas of squares side by side: the place in its square);
 * ``front MAE``: the textured mesh rendered unlit through the photo's camera
   against the photo inside the mask (``photo_colour_error``, the check of
-  ``scripts/colour_check.py``, held to ≤ 8 by ``tests/backend/inference/test_colour.py``).
+  ``scripts/colour_check.py``, held to ≤ 8 by ``tests/backend/output/test_colour.py``).
 
 Self-contained (it reads only the texture's ``uv``, ``image`` and ``seen``),
 so the same script scores an older commit's colouring.
@@ -46,7 +46,7 @@ def figures(texture, faces: np.ndarray, mask: np.ndarray) -> dict[str, float]:
     ``mask`` (S, S) bool, the object mask at the network's image size."""
     from scipy.ndimage import distance_transform_edt
 
-    from genre_backend.inference.colour import sample_bilinear
+    from genre_backend.output.colour import sample_bilinear
 
     uv = np.asarray(texture.uv, np.float64)
     rgb = sample_bilinear(texture.image, uv).astype(np.float64)
@@ -68,9 +68,9 @@ def figures(texture, faces: np.ndarray, mask: np.ndarray) -> dict[str, float]:
 
 
 def main() -> int:
-    from genre_backend.inference.blender import photo_colour_error
+    from genre_backend.output.colour_check import photo_colour_error
     from genre_backend.inference.reconstruct import Reconstructor
-    from genre_backend.io import resolve_weights
+    from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")

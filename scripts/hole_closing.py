@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from genre_backend.geometry.mesh_voxels import seal_pits  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
-from genre_backend.io import resolve_weights  # noqa: E402
+from genre_backend.weights_file import resolve_weights  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 from training.eval.statistics import CLOSED_SHARE, choose_hole_closing  # noqa: E402

@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from genre_backend.frame import camera_rotation  # noqa: E402
 from genre_backend.geometry.spherical import NO_HIT, directions_to_pixels, sph_to_points  # noqa: E402
-from genre_backend.io import resolve_weights  # noqa: E402
+from genre_backend.weights_file import resolve_weights  # noqa: E402
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.pack import Pack, _decimate, quantise, read_pack  # noqa: E402
 from training.learn.burst import ViewMaker  # noqa: E402

@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--csv", required=True, help="per-view figures (appended; views already there are not redone)")
     p.add_argument("--json", default=None, help="also write the choice and the means here")
     args = p.parse_args(argv)
-    from genre_backend.io import resolve_weights
+    from genre_backend.weights_file import resolve_weights
     from training.data.corpus import data_dir
 
     try:

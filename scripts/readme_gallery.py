@@ -8,7 +8,7 @@ salient-object net's, as ``genre reconstruct PHOTO --texture``; ``--hand-masks``
 the hand-drawn masks, ``--mask PHOTO_mask.png``): the photo with that mask
 over it (:meth:`Reconstruction.mask_overlay`: background dimmed, outline yellow), then
 the mesh with the photo's colour (:meth:`Reconstruction.texture`) rendered
-by :func:`genre_backend.inference.blender.render_views` (Workbench, the
+by :func:`genre_backend.output.blender.render_views` (Workbench, the
 ``--preview`` sheet's renderer) from the photo's viewpoint, from the right
 (90°) and from behind, at one scale per row.  Written as a 256-colour PNG
 (kept under 400 KB); the sizes and timings are printed.
@@ -44,9 +44,9 @@ def _fit(image: np.ndarray, tile: int) -> Image.Image:
 
 
 def main() -> int:
-    from genre_backend.inference.blender import render_views
+    from genre_backend.output.blender import render_views
     from genre_backend.inference.reconstruct import Reconstructor
-    from genre_backend.io import resolve_weights
+    from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=REPO / "docs" / "gallery.png")

@@ -4,7 +4,7 @@
 A refiner's grid can have a gap in the face the camera sees: the artist gets a
 mesh with a hole through its front, or a part the photo plainly shows left
 out, and the textured mesh no longer covers the object's mask (the real-photo
-check in ``tests/backend/inference/test_colour.py`` asks for 90 %).  The depth map sees that
+check in ``tests/backend/output/test_colour.py`` asks for 90 %).  The depth map sees that
 face.  ``visible_fusion`` finds the object's pixels whose ray meets nothing
 (with ``--pit-voxels P`` also those that meet the grid more than P voxels
 behind the depth map: a pit, the front missing) and adds the masked depth
@@ -21,7 +21,7 @@ weights' level with and without fusion, as ``genre reconstruct`` makes it
 
 * CD (1,024 points, ``genre eval``'s metric, on the mesh ``genre eval`` scores);
 * coverage: the share of the mask's pixels the mesh covers through the
-  view's camera (:func:`genre_backend.inference.colour.zbuffer`), and the
+  view's camera (:func:`genre_backend.output.colour.zbuffer`), and the
   share of views below 90 %.
 
 The rule that picks the setting (fixed before measuring; seen-test views only,
@@ -46,7 +46,6 @@ most ``CD_TOLERANCE`` on the group given by ``--choose-group``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from collections import defaultdict
@@ -60,9 +59,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from genre_backend.geometry.mesh_voxels import fuse_visible_surface, seal_pits  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
-from genre_backend.inference.colour import zbuffer  # noqa: E402
+from genre_backend.output.colour import zbuffer  # noqa: E402
 from genre_backend.inference.reconstruct import mesh_of_probability  # noqa: E402
-from genre_backend.io import resolve_weights  # noqa: E402
+from genre_backend.weights_file import resolve_weights  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
 

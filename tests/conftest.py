@@ -8,15 +8,21 @@ for all the workers: the first worker to ask renders or trains under a file lock
 folder, the others wait and use its files (read-only: every test takes a copy or writes elsewhere).  Each process
 of the run uses one torch thread (``pytest_configure``): two workers on two cores, and tiny nets, which one
 thread runs fastest; subprocesses inherit ``OMP_NUM_THREADS=1``.
+
+Markers (pyproject.toml): a test marked ``blender`` is skipped where no ``blender`` program is on PATH; a test not
+marked ``network`` cannot download (``offline``: its sockets reach only this machine, and its subprocesses get a
+proxy on a closed local port).
 """
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import pytest
 from filelock import FileLock
 
+from support.offline import offline
 from support.tiny_data import copy_tiny_views, make_tiny_views, train_tiny_weights
 
 
@@ -25,6 +31,28 @@ def pytest_configure(config):
     import torch
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+    offline(True)
+
+
+def pytest_collection_modifyitems(config, items):
+    if shutil.which("blender") is None:
+        skip = pytest.mark.skip(reason="no Blender program on PATH (Debian: apt-get install blender; scripts/setup.sh --test does)")
+        for item in items:
+            if item.get_closest_marker("blender"):
+                item.add_marker(skip)
+
+
+@pytest.fixture(autouse=True)
+def _network_only_when_marked(request):
+    """A test marked network may download; every other test stays offline."""
+    if request.node.get_closest_marker("network") is None:
+        yield
+        return
+    offline(False)
+    try:
+        yield
+    finally:
+        offline(True)
 
 
 def once_per_run(tmp_path_factory, worker_id: str, name: str, make):

@@ -48,11 +48,11 @@ import shlex
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
-from genre_backend.io import atomic_write, atomic_write_json
+from genre_backend.atomic import atomic_write, atomic_write_json
 
 from .data.corpus import REPO_ROOT, data_dir
 from .learn.recipe import get_recipe
@@ -261,7 +261,7 @@ def _weights_level(path: Path) -> float:
     """The mesh threshold ``geometry.default_threshold`` stored in a weights file (its metadata only)."""
     from safetensors import safe_open
 
-    from genre_backend.io import stored_config
+    from genre_backend.weights_file import stored_config
 
     if not path.is_file():
         raise ValueError(f"no such weights file: {path} (the product chains read their level from it)")

@@ -39,7 +39,7 @@ def suzanne_mesh() -> tuple[np.ndarray, np.ndarray]:
 
     Suzanne faces −Y in Blender, which is the object frame's front already.
     """
-    from genre_backend.inference.blender import import_bpy
+    from genre_backend.output.blender import import_bpy
 
     bpy = import_bpy()
     mesh = bpy.data.meshes.new("suzanne")

@@ -346,7 +346,7 @@ class _Evidence:
     rays: torch.Tensor | None = None
     inside: torch.Tensor | None = None
 
-    def half(self) -> "_Evidence":
+    def half(self) -> _Evidence:
         """Every other point and ray (they are in random order): the coarse steps' evidence."""
         cut = lambda x: None if x is None else x[: max(1, len(x) // 2)]  # noqa: E731
         return _Evidence(cut(self.visible), cut(self.surface), cut(self.rays), cut(self.inside))
@@ -386,14 +386,14 @@ class _Poses:
         self.family, self.raw, self.six, self.centre = family, raw, six, centre
 
     @classmethod
-    def start(cls, family: str, points: torch.Tensor, starts: np.ndarray) -> "_Poses":
+    def start(cls, family: str, points: torch.Tensor, starts: np.ndarray) -> _Poses:
         centre = (points.amax(0) + points.amin(0)) / 2
         rot = torch.from_numpy(starts).to(points)
         local = (points - centre) @ rot  # (B, N, 3): own coordinates (the columns of rot are the own axes)
         return cls(family, _raw_of(family, _start_params(family, local)), torch.cat([rot[:, :, 0], rot[:, :, 1]], -1),
                    centre.expand(len(starts), 3).clone())
 
-    def take(self, index: torch.Tensor) -> "_Poses":
+    def take(self, index: torch.Tensor) -> _Poses:
         return _Poses(self.family, self.raw[index], self.six[index], self.centre[index])
 
     def terms(self, ev: _Evidence):

@@ -222,11 +222,11 @@ def ray_first_hit_reference(grid: torch.Tensor, level: float, camera, image_size
         for dx in (0, 1):
             for dy in (0, 1):
                 for dz in (0, 1):
-                    i, j, l = i0[0] + dx, i0[1] + dy, i0[2] + dz
-                    if 0 <= i < n and 0 <= j < n and 0 <= l < n:
+                    i, j, k = i0[0] + dx, i0[1] + dy, i0[2] + dz
+                    if 0 <= i < n and 0 <= j < n and 0 <= k < n:
                         w = ((u[0] - i0[0]) if dx else (1 - u[0] + i0[0])) * ((u[1] - i0[1]) if dy else (1 - u[1] + i0[1])) \
                             * ((u[2] - i0[2]) if dz else (1 - u[2] + i0[2]))
-                        total += w * g[i, j, l]
+                        total += w * g[i, j, k]
         return total
 
     for r in range(image_size if rows is None else min(rows, image_size)):

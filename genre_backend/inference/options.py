@@ -34,8 +34,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import torch
 
@@ -201,7 +202,7 @@ class MeshOptions:
 
     @classmethod
     def from_mapping(cls, values: dict[str, Any], where: Callable[[Option], str] = lambda o: o.name,
-                     show: Callable[[Any], str] = _shown) -> "MeshOptions":
+                     show: Callable[[Any], str] = _shown) -> MeshOptions:
         """A record of ``{name: value}`` (``None`` values: not given); unknown names and bad values raise :class:`OptionError`,
         its message naming the option as ``where(option)`` says and quoting the value with ``show``."""
         unknown = sorted(set(values) - set(BY_NAME), key=str)
@@ -213,11 +214,11 @@ class MeshOptions:
         """The options set in this record (not ``None``)."""
         return {spec.name: getattr(self, spec.name) for spec in OPTIONS if getattr(self, spec.name) is not None}
 
-    def over(self, base: "MeshOptions") -> "MeshOptions":
+    def over(self, base: MeshOptions) -> MeshOptions:
         """This record's values laid over ``base``'s (a ``None`` here keeps ``base``'s)."""
         return dataclasses.replace(base, **self.given())
 
-    def resolved(self, geometry) -> "MeshOptions":
+    def resolved(self, geometry) -> MeshOptions:
         """Every ``None`` filled: from the weights' ``geometry`` (a ``GeometryConfig``) where the option follows them, else
         its default; :class:`OptionError` for an option these weights cannot take (``distance_only`` on shell weights)."""
         filled = {}

@@ -29,7 +29,7 @@ from .refiner import VoxelRefiner
 from ..geometry.spherical import depth_to_sph, mirror_sph, sph_to_voxels
 from ..validation import check_tensor
 from ..geometry.voxels import mirror_voxels, points_to_voxels
-from ..io import WeightsError, check_state, read_weights, save_weights, stored_config
+from ..weights_file import WeightsError, check_state, read_weights, save_weights, stored_config
 
 __all__ = ["GenRe", "mirror_averaged", "mean_probability_logits", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError", "MAX_PARAMETERS"]
 
@@ -254,7 +254,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> G
     the model the config describes built on the meta device (no memory) and
     its parameters counted (at most :data:`MAX_PARAMETERS`), and every tensor
     present, of the model's shape, floating-point and finite where the
-    model's is (:func:`genre_backend.io.check_state`).  Anything else raised
+    model's is (:func:`genre_backend.weights_file.check_state`).  Anything else raised
     while the model is built and loaded becomes a :class:`WeightsError` too.
     Raises :class:`WeightsError` with a one-line reason for a missing,
     corrupt, foreign, hostile or version-mismatched file.

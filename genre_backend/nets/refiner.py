@@ -38,7 +38,7 @@ refiner grown from weights without the branch (:meth:`VoxelRefiner.load_grown`)
 starts with their output unchanged.  Trained so on the product model
 (recipe ``product_full``) it did not sharpen the output: the refiner's
 inputs from the depth and inpainting nets are off by more than the blur
-(docs/product-model.md, *The product model*).
+(docs/lab/product-model.md, *The product model*).
 At N = 128, nf = 20, fc = 640 (the ``paper`` preset) this has 52.5 M
 parameters (the original: 53.5 M).
 """

@@ -986,8 +986,9 @@ def test_failures_leave_nothing_behind_and_say_why(built, trained, tmp_path):
 def test_annotation_becomes_strokes_and_box(built, tmp_path):
     """Annotate strokes over the robin in an Image Editor (headless bpy) → the strokes file and box the add-on sends,
     which the backend reads back and which fix the robin's automatic mask against its hand mask."""
-    from genre_backend.inference.preprocess import composite, load_image, load_mask, load_strokes, photo_box
-    from genre_backend.inference.segment import segment
+    from genre_backend.photo.decode import load_image, load_mask, load_strokes, photo_box
+    from genre_backend.photo.preprocess import composite
+    from genre_backend.photo.segment import segment
 
     photos = REPO / "examples" / "photos"
     drawn = json.loads((photos / "strokes.json").read_text())["robin"]

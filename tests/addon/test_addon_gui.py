@@ -25,8 +25,9 @@ _missing = run_gui_e2e.missing_tools()
 
 
 @pytest.mark.slow
+@pytest.mark.blender
 @pytest.mark.skipif(bool(_missing), reason=f"no GUI Blender here: {_missing}")
-def test_gui_blender_runs_the_modal_operator_end_to_end(built, trained, tmp_path):  
+def test_gui_blender_runs_the_modal_operator_end_to_end(built, trained, tmp_path):
     weights, photo = trained
     result = run_gui_e2e.run(tmp_path / "e2e", weights, photo, built["legacy"], timeout=120)
     assert result["exit_code"] == 0, json.dumps(result, indent=2)
@@ -42,6 +43,7 @@ def test_gui_blender_runs_the_modal_operator_end_to_end(built, trained, tmp_path
 
 
 @pytest.mark.slow
+@pytest.mark.blender
 @pytest.mark.skipif(bool(_missing), reason=f"no GUI Blender here: {_missing}")
 def test_annotation_points_are_image_view_space_in_a_drawn_editor(tmp_path):
     """The Annotate tool in a drawn Image Editor stores points 0-1 over the image, y up: what the add-on assumes."""

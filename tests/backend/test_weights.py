@@ -1,6 +1,6 @@
 """The shipped weights: two named files (`default`, the product model; `protocol`, the research weights), found by name.
 
-README, "Which weights": `protocol` is trained on the seen classes only and behind every Table-1 number;
+docs/reconstruct.md, "Which weights": `protocol` is trained on the seen classes only and behind every Table-1 number;
 `default` is what users get (make demo, the add-on), the product model trained on every class
 (genre chain product), at the level of the weights it started from (results/decisions.md).
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from genre_backend.io import WEIGHTS_DIR, WEIGHTS_NAMES, WeightsError, named_weights, resolve_weights, weights_extra
+from genre_backend.weights_file import WEIGHTS_DIR, WEIGHTS_NAMES, WeightsError, named_weights, resolve_weights, weights_extra
 
 REPO = Path(__file__).resolve().parents[2]
 MAX_SHIPPED_BYTES = 40_000_000  # both safetensors together (the repository stays small enough to clone)
@@ -85,7 +85,7 @@ def test_weights_resolve_by_name_or_path(tmp_path, monkeypatch):
 
 
 def test_reconstruct_and_serve_name_the_choices_for_an_unknown_name(capsys):
-    from genre_backend.inference import reconstruct_cli, server
+    from genre_backend.frontends import reconstruct_cli, server
 
     assert reconstruct_cli.main([str(REPO / "examples" / "sofa.png"), "--weights", "product"]) == 1
     err = capsys.readouterr().err.strip().splitlines()

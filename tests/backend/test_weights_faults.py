@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from genre_backend.io import WeightsError
+from genre_backend.weights_file import WeightsError
 from genre_backend.nets.model import GenRe, load_model, save_model
 from support.server import ServerProcess
 from support.tiny_data import TINY
@@ -264,7 +264,8 @@ def test_anything_else_raised_while_the_model_is_built_is_weights_error(good, mo
 
 
 def test_an_unexpected_error_at_load_is_still_one_line(good, tmp_path, monkeypatch, capsys):
-    from genre_backend.inference import reconstruct, reconstruct_cli
+    from genre_backend.inference import reconstruct
+    from genre_backend.frontends import reconstruct_cli
 
     def fail(*args, **kwargs):
         raise OSError("disk on fire\nmore")

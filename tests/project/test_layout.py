@@ -1,7 +1,8 @@
 """The package layering: every module imports, the backend never imports training, stages stay in order.
 
 Layers (a module may import only its own layer and those before it):
-  genre_backend: config, validation, io → frame → geometry → nets → inference (cli on top)
+  genre_backend: config, validation, atomic, weights_file, process → frame → geometry → nets → photo (the photo going in)
+    → output (what is written) → inference (the pipeline) → frontends (genre reconstruct, genre serve) → cli
   training: data → render → learn → eval → chain (any of them may import the backend)
 The add-on (blender_addon) imports neither package: it talks to the backend over a pipe.
 """
@@ -20,10 +21,11 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 BACKEND_LAYERS = {
-    "genre_backend.config": 0, "genre_backend.validation": 0, "genre_backend.io": 0,
+    "genre_backend.config": 0, "genre_backend.validation": 0, "genre_backend.atomic": 0, "genre_backend.weights_file": 0,
     "genre_backend.process": 0,
     "genre_backend.frame": 1, "genre_backend.geometry": 2, "genre_backend.nets": 3,
-    "genre_backend.inference": 4, "genre_backend.cli": 5,
+    "genre_backend.photo": 4, "genre_backend.output": 5, "genre_backend.inference": 6, "genre_backend.frontends": 7,
+    "genre_backend.cli": 8,
 }
 TRAINING_LAYERS = {"training.data": 0, "training.render": 1, "training.learn": 2, "training.eval": 3, "training.chain": 4}
 
@@ -86,6 +88,30 @@ def test_backend_never_imports_training():
     assert offenders == {}
 
 
+def test_the_benchmarks_stand_apart_and_genre_bench_finds_them():
+    """benchmarks/ times the backend from outside: no backend module imports it, and `genre bench` reaches it through
+    the entry point (pyproject.toml) in a fresh interpreter, every module of it importable."""
+    offenders = sorted(m for m in _modules("genre_backend") if any(i.split(".")[0] == "benchmarks" for i in _imports_any(m)))
+    assert offenders == []
+    code = ("import contextlib, importlib, io, pkgutil, benchmarks\n"
+            "for m in pkgutil.walk_packages(benchmarks.__path__, 'benchmarks.'): importlib.import_module(m.name)\n"
+            "from genre_backend.cli import main\n"
+            "out = io.StringIO()\n"
+            "with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):\n"
+            "    main(['bench', '--help'])\n"
+            "print(out.getvalue())\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "usage: genre bench" in proc.stdout and "{geometry,inference,reconstruct" in proc.stdout, proc.stdout
+
+
+def _imports_any(module: str) -> set[str]:
+    """Every absolute module name ``module`` imports (project or not)."""
+    tree = ast.parse(_source(module).read_text())
+    names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    return names | {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and not n.level}
+
+
 def _upward_imports(package: str, layers: dict[str, int]) -> list[str]:
     wrong = []
     for m in _modules(package):
@@ -129,12 +155,12 @@ def test_cli_lists_the_training_commands_without_importing_them():
     )
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == "['data', 'train', 'eval', 'chain', 'reconstruct', 'serve', 'bench'] []"
+    assert proc.stdout.strip() == "['bench', 'data', 'train', 'eval', 'chain', 'reconstruct', 'serve'] []"
 
 
 # Modules `genre reconstruct` of a photo has no use for (matplotlib: the --preview sheet and the intermediates'
 # PNGs; trimesh: PLY/GLB files and fitted shapes; training: the data/train/eval commands; …): none may be imported
-# by the command's start or by a whole run; each costs a cold start up to seconds (docs/benchmarks.md).
+# by the command's start or by a whole run; each costs a cold start up to seconds (docs/lab/benchmarks.md).
 NOT_FOR_RECONSTRUCT = ("matplotlib", "training", "bpy", "trimesh", "networkx", "scipy.optimize", "shapely", "manifold3d",
                        "igl", "tensorboard")
 
@@ -155,8 +181,8 @@ def test_reconstruct_starts_without_the_modules_it_does_not_use():
             "from genre_backend.cli import main\n"
             "with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
             "    main(['reconstruct', '--help'])\n"
-            "import genre_backend.inference.reconstruct_cli, genre_backend.inference.reconstruct\n"
-            "import genre_backend.inference.mesh_export, genre_backend.geometry.cleanup, genre_backend.geometry.primitives\n")
+            "import genre_backend.frontends.reconstruct_cli, genre_backend.inference.reconstruct\n"
+            "import genre_backend.output.mesh_export, genre_backend.geometry.cleanup, genre_backend.geometry.primitives\n")
     assert _imported(code) == []
 
 

@@ -12,7 +12,7 @@ RESULTS = ROOT / "results"
 MAX_FILES = 40
 MAX_BYTES = 3_000_000
 CITING = ["README.md", "ARCHITECTURE.md", "genre_backend/weights/MODEL_CARD.md", "examples/README.md",
-          *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md"))]
+          *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md"))]
 # a repository path: not part of another path ($GENRE_HOME/results/…, …/results/…) or a word
 CITED = re.compile(r"(?<![\w/$.~-])results/[\w.*/-]*")
 

@@ -1,4 +1,4 @@
-"""Fault injection helpers shared by the fault suite (``tests/backend/inference/test_refuse_and_stop.py`` and
+"""Fault injection helpers shared by the fault suite (``tests/backend/frontends/test_refuse_and_stop.py`` and
 ``test_stop_edges.py`` beside it): ``genre`` run as a subprocess with hooks that slow its writes, and folder
 listings to compare before and after."""
 
@@ -14,7 +14,7 @@ import threading
 import time
 from pathlib import Path
 
-from genre_backend.io import is_temporary_name
+from genre_backend.atomic import is_temporary_name
 from support.server import ServerProcess
 
 REPO = Path(__file__).resolve().parents[2]
@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[2]
 # appended to $GENRE_TEST_MARK, then it sleeps $GENRE_TEST_SLEEP seconds (before the file is closed and renamed).
 SLOW_WRITES = """
 import os, sys, time
-import genre_backend.io as gio
+import genre_backend.atomic as gio
 _orig = gio._write_temporary
 def _slow(path, writer):
     def w(fh):

@@ -26,7 +26,7 @@ class ServerProcess:
         self.proc = subprocess.Popen([sys.executable, "-m", "genre_backend.cli", "serve", *args], cwd=cwd, env=env, text=True,
                                      encoding="utf-8", errors="replace",  # a non-UTF-8 byte shows as U+FFFD (the line is then not ASCII)
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=1)
-        self.events: "queue.Queue[dict | NotAnEvent | None]" = queue.Queue()
+        self.events: queue.Queue[dict | NotAnEvent | None] = queue.Queue()
         self.raw: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
 

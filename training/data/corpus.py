@@ -30,15 +30,15 @@ import shutil
 import subprocess
 import tempfile
 from collections import Counter
+from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 import trimesh
 
-from genre_backend.io import atomic_write_bytes, atomic_write_text
+from genre_backend.atomic import atomic_write_bytes, atomic_write_text
 
 from .sources import ShapeRecord, rotation_to_list
 from .views import read_manifest
@@ -289,7 +289,7 @@ def product_groups(shapes: Iterable[tuple[str, str, str, str]]) -> dict[str, str
             out[sid] = "product-test" if split == "test" else "product-train"
         else:
             by_class.setdefault(cls, []).append((sid, family or sid))
-    for cls, members in by_class.items():
+    for members in by_class.values():
         held = {fam for _, fam in members if _product_hash(fam) < PRODUCT_TEST_FRACTION}
         if not held and len(members) >= 2:
             held = {min((fam for _, fam in members), key=_product_hash)}

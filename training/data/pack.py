@@ -153,7 +153,7 @@ def build_pack(manifest_path: str | os.PathLike, out: str | os.PathLike, split: 
     """
     import trimesh
 
-    from genre_backend.io import atomic_write, atomic_write_json
+    from genre_backend.atomic import atomic_write, atomic_write_json
 
     if isinstance(max_faces, bool) or not isinstance(max_faces, int) or not 4 <= max_faces <= 65535:
         raise ValueError(f"max_faces: expected an int in [4, 65535], got {max_faces!r}")

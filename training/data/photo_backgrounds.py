@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from genre_backend.io import atomic_write_bytes, atomic_write_json
+from genre_backend.atomic import atomic_write_bytes, atomic_write_json
 
 __all__ = ["PACKAGES", "LONG_SIDE", "INDEX_NAME", "BackgroundImage", "prepare_backgrounds", "read_index", "licence_for", "BackgroundBank"]
 

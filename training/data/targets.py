@@ -33,7 +33,7 @@ from genre_backend import frame
 from genre_backend.config import TARGETS, GenreConfig, get_preset, PRESETS
 from genre_backend.geometry.metrics import sample_surface
 from genre_backend.geometry.spherical import depth_to_sph, mesh_to_sph
-from genre_backend.io import atomic_savez, atomic_write_text
+from genre_backend.atomic import atomic_savez, atomic_write_text
 
 from .views import TARGETS_FAILURES_FILE, load_view_meta, recorded_preset, surface_points_path, targets_path, view_indices, view_paths
 

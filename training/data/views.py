@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from genre_backend.io import atomic_savez, atomic_write, atomic_write_json
+from genre_backend.atomic import atomic_savez, atomic_write, atomic_write_json
 
 __all__ = [
     "MESH_SUFFIXES",

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import torch
 
-from genre_backend.io import DEFAULT_WEIGHTS_NAME, atomic_write_text, resolve_weights, weights_extra
+from genre_backend.atomic import atomic_write_text
+from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, resolve_weights, weights_extra
 from genre_backend.nets.model import WeightsError, load_model
 
 from .protocol import GROUPS, ROWS, find_eval_views

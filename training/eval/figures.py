@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from genre_backend.io import atomic_write_text
+from genre_backend.atomic import atomic_write_text
 
 from .protocol import FLOOR, GROUPS, GROUP_LABEL, resolve_mesh
 from ..data.views import view_paths
@@ -76,8 +76,8 @@ def depth_vs_dissimilarity(per_class: list[dict], dissimilarity: dict[str, float
 
 
 def render_meshes(meshes, size: int = 160, samples: int = 16):
-    """:func:`genre_backend.inference.blender.render_meshes`, after forgetting any training renderer (its scene is reset)."""
-    from genre_backend.inference.blender import render_meshes as render
+    """:func:`genre_backend.output.blender.render_meshes`, after forgetting any training renderer (its scene is reset)."""
+    from genre_backend.output.blender import render_meshes as render
 
     from training.render.scene import release_active_renderer
 

@@ -33,7 +33,7 @@ import json
 import sys
 from pathlib import Path
 
-from genre_backend.io import DEFAULT_WEIGHTS_NAME, PROTOCOL_WEIGHTS_NAME, WEIGHTS_NAMES, named_weights
+from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, PROTOCOL_WEIGHTS_NAME, WEIGHTS_NAMES, named_weights
 from genre_backend.nets.model import WeightsError, load_model, save_model
 
 __all__ = ["install", "main"]

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from genre_backend.io import atomic_write_text
+from genre_backend.atomic import atomic_write_text
 
 from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 
-from genre_backend.io import atomic_write, atomic_write_text
+from genre_backend.atomic import atomic_write, atomic_write_text
 
 from .protocol import FLOOR, GROUPS, GROUP_LABEL, POINTS_LARGE, POINTS_SMALL, REPRESENTATION, threshold_key
 

@@ -125,14 +125,14 @@ def grid_path(grids_dir: Path, key: str) -> Path:
 
 
 def _write_grid(grids_dir: Path, key: str, prob: torch.Tensor) -> None:
-    from genre_backend.io import atomic_savez
+    from genre_backend.atomic import atomic_savez
 
     grids_dir.mkdir(exist_ok=True)
     atomic_savez(grid_path(grids_dir, key), prob=prob.numpy().astype(np.float16))
 
 
 @torch.no_grad()
-def _save_grids(models: Models, views: list["EvalView"], grids_dir: Path, device) -> None:
+def _save_grids(models: Models, views: list[EvalView], grids_dir: Path, device) -> None:
     """GenRe's grid of each view that has none yet (its metrics are already in the CSV)."""
     from ..data.dataset import ViewDataset
     from ..data.views import ViewRef

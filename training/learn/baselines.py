@@ -40,7 +40,8 @@ from genre_backend.nets.refiner import VoxelRefiner
 from genre_backend.nets.uresnet import ResNetEncoder, UDecoder
 from genre_backend.validation import check_tensor
 from genre_backend.geometry.voxels import points_to_voxels
-from genre_backend.io import WeightsError, atomic_write_bytes, load_state_strict, read_weights, save_weights, stored_config
+from genre_backend.atomic import atomic_write_bytes
+from genre_backend.weights_file import WeightsError, load_state_strict, read_weights, save_weights, stored_config
 
 from ..data.views import find_views, load_view_meta, surface_points_path, view_paths
 
@@ -214,7 +215,7 @@ class NearestIndex:
         return atomic_write_bytes(path, save({"thumbs": self.thumbs.contiguous(), "rotations": self.rotations.contiguous()}, metadata=meta))
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "NearestIndex":
+    def load(cls, path: str | os.PathLike) -> NearestIndex:
         from safetensors import safe_open
 
         path = Path(path)

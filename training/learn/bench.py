@@ -23,8 +23,7 @@ import time
 import torch
 import torch.nn.functional as F
 
-from genre_backend.geometry.spherical import pad_sph
-from genre_backend.io import resolve_weights
+from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model
 
 __all__ = ["WAYS", "STAGES", "StepTimer", "step_seconds", "main"]

@@ -421,13 +421,13 @@ class Speed:
     refiner_compile: bool = False
 
     @classmethod
-    def for_device(cls, device: torch.device) -> "Speed":
+    def for_device(cls, device: torch.device) -> Speed:
         return CUDA_SPEED if device.type == "cuda" else CPU_SPEED
 
 
 REFERENCE_SPEED = Speed()
 CUDA_SPEED = Speed(True, True, True, True)
-# measured on the 2-core Xeon (genre bench train, docs/benchmarks.md): channels-last wins for both nets; bf16
+# measured on the 2-core Xeon (genre bench train, docs/lab/benchmarks.md): channels-last wins for both nets; bf16
 # autocast loses 3-4x there (torch 2.13 CPU), so it stays off
 CPU_SPEED = Speed(inpaint_channels_last=True, inpaint_bf16=False, refiner_channels_last=True, refiner_bf16=False)
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from genre_backend.config import GenreConfig
-from genre_backend.io import _UMASK
+from genre_backend.atomic import _UMASK
 
 if TYPE_CHECKING:
     from .stage import StageModule

@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from genre_backend.io import atomic_write, atomic_write_bytes
+from genre_backend.atomic import atomic_write, atomic_write_bytes
 
 __all__ = ["LOG_FIELDS", "trim_log", "plot_losses"]
 

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import os
 import signal
@@ -53,7 +52,7 @@ import torch
 
 from genre_backend.config import GenreConfig
 from genre_backend.geometry.spherical import mirror_sph
-from genre_backend.io import resolve_weights
+from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model, save_model
 
 from ..data.pack import read_pack

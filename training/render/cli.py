@@ -38,11 +38,11 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
-from genre_backend.io import atomic_write_json
+from genre_backend.atomic import atomic_write_json
 
 from ..data.views import (FAILURES_GLOB, crash_log_path, read_render_attempts, read_render_settings, read_shapes,
                           render_failures_path, view_is_complete, write_render_attempts, write_render_settings)

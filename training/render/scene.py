@@ -50,13 +50,14 @@ import glob
 import math
 import os
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from genre_backend.inference.blender import factory_reset, import_bpy, prepare_blender_environment, quiet_stdout
+from genre_backend.output.blender import factory_reset, import_bpy, prepare_blender_environment, quiet_stdout
 from genre_backend.process import private_folder
 
 from ..data.views import MESH_SUFFIXES, ShapeEntry, remove_stale_temporaries, view_is_complete, write_view
@@ -762,7 +763,7 @@ _CLEARED_COLLECTIONS = (
 
 def release_active_renderer() -> None:
     """Forget the active renderer: call before other code resets Blender's scene (e.g.
-    :func:`genre_backend.inference.blender.render_meshes`); the next render builds its scene anew."""
+    :func:`genre_backend.output.blender.render_meshes`); the next render builds its scene anew."""
     global _ACTIVE_RENDERER
     _ACTIVE_RENDERER = None
 

@@ -41,7 +41,7 @@ E2E_STEPS = (40, 40, 80)
 PHOTOS = REPO / "examples" / "photos"
 # The annotated run: the photo whose automatic mask is the weakest (GrabCut's was wrong), and a loop around the
 # object for the Box layer
-# (the box of tests/backend/inference/test_masks.py; its scribbles are strokes.json's).
+# (the box of tests/backend/photo/test_masks.py; its scribbles are strokes.json's).
 ANNOTATED = "squirrel"
 ANNOTATED_BOX = [[127, 95], [364, 95], [364, 366], [127, 366], [127, 95]]
 SCREENSHOTS = ("viewport_with_panel.png", "through_camera.png", "side.png", "panel_while_running.png",
@@ -108,8 +108,9 @@ def mask_ious(out: Path, photo: Path, hand: Path) -> dict:
     import numpy as np
     from PIL import Image
 
-    from genre_backend.inference.preprocess import composite, load_image, load_mask
-    from genre_backend.inference.segment import segment
+    from genre_backend.photo.decode import load_image, load_mask
+    from genre_backend.photo.preprocess import composite
+    from genre_backend.photo.segment import segment
 
     image = load_image(photo)
     truth = load_mask(hand, image)

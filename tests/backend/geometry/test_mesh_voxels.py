@@ -310,7 +310,7 @@ def test_fusing_the_visible_surface_fills_a_hole_in_the_front_and_changes_nothin
     from genre_backend.geometry.voxels import ray_first_hit
 
     camera, g, depth, (x, y, z), whole = _sphere_seen_and_its_tube()
-    n, level = g.voxel_size, g.default_threshold
+    level = g.default_threshold
     # a prediction that covers the whole object: returned as it is
     assert torch.equal(fuse_visible_surface(whole, depth, camera, g, level), whole)
     # a hole through the front and the back (a tunnel along the view axis, 0.1 wide): filled in front only

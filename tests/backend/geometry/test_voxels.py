@@ -132,7 +132,7 @@ def test_first_hits_match_the_marched_reference_the_sphere_and_the_marching_cube
     from genre_backend.geometry.analytic import sphere_depth
     from genre_backend.geometry.mesh_voxels import voxels_to_mesh
     from genre_backend.geometry.voxels import ray_first_hit, ray_first_hit_reference
-    from genre_backend.inference.colour import zbuffer
+    from genre_backend.output.colour import zbuffer
 
     camera = get_preset("default").camera
     # a lumpy grid: two offset spheres' tubes and noise, on a small grid and image (the reference is slow)

@@ -14,10 +14,10 @@ import torch
 import trimesh
 from PIL import Image
 
-from genre_backend.inference import reconstruct_cli
+from genre_backend.frontends import reconstruct_cli
 from genre_backend.nets.model import WEIGHTS_FORMAT, WeightsError, load_model
 from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
-from genre_backend.inference.preprocess import ImageError
+from genre_backend.photo.decode import ImageError
 from support.files import huge_png
 from support.tiny_data import TINY
 
@@ -305,7 +305,7 @@ def test_cli_preview_shows_the_mesh(trained, photos, tmp_path, capsys):
     assert code == 0, err
     with Image.open(tmp_path / "m_preview.png") as im:
         rgb = np.asarray(im.convert("RGB"))
-    from genre_backend.inference.preview import SHEET, preview_layout
+    from genre_backend.output.preview import SHEET, preview_layout
 
     assert rgb.shape == (SHEET[1], SHEET[0], 3)
     # the large front panel holds the mesh rendered in Blender: shaded clay pixels, not an empty white square

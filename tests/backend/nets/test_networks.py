@@ -330,7 +330,9 @@ def test_with_inpaint_net_keeps_the_other_nets():
     assert new.config.network.inpaint_head == "hit"
     wide = with_inpaint_net(model, widths=(16, 32, 64, 128))
     assert wide.config.network.inpaint_widths == (16, 32, 64, 128) and wide.config.network.inpaint_head == "value"
-    n_params = lambda m: sum(p.numel() for p in m.inpaint_net.parameters())
+    def n_params(m):
+        return sum(p.numel() for p in m.inpaint_net.parameters())
+
     assert n_params(wide) > 3 * n_params(model)  # (conv weights grow with the square of the width)
     for other in (new, wide):
         for part in ("depth_net", "refiner"):

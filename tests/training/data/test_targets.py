@@ -53,7 +53,6 @@ def check_view(shape_dir: Path, view: int, config) -> None:
     rows = slice(h // 2 - 2, h // 2 + 2)
     ref = raycast_triangles_reference(mesh.triangles, h, h)[rows]
     assert np.abs(ref - full[rows]).max() < 1e-4
-    n = config.geometry.voxel_size
     check_voxel_target(mesh, t["voxels"], config.geometry)
 
 
@@ -137,6 +136,7 @@ def test_sphere_full_map_is_one_minus_r(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.network
 def test_a_real_sweet_home_3d_model(tmp_path):
     """One real catalogue chair, fetched from Debian's archive (120 MB, cached in the GenRe home: corpus.data_dir())."""
     from training.data import corpus

@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[3]
 # batch 4, Adam betas (0.5, 0.9), surface weight 10) ...
 HISTORIC_DEFAULTS = {"steps": 1000, "batch_size": 4, "beta1": 0.5, "beta2": 0.9, "surface_weight": 10.0}
 HISTORIC_LR = {"depth": 1e-3, "inpaint": 1e-4, "refine": 1e-4, "joint": 1e-5, "completion": 1e-4, "onestep": 1e-3}
-# ... and the research chain (then scripts/train_default.sh) passed these flags to each stage (as of commit e91e108).
+# ... and the research chain (then a shell script, train_default.sh) passed these flags to each stage (as of commit e91e108).
 HISTORIC_SCRIPT_FLAGS = {
     "depth": ["--steps", "6000"],
     "inpaint": ["--steps", "3000"],
@@ -136,7 +136,7 @@ def test_product_chain_starts_from_the_shipped_default_weights_under_the_home(tm
     # the refiner grown: the refine stage of product_full from the shipped weights, scored, then no joint round
     steps, resolved = plan("product-full")
     assert [(r["stage"], r["recipe"], r["init"]) for r in resolved] == [("refine", "product_full", default)]
-    assert f"--weights $GENRE_HOME/runs/product_full/refine/best.safetensors" in steps["eval_refine"]
+    assert "--weights $GENRE_HOME/runs/product_full/refine/best.safetensors" in steps["eval_refine"]
     assert "--label refine" in steps["curve_refine"] and "--run $GENRE_HOME/runs/product_full" in steps["curve_refine"]
     assert "results/product/refine " in steps["compare"] and "primitives/refine " in steps["compare_primitives"]
     assert not home.exists()

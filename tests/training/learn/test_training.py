@@ -449,7 +449,7 @@ def _extra(path) -> dict:
 def test_install_into_a_named_weights_file(tmp_path, monkeypatch, capsys):
     """--name protocol|default picks genre_backend/weights/NAME.*, tagged extra.model = NAME; installing protocol
     rewrites the interim default while that is still tagged as a copy of protocol, and leaves a real product model alone."""
-    import genre_backend.io as gio
+    import genre_backend.weights_file as gio
     from genre_backend.nets.model import save_model
     from training.eval.install import install, main
 

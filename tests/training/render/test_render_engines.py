@@ -212,8 +212,6 @@ def test_an_engine_this_blender_lacks_is_one_line(meshes, tmp_path, capsys, monk
 # ---------------------------------------------------------------------------- a stock Blender
 
 BLENDER = shutil.which("blender")
-needs_blender = pytest.mark.skipif(
-    BLENDER is None, reason="no stock Blender on PATH (Debian: apt-get install blender; scripts/setup.sh --test does)")
 SCRIPT = ROOT / "training" / "render" / "blender_script.py"
 
 
@@ -230,7 +228,7 @@ def _blender_env(tmp: Path, **extra) -> dict:
 
 
 @pytest.mark.slow
-@needs_blender
+@pytest.mark.blender
 def test_stock_blender_writes_the_same_views_as_the_bpy_module(meshes, tmp_path):
     shapes = tmp_path / "shapes"
     shapes.mkdir()
@@ -268,7 +266,7 @@ def test_stock_blender_writes_the_same_views_as_the_bpy_module(meshes, tmp_path)
     assert view_files.read_render_settings(tmp_path / "stock") == view_files.read_render_settings(tmp_path / "module")
 
 
-@needs_blender
+@pytest.mark.blender
 def test_stock_blender_without_the_dependencies_says_what_is_missing(tmp_path):
     done = subprocess.run([BLENDER, "--background", "--factory-startup", "--python", str(SCRIPT), "--",
                            "--shapes", str(tmp_path), "--out", str(tmp_path / "out")],
@@ -313,9 +311,8 @@ def _speckle(rgb: np.ndarray, inside: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-@needs_blender
+@pytest.mark.blender
 def test_stock_blender_renders_corpus_glbs_with_exact_depth_their_colours_and_less_noise(tmp_path):
-    import torch  # noqa: PLC0415
 
     from genre_backend import frame  # noqa: PLC0415
     from genre_backend.geometry.analytic import sphere_depth  # noqa: PLC0415

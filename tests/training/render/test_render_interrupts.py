@@ -239,7 +239,7 @@ cli.render_shape = render_shape
 def test_repeated_crashes_fail_the_shape_and_the_run_says_what_is_missing(shapes, tmp_path):
     out = tmp_path / "out"
     argv = _argv(shapes, out)
-    for crash in range(1, MAX_CRASHES + 1):
+    for _crash in range(1, MAX_CRASHES + 1):
         done = _run(argv, tmp_path, _CRASH_ON_BOX)
         assert done.returncode == -signal.SIGSEGV, done.stderr
         assert "Segmentation fault" in view_files.crash_log_path(out).read_text()
@@ -272,8 +272,7 @@ def test_attempts_file_of_older_versions_reads_as_interruptions(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(shutil.which("blender") is None,
-                    reason="no stock Blender on PATH (Debian: apt-get install blender; scripts/setup.sh --test does)")
+@pytest.mark.blender
 def test_ctrl_c_in_a_stock_blender_stops_with_130(shapes, tmp_path):
     """A stock Blender installs a SIGINT handler of its own (not Python's); the run still stops with 130 and resumes."""
     out = tmp_path / "out"

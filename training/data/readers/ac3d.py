@@ -40,9 +40,9 @@ the source modules convert to the project's Z-up frame).
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import trimesh
