@@ -281,7 +281,7 @@ def _from_manifest(args: argparse.Namespace, prog: str) -> int:
 
 def _flat_test(args: argparse.Namespace, prog: str) -> int:
     """``genre data flat-test``: the flat-from-above eval shapes as GLB files and a manifest (split ``flat-test``)."""
-    from genre_backend.io import atomic_write_json
+    from genre_backend.atomic import atomic_write_json
 
     from .sources.thin import FLAT_KINDS, FLAT_TEST_SEED, flat_test_shape
 
