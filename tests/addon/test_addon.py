@@ -788,6 +788,56 @@ def test_build_writes_validated_extension_and_legacy_zip(built):
     assert "blender_manifest.toml" in ext and "__init__.py" in ext
     assert "genre/__init__.py" in legacy and not any(n.endswith("blender_manifest.toml") for n in legacy)
     assert not any("__pycache__" in n for n in ext + legacy)
+    # the backend travels with the add-on: its wheel and the mask net's hash-pinned requirement
+    wheel = "backend/genre-0.1.0-py3-none-any.whl"
+    assert {wheel, "backend/model-requirements.txt"} <= set(ext) and {f"genre/{wheel}", "genre/backend/model-requirements.txt"} <= set(legacy)
+    assert zipfile.ZipFile(built["extension"]).read(wheel) == zipfile.ZipFile(built["legacy"]).read(f"genre/{wheel}")
+    assert built["extension"].stat().st_size < 20_000_000 and built["legacy"].stat().st_size < 20_000_000
+
+
+def test_the_bundled_wheel_is_the_backend_alone(built, tmp_path):
+    """The wheel: every backend module, the default weights (not protocol's), no training; the runtime's requirements;
+    a RECORD that matches; the same bytes from the same tree; and it installs and finds its weights by name."""
+    import base64
+    import hashlib
+    import tomllib
+    import zipfile
+
+    sys.path.insert(0, str(REPO))
+    try:
+        import build_addon
+    finally:
+        sys.path.remove(str(REPO))
+    wheel = zipfile.ZipFile(built["extension"]).read("backend/genre-0.1.0-py3-none-any.whl")
+    (tmp_path / "genre-0.1.0-py3-none-any.whl").write_bytes(wheel)
+    zf = zipfile.ZipFile(tmp_path / "genre-0.1.0-py3-none-any.whl")
+    names = set(zf.namelist())
+    modules = {p.relative_to(REPO).as_posix() for p in (REPO / "genre_backend").rglob("*.py") if "__pycache__" not in p.parts}
+    assert modules <= names
+    assert {"genre_backend/weights/default.safetensors", "genre_backend/weights/default.json"} <= names
+    assert not any(n.startswith("training") or "protocol." in n for n in names)
+    meta = zf.read("genre-0.1.0.dist-info/METADATA").decode()
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    assert [line[len("Requires-Dist: "):] for line in meta.splitlines() if line.startswith("Requires-Dist: ")] == project["dependencies"]
+    assert "Requires-Python: >=3.11,<3.12" in meta
+    assert zf.read("genre-0.1.0.dist-info/entry_points.txt").decode() == "[console_scripts]\ngenre = genre_backend.cli:run\n"
+    for line in zf.read("genre-0.1.0.dist-info/RECORD").decode().splitlines():
+        name, digest, size = line.rsplit(",", 2)
+        if name.endswith("RECORD"):
+            continue
+        data = zf.read(name)
+        assert digest == "sha256=" + base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode() and int(size) == len(data)
+    (tmp_path / "again").mkdir()
+    assert build_addon.build_wheel(tmp_path / "again").read_bytes() == wheel  # (deterministic)
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index", "--target", str(target),
+                    str(tmp_path / "genre-0.1.0-py3-none-any.whl")], check=True, capture_output=True, timeout=300)
+    code = ("import genre_backend, genre_backend.io as io; print(genre_backend.__file__); print(io.resolve_weights('default'));"
+            "print(io.resolve_weights('protocol').exists())")
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(target)}, cwd=tmp_path,
+                         capture_output=True, text=True, check=True, timeout=120).stdout.split()
+    assert out[0].startswith(str(target)) and out[1].startswith(str(target)) and out[2] == "False"
+    assert (target / "bin" / "genre").is_file()
 
 
 @pytest.mark.parametrize("kind", ["extension", "legacy"])
