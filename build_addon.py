@@ -26,6 +26,7 @@ import ast
 import base64
 import hashlib
 import io
+import json
 import os
 import shutil
 import subprocess
@@ -44,6 +45,7 @@ BACKEND = ROOT / "genre_backend"
 SHIPPED_WEIGHTS = ("default.safetensors", "default.json", "MODEL_CARD.md", "TRAINING_SHAPES_DEFAULT.md")
 BUNDLE = "backend"  # the add-on's folder with the wheel and the mask net's requirement
 MODEL_REQUIREMENTS = ROOT / "scripts" / "model-requirements.txt"
+SCHEMA = SOURCE / "options_schema.json"  # the Advanced rows before the backend has started (blender_addon/schema.py)
 ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # every file's time in the wheel: the same tree gives the same bytes
 
 
@@ -204,8 +206,28 @@ def build_legacy(out_dir: Path, ver: str) -> Path:
     return target
 
 
+def options_schema() -> str:
+    """The mesh options' schema ``genre serve --weights default`` publishes (its ``ready`` event's ``options`` and
+    ``qualities``), as the add-on keeps it in ``options_schema.json``."""
+    from safetensors import safe_open
+
+    from genre_backend.inference.options import schema
+    from genre_backend.io import named_weights, stored_config
+
+    path = named_weights("default")
+    with safe_open(str(path), "np") as fh:
+        meta = fh.metadata() or {}
+    return json.dumps(schema(stored_config(path, meta).geometry), indent=1) + "\n"
+
+
+def check_schema() -> None:
+    if not SCHEMA.is_file() or SCHEMA.read_text(encoding="utf-8") != options_schema():
+        raise BuildError(f"{SCHEMA.relative_to(ROOT)} is not the backend's schema: run python build_addon.py --schema")
+
+
 def build(out_dir: Path = ROOT / "dist") -> dict[str, Path]:
     ver = version()
+    check_schema()
     out_dir.mkdir(parents=True, exist_ok=True)
     tool = find_extension_tool()
     return {"extension": build_extension(out_dir, tool, ver), "legacy": build_legacy(out_dir, ver)}
@@ -214,7 +236,10 @@ def build(out_dir: Path = ROOT / "dist") -> dict[str, Path]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(ROOT / "dist"), help="output folder (default: dist/)")
+    parser.add_argument("--schema", action="store_true", help=f"write {SCHEMA.relative_to(ROOT)} from the backend, then build")
     args = parser.parse_args(argv)
+    if args.schema:
+        SCHEMA.write_text(options_schema(), encoding="utf-8")
     try:
         built = build(Path(args.out))
     except BuildError as exc:

@@ -123,7 +123,8 @@ def plan(python: str, env: str, wheel: str, requirement: str, torch: str, wheel_
     vpy = venv_python(env, platform)
     # --no-compile: no .pyc for the ~200 MB of modules the backend never imports (it compiles what it uses on first start)
     pip = [vpy, "-m", "pip", "install", "--disable-pip-version-check", "--no-input", "--progress-bar", "off", "--no-compile"]
-    source = ["--no-index", "--find-links", wheel_folder] if wheel_folder else []
+    # offline: the folder alone (--isolated: no pip configuration of the machine's adds an index or another folder)
+    source = ["--isolated", "--no-index", "--find-links", wheel_folder] if wheel_folder else []
     if platform == "darwin":
         torch_args = [torch]  # (PyPI's macOS build is the CPU one)
     else:

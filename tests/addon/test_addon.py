@@ -52,7 +52,8 @@ def _registration_state(bpy, module: str) -> dict:
 
     return {
         "enabled": module in {a.module for a in bpy.context.preferences.addons},
-        "ops": sorted(n for n in ("reconstruct", "cancel", "check_backend", "choose_file", "clear_mask", "option_help")
+        "ops": sorted(n for n in ("reconstruct", "cancel", "check_backend", "choose_file", "clear_mask", "option_help",
+                                  "install_backend", "cancel_install", "remove_backend", "show_install_log")
                       if n in dir(bpy.ops.genre)),
         "panel": hasattr(bpy.types, "GENRE_PT_panel"),
         "scene_settings": hasattr(bpy.types.Scene, "genre"),
@@ -122,6 +123,22 @@ def scenario_install(args: dict) -> dict:
         {"name": "test_time_mirror", "type": "bool", "min": None, "max": None, "choices": None, "default": True,
          "label": "Mirror Average", "help": "mirror"},
         {"name": "texture", "type": "bool", "default": False, "label": "Colour from Photo", "help": "the add-on's own"}]}
+    # before the backend has started, the Advanced rows are the cached schema's (a file load or the first timer tick)
+    mod.ops._fill_scenes()
+    out["cached_rows"] = [[r.name, r.kind, r.weights_value] for r in settings.options]
+    # no photo chosen (and no usable backend): the photo is asked for first
+    prefs = bpy.context.preferences.addons[module].preferences
+    prefs.backend_command = "/no/such/python"
+    try:
+        mod.ops.start_job(settings, prefs, bpy.context.window_manager.genre_status)
+    except mod.jobs.UserError as exc:
+        out["no_photo"] = str(exc)
+    prefs.backend_command = ""
+    # the preferences' Install Backend box, and where it installs
+    drawn = _Layout()
+    prefs.draw_install(drawn, bpy.context.window_manager.genre_status)
+    out["install_drawn"] = drawn.calls
+    out["user_folder"] = mod.ops.addon_user_folder()
     mod.ops.sync_options(settings, ready)
     settings.options["threshold"].override = True
     drawn = _Layout()
@@ -845,7 +862,8 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
     r = run_scenario("install", {"kind": kind, "zip": str(built[kind])}, tmp_path)
     module = "bl_ext.user_default.genre" if kind == "extension" else "genre"
     assert r["module"] == module and r["package"] == module and r["prefs_idname"] == module
-    everything = {"enabled": True, "ops": ["cancel", "check_backend", "choose_file", "clear_mask", "option_help", "reconstruct"],
+    everything = {"enabled": True, "ops": ["cancel", "cancel_install", "check_backend", "choose_file", "clear_mask", "install_backend",
+                                           "option_help", "reconstruct", "remove_backend", "show_install_log"],
                   "panel": True,
                   "scene_settings": True, "status": True, "prefs": True, "loaded": True}
     assert r["after_enable"] == everything
@@ -885,6 +903,17 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
                          "custom": ["--weights", "/some/w.safetensors"]}
     assert "no weights file is set" in r["custom_without_file"]
     assert str(tmp_path / "blender-user") in r["installed_at"]
+    # the Advanced rows before any backend: the cached schema's (the shipped weights' values), the add-on's own left out
+    cached = json.loads((ADDON / "options_schema.json").read_text())["options"]
+    assert r["cached_rows"] == [[o["name"], o["type"], json.dumps(o["default"])] for o in cached if o["name"] not in ("format", "up", "texture")]
+    assert len(r["cached_rows"]) >= 8
+    assert r["no_photo"] == "choose a photo to reconstruct from"
+    # Install Backend: in the extension's user folder on 4.2+, Blender's config folder for a legacy add-on
+    user = tmp_path / "blender-user"
+    assert r["user_folder"] == str(user / "extensions/.user/user_default/genre" if kind == "extension" else user / "config/genre")
+    assert [c for c in r["install_drawn"] if c[0] != "label"] == [
+        ["operator", "genre.install_backend", "Install Backend"], ["operator", "genre.remove_backend", None],
+        ["prop", "", "backend_python", None], ["prop", "", "wheel_folder", None]]
 
 
 # ------------------------------------------------------------------ against a real `genre serve`

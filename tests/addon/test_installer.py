@@ -120,7 +120,7 @@ def test_the_steps_per_platform_online_and_offline(tmp_path):
     assert mac[2].argv[-1] == "torch==2.13.0" and "--extra-index-url" not in mac[2].argv  # (PyPI's macOS torch is the CPU one)
     offline = inst.plan("/py", "/e", str(wheel), "/r.txt", torch, "/wheels", platform="linux")
     for step in offline[2:5]:
-        assert step.argv[step.argv.index("--no-index"):][:3] == ["--no-index", "--find-links", "/wheels"]
+        assert step.argv[step.argv.index("--isolated"):][:4] == ["--isolated", "--no-index", "--find-links", "/wheels"]
         assert "--extra-index-url" not in step.argv
     assert all("--no-compile" in s.argv for s in linux[2:5])
 
