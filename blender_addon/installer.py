@@ -162,15 +162,17 @@ def explain(log: str, step: str, wheel_folder: str = "", free_hint: str = "") ->
         return "This Python cannot make virtual environments (on Debian/Ubuntu: apt install python3-venv); choose another"
     if not wheel_folder and any(mark.lower() in low for mark in _NETWORK):
         return "No network: pip could not reach the package index. Connect to the internet, or choose a folder of wheels (Offline Wheels)"
-    missing = [line for line in log.splitlines() if "No matching distribution found for" in line]
+    missing = [line.split("found for", 1)[1].strip() for line in log.splitlines() if "No matching distribution found for" in line]
+    missing += [line.split("Cannot install", 1)[1].split(" because", 1)[0].strip() for line in log.splitlines()
+                if "Cannot install" in line and " because" in line]  # (what pip says when a constraint is in play)
     if missing:
-        what = missing[-1].split("found for", 1)[1].strip()
+        what = missing[0]
         if wheel_folder:
             return f"The wheel folder has no {what}: add it (pip download) or clear Offline Wheels"
         if not any(mark.lower() in low for mark in _NETWORK):
             return f"No package {what} for this Python and system (the backend needs Python {PYTHON_NEEDED[0]}.{PYTHON_NEEDED[1]}, 64-bit)"
     errors = [line.strip() for line in log.splitlines() if line.strip().startswith(("ERROR", "error:", "Error:"))]
-    tail = errors[-1] if errors else next((line.strip() for line in reversed(log.splitlines()) if line.strip()), "")
+    tail = errors[0] if errors else next((line.strip() for line in reversed(log.splitlines()) if line.strip()), "")
     return f"'{step}' failed: {tail[:200]}" if tail else f"'{step}' failed"
 
 

@@ -18,6 +18,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from support.wheels import wheel_folder
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -139,6 +140,12 @@ def test_each_failure_is_one_clear_line():
     assert "python3-venv" in inst.explain("Error: Command '['/e/bin/python', '-m', 'ensurepip']' returned non-zero exit status 1.\n"
                                           "The virtual environment was not created successfully because ensurepip is not available.",
                                           "Creating environment")
+    assert inst.explain("ERROR: Cannot install torch==2.13.0+cpu because these package versions have conflicting dependencies.\n"
+                        "ERROR: ResolutionImpossible: for help visit …", "Installing PyTorch (CPU)", "/w") == \
+        "The wheel folder has no torch==2.13.0+cpu: add it (pip download) or clear Offline Wheels"
+    assert inst.explain("ERROR: Cannot install torch==2.13.0+cpu because these package versions have conflicting dependencies.\n"
+                        "ERROR: ResolutionImpossible: for help visit …", "Installing PyTorch (CPU)") == \
+        "No package torch==2.13.0+cpu for this Python and system (the backend needs Python 3.11, 64-bit)"
     assert inst.explain("Traceback …\nValueError: boom", "Checking the backend") == "'Checking the backend' failed: ValueError: boom"
 
 
@@ -234,30 +241,7 @@ def test_an_offline_folder_without_torch_says_so(tmp_path):
     assert seen == sorted(seen) and 0.0 < seen[-1] < 0.2
     assert (tmp_path / "user/backend-env/bin/python").exists() and not inst.installed(str(tmp_path / "user/backend-env"))
     log = Path(installer.log_path).read_text()
-    assert "== Creating environment" in log and "No matching distribution found for torch==2.13.0+cpu" in log and "FAILED:" in log
-
-
-def wheel_folder() -> Path | None:
-    """The runtime's wheels for an offline install test: $GENRE_RUNTIME_WHEELS, else made once with `pip download` into
-    the GenRe home (None when pip cannot reach an index)."""
-    if os.environ.get("GENRE_RUNTIME_WHEELS"):
-        return Path(os.environ["GENRE_RUNTIME_WHEELS"])
-    from training.data.corpus import data_dir
-
-    folder = data_dir() / "wheels" / "runtime"
-    if (folder / ".complete").exists():
-        return folder
-    import tomllib
-
-    deps = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
-    deps = [d.replace("torch==2.13.0", "torch==2.13.0+cpu") for d in deps]
-    folder.mkdir(parents=True, exist_ok=True)
-    pip = [sys.executable, "-m", "pip", "download", "--quiet", "--disable-pip-version-check", "-d", str(folder)]
-    for argv in (pip + deps, pip + ["--no-deps", "-r", str(REPO / "scripts/model-requirements.txt")]):
-        if subprocess.run(argv, capture_output=True, timeout=1800).returncode != 0:
-            return None
-    (folder / ".complete").write_text("")
-    return folder
+    assert "== Creating environment" in log and "ERROR: " in log and "FAILED: The wheel folder has no torch" in log
 
 
 @pytest.mark.slow
