@@ -213,15 +213,13 @@ def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
 
 
 def _check_extras(parser, args) -> None:
-    """--preview and --save-intermediates need the ``genre[preview]`` extra (bpy, matplotlib), which the runtime
-    install leaves out: say so before any work."""
+    """--preview needs the ``genre[preview]`` extra (bpy, matplotlib), which the runtime install leaves out: say so
+    before any work.  (--save-intermediates without matplotlib draws its maps in grey.)"""
     import importlib.util
 
-    wanted = (["bpy"] if args.preview else []) + (["matplotlib"] if args.preview or args.save_intermediates else [])
-    missing = [name for name in wanted if importlib.util.find_spec(name) is None]
+    missing = [name for name in ("bpy", "matplotlib") if args.preview and importlib.util.find_spec(name) is None]
     if missing:
-        flag = "--preview" if args.preview else "--save-intermediates"
-        parser.error(f"{flag} needs {' and '.join(missing)}, which this install lacks: pip install 'genre[preview]'")
+        parser.error(f"--preview needs {' and '.join(missing)}, which this install lacks: pip install 'genre[preview]'")
 
 
 def _main(argv: list[str] | None, prog: str) -> int:

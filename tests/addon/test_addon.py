@@ -654,7 +654,7 @@ def scenario_annotation(args: dict) -> dict:
 
 
 SCENARIOS = {"install": scenario_install, "reconstruct": scenario_reconstruct, "failures": scenario_failures,
-             "annotation": scenario_annotation}
+             "annotation": scenario_annotation, "install_backend": scenario_install_backend}
 
 
 def _scenario_main(argv: list[str]) -> int:

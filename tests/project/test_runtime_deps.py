@@ -135,7 +135,7 @@ def test_preview_without_its_extra_is_one_clear_line(tmp_path):
 @pytest.mark.slow
 def test_reconstruct_and_serve_run_without_the_extras(tmp_path):
     """A whole `genre reconstruct` of the example photo (shipped weights, automatic mask, colour, a GLB: trimesh) and a
-    `genre serve` session that answers `version` and reconstructs, with every extra hidden."""
+    `genre serve` session that answers `version` and reconstructs as the add-on asks, with every extra hidden."""
     glb = tmp_path / "sofa.glb"
     proc = run_hidden(f"""
         from genre_backend.cli import main
@@ -149,8 +149,11 @@ def test_reconstruct_and_serve_run_without_the_extras(tmp_path):
     server = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
     try:
+        # (as the add-on asks: the intermediates for the mask's pictures, the photo's colours)
+        options = {"save_intermediates": str(tmp_path / "inter"), "texture": True, "format": "obj"}
         for request in ({"type": "version", "id": "v"},
-                        {"type": "reconstruct", "id": "r", "image": str(REPO / "examples/sofa.png"), "output": str(obj)}):
+                        {"type": "reconstruct", "id": "r", "image": str(REPO / "examples/sofa.png"), "output": str(obj),
+                         "options": options}):
             server.stdin.write(json.dumps(request) + "\n")
         server.stdin.flush()
         kinds = []
@@ -165,6 +168,7 @@ def test_reconstruct_and_serve_run_without_the_extras(tmp_path):
         server.kill()
     assert ("ready", None) in kinds and ("version", "v") in kinds and kinds[-1] == ("result", "r"), (kinds, server.stderr.read()[-2000:])
     assert obj.stat().st_size > 0
+    assert {"mask_overlay.png", "mask_in_photo.png", "depth.png"} <= {p.name for p in (tmp_path / "inter").iterdir()}
 
 
 def test_setup_installs_what_make_demo_and_make_test_need():
