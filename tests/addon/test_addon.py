@@ -432,6 +432,28 @@ def scenario_install_backend(args: dict) -> dict:
     return out
 
 
+def scenario_blender_version(args: dict) -> dict:
+    """In one bpy release: the extension zip installs and registers, Check Backend answers, Reconstruct adds a mesh."""
+    import bpy
+
+    module = _install_extension(bpy, args["zip"])
+    out = {"version": list(bpy.app.version[:2]), "state": _registration_state(bpy, module)}
+    ops = sys.modules[module].ops
+    prefs = bpy.context.preferences.addons[module].preferences
+    prefs.backend_command, prefs.model, prefs.device = args["command"], "default", "cpu"
+    status = bpy.context.window_manager.genre_status
+    ops._fill_scenes()
+    out["cached_rows"] = len(bpy.context.scene.genre.options)
+    out["check"], out["backend_ok"] = sorted(bpy.ops.genre.check_backend()), status.backend_ok
+    out["user_folder"] = ops.addon_user_folder()
+    scene = bpy.context.scene
+    scene.genre.photo_path = args["photo"]
+    job, outcome, states = _drive(ops, scene.genre, prefs, status, scene)
+    out["outcome"] = list(outcome)
+    out["meshes"] = [o.name for o in bpy.data.objects if o.type == "MESH"]
+    return out
+
+
 def scenario_failures(args: dict) -> dict:
     """Every failure ends cleanly, leaves no half-made objects, says why; the next attempt works."""
     import signal
@@ -654,7 +676,8 @@ def scenario_annotation(args: dict) -> dict:
 
 
 SCENARIOS = {"install": scenario_install, "reconstruct": scenario_reconstruct, "failures": scenario_failures,
-             "annotation": scenario_annotation, "install_backend": scenario_install_backend}
+             "annotation": scenario_annotation, "install_backend": scenario_install_backend,
+             "blender_version": scenario_blender_version}
 
 
 def _scenario_main(argv: list[str]) -> int:
@@ -677,13 +700,13 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 
-def run_scenario(name: str, args: dict, tmp_path: Path, timeout: float = 600.0) -> dict:
+def run_scenario(name: str, args: dict, tmp_path: Path, timeout: float = 600.0, python: str = sys.executable) -> dict:
     env = dict(os.environ)
     env["BLENDER_USER_RESOURCES"] = str(tmp_path / "blender-user")
     env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
     env["TMPDIR"] = str(tmp_path / "tmp")
     (tmp_path / "tmp").mkdir(exist_ok=True)
-    proc = subprocess.run([sys.executable, __file__, name, json.dumps(args)], cwd=REPO, env=env,
+    proc = subprocess.run([python, __file__, name, json.dumps(args)], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout)
     for line in proc.stdout.splitlines():
         if line.startswith(RESULT_TAG):
@@ -1167,3 +1190,42 @@ def test_install_backend_from_the_zip_alone(built, tmp_path):
     assert r["log_has_pip"]
     assert r["remove"] == ["FINISHED"] and not r["env_after_remove"] and r["log_after_remove"] and r["command_after_remove"] == ""
     print(f"Install Backend in bpy 5.0.1: {r['minutes']:.1f} min from a local wheel folder")
+
+
+# the bpy releases artists use besides the project's own 5.0.1: the LTS lines 4.2 and 4.5 (bpy wheels from PyPI)
+OTHER_BPY = ("4.2.0", "4.5.0")
+
+
+def bpy_venv(version: str) -> Path | None:
+    """A venv with ``bpy==version`` (numpy < 2), made once under the GenRe home; None when pip cannot get it."""
+    from training.data.corpus import data_dir
+
+    venv = data_dir() / "bpy-venvs" / f"bpy-{version}"
+    python = venv / "bin" / "python"
+    if (venv / ".complete").exists():
+        return python
+    subprocess.run([sys.executable, "-m", "venv", "--clear", str(venv)], check=True, capture_output=True, timeout=300)
+    pip = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check", f"bpy=={version}", "numpy<2"],
+                         capture_output=True, text=True, timeout=1800)
+    if pip.returncode != 0:
+        return None
+    (venv / ".complete").write_text(version)
+    return python
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("version", OTHER_BPY)
+def test_the_extension_in_other_bpy_releases(built, version, tmp_path):
+    """bpy 4.2 LTS and 4.5 LTS (5.0.1 is the project's own, tested above): the extension zip installs, registers
+    every operator and panel, fills the Advanced rows from its cached schema, checks this checkout's backend and
+    reconstructs the example photo, headless."""
+    python = bpy_venv(version)
+    if python is None:
+        pytest.skip(f"bpy=={version} cannot be installed here")
+    r = run_scenario("blender_version", {"zip": str(built["extension"]), "command": sys.executable,
+                                         "photo": str(REPO / "examples/sofa.png")}, tmp_path, python=str(python))
+    assert r["version"] == [int(n) for n in version.split(".")[:2]]
+    assert r["state"]["enabled"] and r["state"]["panel"] and r["state"]["prefs"] and len(r["state"]["ops"]) == 10
+    assert r["cached_rows"] >= 8 and r["check"] == ["FINISHED"] and r["backend_ok"]
+    assert r["user_folder"] == str(tmp_path / "blender-user/extensions/.user/user_default/genre")
+    assert r["outcome"][0] == "INFO" and r["meshes"] == ["sofa"], r["outcome"]

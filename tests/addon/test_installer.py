@@ -108,12 +108,12 @@ def test_the_steps_per_platform_online_and_offline(tmp_path):
     torch = inst.torch_requirement(str(wheel))
     assert torch == "torch==2.13.0"
     linux = inst.plan("/usr/bin/python3.11", "/e", str(wheel), "/r.txt", torch, platform="linux")
-    assert [s.label for s in linux] == ["Checking Python", "Creating environment", "Installing PyTorch (CPU)", "Installing the mask net",
-                                        "Installing the backend", "Checking the backend"]
+    assert [s.label for s in linux] == ["Checking Python", "Creating environment", "Installing PyTorch (CPU)", "Installing the backend",
+                                        "Installing the mask net", "Checking the backend"]
     assert linux[1].argv == ["/usr/bin/python3.11", "-m", "venv", "/e"]
     assert linux[2].argv[:3] == ["/e/bin/python", "-m", "pip"]
     assert linux[2].argv[-3:] == ["torch==2.13.0+cpu", "--extra-index-url", "https://download.pytorch.org/whl/cpu"]
-    assert linux[3].argv[-4:] == ["--no-deps", "--require-hashes", "-r", "/r.txt"] and linux[4].argv[-1] == str(wheel)
+    assert linux[4].argv[-4:] == ["--no-deps", "--require-hashes", "-r", "/r.txt"] and linux[3].argv[-1] == str(wheel)
     assert linux[5].argv[0] == "/e/bin/python"
     windows = inst.plan(r"C:\py\python.exe", r"C:\e", str(wheel), "r.txt", torch, platform="win32")
     assert windows[2].argv[0] == r"C:\e\Scripts\python.exe" and "torch==2.13.0+cpu" in windows[2].argv
