@@ -1228,4 +1228,4 @@ def test_the_extension_in_other_bpy_releases(built, version, tmp_path):
     assert r["state"]["enabled"] and r["state"]["panel"] and r["state"]["prefs"] and len(r["state"]["ops"]) == 10
     assert r["cached_rows"] >= 8 and r["check"] == ["FINISHED"] and r["backend_ok"]
     assert r["user_folder"] == str(tmp_path / "blender-user/extensions/.user/user_default/genre")
-    assert r["outcome"][0] == "INFO" and r["meshes"] == ["sofa"], r["outcome"]
+    assert r["outcome"][0] == "INFO" and "sofa" in r["meshes"], r["outcome"]
