@@ -43,6 +43,7 @@ LOG_NAME = "install-backend.log"
 DONE_NAME = "genre-install.json"  # written into the environment as the last step: the install is whole
 BUNDLE_DIR = "backend"
 MODEL_REQUIREMENTS = "model-requirements.txt"
+REMOVE_TRIES = 6
 # what the last step imports: the backend's command and the runtime's compiled packages
 CHECK_CODE = ("import sys, torch, numpy, scipy, skimage, cv2, PIL, safetensors, maxflow, trimesh\n"
               "import genre_backend.cli, genre_backend.inference.server\n"
@@ -188,7 +189,13 @@ def remove_env(env: str) -> None:
         return
     if os.path.basename(os.path.normpath(env)) != ENV_NAME or os.path.islink(env) or not os.path.isfile(os.path.join(env, "pyvenv.cfg")):
         raise InstallError(f"not removing {env}: it is not the add-on's backend environment")
-    shutil.rmtree(env)
+    for attempt in range(REMOVE_TRIES):  # a backend that has just been stopped may still be closing its files
+        try:
+            return shutil.rmtree(env)
+        except OSError as exc:
+            if attempt == REMOVE_TRIES - 1:
+                raise InstallError(f"could not delete {env}: {exc.strerror or exc} (is a backend still running from it?)") from None
+            time.sleep(0.5)
 
 
 # ---------------------------------------------------------------- the run
