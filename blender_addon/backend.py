@@ -176,6 +176,9 @@ class BackendClient:
         env = dict(os.environ if self._env is None else self._env)
         env.setdefault("PYTHONUNBUFFERED", "1")
         env["PYTHONIOENCODING"] = "utf-8"
+        # `python -m` would put the working folder first on sys.path: a genre_backend folder there (Blender started in
+        # a checkout) would shadow the installed backend. Python 3.11+ leaves it out with this set.
+        env["PYTHONSAFEPATH"] = "1"
         # Blender's own Python settings must not leak into the backend's interpreter.
         if self._env is None:
             for key in ("PYTHONHOME", "PYTHONPATH", "PYTHONSTARTUP"):

@@ -184,12 +184,25 @@ def annotation_guidance(spec: JobSpec, settings) -> None:
     spec.guidance_frame = "stored"
 
 
+def require_photo(settings) -> None:
+    """The first thing a reconstruction needs, asked for before anything about the backend: the photo."""
+    if settings.source == "IMAGE":
+        if settings.image is None:
+            raise UserError("choose an image to reconstruct from (or switch the source to File)")
+    else:
+        path = _abspath(settings.photo_path)
+        if not path:
+            raise UserError("choose a photo to reconstruct from")
+        _check_file(path, "photo")
+
+
 def prepare_job(settings, work_base: str) -> JobSpec:
     """Check the panel's settings and fix them in a :class:`JobSpec`; :class:`UserError` when something is missing.
 
     ``settings`` is the scene's ``genre`` settings (or anything with the same
     attributes); ``work_base`` the folder for job folders (:func:`work_root`).
     """
+    require_photo(settings)
     mask = _abspath(settings.mask_path)
     if mask:
         _check_file(mask, "mask")
@@ -198,8 +211,6 @@ def prepare_job(settings, work_base: str) -> JobSpec:
     try:
         if settings.source == "IMAGE":
             image = settings.image
-            if image is None:
-                raise UserError("choose an image to reconstruct from (or switch the source to File)")
             name = os.path.splitext(image.name)[0] or image.name
             path = _image_file_on_disk(image)
             work_dir = tempfile.mkdtemp(prefix="job-", dir=work_base)
@@ -209,9 +220,6 @@ def prepare_job(settings, work_base: str) -> JobSpec:
             spec = JobSpec(name=name, image_path=path, work_dir=work_dir, photo_image=image.name)
         else:
             path = _abspath(settings.photo_path)
-            if not path:
-                raise UserError("choose a photo to reconstruct from")
-            _check_file(path, "photo")
             work_dir = tempfile.mkdtemp(prefix="job-", dir=work_base)
             name = os.path.splitext(os.path.basename(path))[0] or "GenRe"
             spec = JobSpec(name=name, image_path=path, work_dir=work_dir, photo_file=path)

@@ -1,4 +1,4 @@
-"""Operators: Reconstruct (modal, timer-driven), Cancel, Check backend, and the image file browser.
+"""Operators: Reconstruct (modal, timer-driven), Cancel, Check backend, Install/Remove Backend, and the image file browser.
 
 The per-tick work is in plain functions (:func:`start_job`, :func:`advance`,
 :func:`start_check`, :func:`advance_check`) that take explicit arguments; the
@@ -7,14 +7,16 @@ modal operators only call them from their TIMER events, and ``execute()``
 """
 
 import os
+import sys
 import time
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from . import schema
+from . import installer, schema
 from .backend import BackendError, BackendManager, Request, build_command, weights_argument
-from .jobs import MASK_IMAGE, Job, JobLimits, UserError, prepare_job, work_root
+from .installer import Installer, InstallError
+from .jobs import MASK_IMAGE, Job, JobLimits, UserError, prepare_job, require_photo, work_root
 from .props import ADDON_PACKAGE, get_preferences
 
 TICK_SECONDS = 0.1
@@ -26,6 +28,7 @@ manager = BackendManager()
 class _Active:
     job = None  # the running Job
     check = None  # the running Check backend Request
+    install = None  # the running Installer
 
 
 active = _Active()
@@ -50,6 +53,9 @@ def start_job(settings, prefs, status, *, backend: BackendManager | None = None)
     """Check the settings, make the job's folder and the request; raises :class:`UserError` / :class:`BackendError`."""
     if active.job is not None and not active.job.finished:
         raise UserError("a reconstruction is already running")
+    require_photo(settings)  # the photo first: a missing one is the first thing to say
+    if active.install is not None and not active.install.finished:
+        raise UserError("the backend is being installed: wait for Install Backend to finish")
     argv = backend_argv(prefs)
     spec = prepare_job(settings, work_root(ADDON_PACKAGE))
     job = Job(spec, backend or manager, argv, job_limits(prefs))
@@ -146,6 +152,23 @@ def sync_options(settings, event) -> None:
             rows.move(current, index)
 
 
+CACHED_SCHEMA = schema.cached()  # the shipped default weights' options (options_schema.json)
+
+
+def fill_from_cache(settings) -> bool:
+    """Give an Advanced panel without rows the cached schema's (the backend's own replaces them once it has started)."""
+    if settings is None or len(settings.options) or CACHED_SCHEMA is None:
+        return False
+    sync_options(settings, CACHED_SCHEMA)
+    return True
+
+
+@bpy.app.handlers.persistent
+def _fill_scenes(*_args):
+    for scene in bpy.data.scenes:
+        fill_from_cache(getattr(scene, "genre", None))
+
+
 def follow_result(settings, result: dict) -> None:
     """An unticked row shows the value the backend used (the result's echo of the option), so that ticking it starts
     from the shipped mesh rather than from an arbitrary value."""
@@ -228,6 +251,80 @@ def _redraw(context) -> None:
         for area in window.screen.areas:
             if area.type in ("VIEW_3D", "PREFERENCES"):
                 area.tag_redraw()
+
+
+_user_folder: dict = {}
+
+
+def addon_user_folder() -> str:
+    """The add-on's own writable folder (the extension's user folder on 4.2+, else the config folder's ``genre``)."""
+    if "path" not in _user_folder:
+        _user_folder["path"] = installer.user_folder(ADDON_PACKAGE, tuple(bpy.app.version),
+                                                     getattr(bpy.utils, "extension_path_user", None), bpy.utils.user_resource)
+    return _user_folder["path"]
+
+
+def backend_env() -> str:
+    return installer.env_folder(addon_user_folder())
+
+
+def start_install(prefs, status, *, addon_dir: str = os.path.dirname(os.path.abspath(__file__))) -> Installer:
+    """Start Install Backend; :class:`InstallError` when it cannot start (no bundle, no Python, no space, busy)."""
+    if active.install is not None and not active.install.finished:
+        raise InstallError("the backend is already being installed")
+    if active.job is not None and not active.job.finished:
+        raise InstallError("a reconstruction is running: wait for it to end")
+    wheel, requirement = installer.bundle(addon_dir)
+    python = bpy.path.abspath(prefs.backend_python) if prefs.backend_python else installer.blender_python(sys.executable)
+    folder = bpy.path.abspath(prefs.wheel_folder).rstrip("/\\") if prefs.wheel_folder else ""
+    manager.discard()  # a backend running from the environment being replaced would hold its files
+    job = Installer(python, addon_user_folder(), wheel, requirement, wheel_folder=folder)
+    job.start()
+    active.install = job
+    status.installing, status.install_progress, status.install_stage = True, 0.0, job.stage
+    status.install_line, status.install_message, status.install_ok = "", "", False
+    return job
+
+
+def advance_install(job: Installer, prefs, status):
+    """One tick of Install Backend: None while it runs, else ``(level, message)``; when done, Backend Command is the
+    new environment's Python."""
+    try:
+        job.tick()
+    except Exception as exc:  # never leave the preferences stuck in "installing"
+        job.cancel()
+        job.state, job.error = "failed", f"unexpected error: {type(exc).__name__}: {exc}"
+    status.install_progress, status.install_stage, status.install_line = job.fraction, job.stage, job.last_line
+    if not job.finished:
+        return None
+    if job.state == "done":
+        prefs.backend_command = job.backend_python
+        outcome = ("INFO", f"Backend installed in {job.env}")
+    elif job.state == "cancelled":
+        outcome = ("WARNING", "Install Backend cancelled; nothing was left behind")
+    else:
+        outcome = ("ERROR", job.error)
+    if active.install is job:
+        active.install = None
+    status.installing = False
+    status.install_message, status.install_ok = outcome[1], outcome[0] == "INFO"
+    return outcome
+
+
+def remove_backend(prefs, status) -> str:
+    """Delete the add-on's backend environment (and nothing else); clear Backend Command when it named it."""
+    if active.install is not None and not active.install.finished:
+        raise InstallError("the backend is being installed: cancel that first")
+    env = backend_env()
+    if not os.path.lexists(env):
+        raise InstallError("no backend is installed in the add-on's folder")
+    manager.discard()  # stop a backend that runs from it
+    installer.remove_env(env)
+    if prefs.backend_command and os.path.abspath(bpy.path.abspath(prefs.backend_command)).startswith(os.path.join(env, "")):
+        prefs.backend_command = ""
+    status.install_message, status.install_ok = f"Backend removed from {env}", True
+    status.backend_info, status.backend_ok = "", False
+    return status.install_message
 
 
 # ---------------------------------------------------------------- operators
@@ -397,6 +494,139 @@ class GENRE_OT_check_backend(_TimerModal, bpy.types.Operator):
             time.sleep(0.05)
 
 
+class GENRE_OT_install_backend(_TimerModal, bpy.types.Operator):
+    """Make a private Python environment in the add-on's folder and install the backend and PyTorch (CPU) into it, \
+about 1.2 GB (from the internet, or from the Offline Wheels folder); then check it"""
+
+    bl_idname = "genre.install_backend"
+    bl_label = "Install Backend"
+
+    _job = None
+
+    @classmethod
+    def poll(cls, context):
+        return active.install is None or active.install.finished
+
+    def _start(self, context):
+        status = context.window_manager.genre_status
+        try:
+            return start_install(get_preferences(context), status)
+        except (InstallError, OSError) as exc:
+            status.install_message, status.install_ok = str(exc), False
+            self.report({"ERROR"}, f"GenRe: {exc}")
+            return None
+
+    def _end(self, context, outcome):
+        self.report({outcome[0]}, f"GenRe: {outcome[1]}")
+        if outcome[0] != "INFO":
+            return {"CANCELLED"}
+        bpy.ops.genre.check_backend("INVOKE_DEFAULT" if self._timer_based else "EXEC_DEFAULT")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        self._job = self._start(context)
+        if self._job is None:
+            return {"CANCELLED"}
+        self._timer_based = True
+        self._add_timer(context)
+        _redraw(context)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        outcome = advance_install(self._job, get_preferences(context), context.window_manager.genre_status)
+        _redraw(context)
+        if outcome is None:
+            return {"RUNNING_MODAL"}
+        self._remove_timer(context)
+        return self._end(context, outcome)
+
+    def cancel(self, context):
+        self._remove_timer(context)
+        if self._job is not None and not self._job.finished:
+            self._job.cancel()
+            advance_install(self._job, get_preferences(context), context.window_manager.genre_status)
+
+    def execute(self, context):
+        # Scripts and background mode (no timer events there): the same steps, waiting in place.
+        self._job = self._start(context)
+        if self._job is None:
+            return {"CANCELLED"}
+        self._timer_based = False
+        while True:
+            outcome = advance_install(self._job, get_preferences(context), context.window_manager.genre_status)
+            if outcome is not None:
+                return self._end(context, outcome)
+            time.sleep(0.1)
+
+
+class GENRE_OT_cancel_install(bpy.types.Operator):
+    """Stop installing the backend and delete what was installed so far"""
+
+    bl_idname = "genre.cancel_install"
+    bl_label = "Cancel Install"
+
+    @classmethod
+    def poll(cls, context):
+        return active.install is not None and not active.install.finished
+
+    def execute(self, context):
+        active.install.cancel()  # (the modal operator's next tick reports it)
+        return {"FINISHED"}
+
+
+class GENRE_OT_remove_backend(bpy.types.Operator):
+    """Delete the backend environment that Install Backend made (nothing else)"""
+
+    bl_idname = "genre.remove_backend"
+    bl_label = "Remove Backend"
+
+    @classmethod
+    def poll(cls, context):
+        return active.install is None or active.install.finished
+
+    def invoke(self, context, event):
+        return context.window_manager.invoke_confirm(self, event)
+
+    def execute(self, context):
+        try:
+            self.report({"INFO"}, f"GenRe: {remove_backend(get_preferences(context), context.window_manager.genre_status)}")
+        except (InstallError, OSError) as exc:
+            self.report({"ERROR"}, f"GenRe: {exc}")
+            return {"CANCELLED"}
+        _redraw(context)
+        return {"FINISHED"}
+
+
+class GENRE_OT_show_install_log(bpy.types.Operator):
+    """Open the last Install Backend's pip log in a Text Editor window"""
+
+    bl_idname = "genre.show_install_log"
+    bl_label = "Show Log"
+
+    def execute(self, context):
+        path = os.path.join(addon_user_folder(), installer.LOG_NAME)
+        if not os.path.isfile(path):
+            self.report({"ERROR"}, "GenRe: no install log yet")
+            return {"CANCELLED"}
+        text = next((t for t in bpy.data.texts if bpy.path.abspath(t.filepath) == path), None)
+        if text is None:
+            text = bpy.data.texts.load(path)
+        else:
+            text.clear()
+            with open(path, encoding="utf-8", errors="replace") as fh:
+                text.write(fh.read())
+        try:  # a new window showing it (a GUI Blender); else the text is there for any Text Editor
+            bpy.ops.wm.window_new()
+            area = context.window_manager.windows[-1].screen.areas[0]
+            area.type = "TEXT_EDITOR"
+            area.spaces.active.text = text
+        except (RuntimeError, AttributeError, IndexError):
+            self.report({"INFO"}, f"GenRe: the log is the text '{text.name}' in the Text Editor")
+        return {"FINISHED"}
+
+
 class GENRE_OT_choose_file(bpy.types.Operator):
     """Choose an image file in the file browser"""
 
@@ -472,8 +702,8 @@ class GENRE_OT_option_help(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (GENRE_OT_reconstruct, GENRE_OT_cancel, GENRE_OT_check_backend, GENRE_OT_choose_file, GENRE_OT_clear_mask,
-           GENRE_OT_option_help)
+CLASSES = (GENRE_OT_reconstruct, GENRE_OT_cancel, GENRE_OT_check_backend, GENRE_OT_install_backend, GENRE_OT_cancel_install,
+           GENRE_OT_remove_backend, GENRE_OT_show_install_log, GENRE_OT_choose_file, GENRE_OT_clear_mask, GENRE_OT_option_help)
 
 
 def shutdown_backend() -> None:
@@ -484,15 +714,24 @@ def shutdown_backend() -> None:
         job.cleanup()
         active.job = None
     active.check = None
+    if active.install is not None and not active.install.finished:
+        active.install.cancel()
+    active.install = None
     manager.discard()
 
 
 def register():
     for cls in CLASSES:
         bpy.utils.register_class(cls)
+    bpy.app.handlers.load_post.append(_fill_scenes)
+    bpy.app.timers.register(_fill_scenes, first_interval=0.1)  # (bpy.data is closed to add-ons while they register)
 
 
 def unregister():
+    if _fill_scenes in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_fill_scenes)
+    if bpy.app.timers.is_registered(_fill_scenes):
+        bpy.app.timers.unregister(_fill_scenes)
     shutdown_backend()
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

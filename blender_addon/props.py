@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
@@ -119,6 +120,26 @@ class GENRE_PG_status(bpy.types.PropertyGroup):
     checking: BoolProperty(name="Checking Backend", default=False)
     backend_info: StringProperty(name="Backend", default="")
     backend_ok: BoolProperty(default=False)
+    installing: BoolProperty(name="Installing Backend", default=False)
+    install_progress: FloatProperty(name="Install Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
+    install_stage: StringProperty(name="Install Step", default="")
+    install_line: StringProperty(name="Last Log Line", default="")
+    install_message: StringProperty(name="Install Result", default="")
+    install_ok: BoolProperty(default=False)
+
+
+def draw_progress(layout, factor: float, text: str) -> None:
+    """A progress bar: ``layout.progress`` where Blender has it (4.0+); before, a label with a bar of characters
+    (a greyed slider there reads as a setting)."""
+    if hasattr(layout, "progress"):
+        layout.progress(factor=factor, type="BAR", text=f"{text} ({factor:.0%})")
+        return
+    filled = int(round(max(0.0, min(1.0, factor)) * PROGRESS_CELLS))
+    layout.label(text=f"{text} ({factor:.0%})", icon="TIME")
+    layout.label(text="\u2588" * filled + "\u2591" * (PROGRESS_CELLS - filled))
+
+
+PROGRESS_CELLS = 20  # the characters of the fallback bar
 
 
 class GENRE_AP_preferences(bpy.types.AddonPreferences):
@@ -152,9 +173,21 @@ class GENRE_AP_preferences(bpy.types.AddonPreferences):
     job_timeout: FloatProperty(
         name="Reconstruction Time-out", description="Seconds one reconstruction may take", default=600.0, min=0.001, unit="TIME_ABSOLUTE",
     )
+    backend_python: StringProperty(
+        name="Python for the Backend",
+        description="The Python 3.11 that Install Backend makes the backend's environment with; empty: Blender's own "
+                    "(3.11 in Blender 4.2 to 5.0)",
+        subtype="FILE_PATH",
+    )
+    wheel_folder: StringProperty(
+        name="Offline Wheels",
+        description="Install from this folder of wheels (pip download) instead of the internet; empty: download",
+        subtype="DIR_PATH",
+    )
 
     def draw(self, context):
         layout = self.layout
+        self.draw_install(layout.box(), context.window_manager.genre_status)
         layout.prop(self, "backend_command")
         layout.prop(self, "model")
         if self.model == "custom":
@@ -172,6 +205,37 @@ class GENRE_AP_preferences(bpy.types.AddonPreferences):
             layout.label(text="Checking the backend…", icon="TIME")
         elif status.backend_info:
             layout.label(text=status.backend_info, icon="CHECKMARK" if status.backend_ok else "ERROR")
+
+
+    def draw_install(self, box, status):
+        """Install Backend: the buttons, the Python and the wheel folder, the progress and the outcome."""
+        from . import installer, ops  # (ops imports this module)
+
+        box.label(text="Backend: PyTorch (CPU) and GenRe in a private environment, about 1.2 GB", icon="PACKAGE")
+        if status.installing:
+            draw_progress(box, status.install_progress, status.install_stage or "Installing")
+            if status.install_line:
+                box.label(text=status.install_line[:100], icon="BLANK1")
+            row = box.row()
+            row.operator("genre.cancel_install", icon="CANCEL")
+            row.operator("genre.show_install_log", icon="TEXT")
+            return
+        env = ops.backend_env()
+        row = box.row()
+        row.operator("genre.install_backend", icon="IMPORT",
+                     text="Reinstall Backend" if installer.installed(env) else "Install Backend")
+        sub = row.row()
+        sub.enabled = os.path.lexists(env)
+        sub.operator("genre.remove_backend", icon="TRASH")
+        box.prop(self, "backend_python")
+        box.prop(self, "wheel_folder")
+        if status.install_message:
+            row = box.row()
+            row.label(text=status.install_message, icon="CHECKMARK" if status.install_ok else "ERROR")
+            if os.path.isfile(os.path.join(ops.addon_user_folder(), installer.LOG_NAME)):
+                row.operator("genre.show_install_log", icon="TEXT")
+        elif installer.installed(env):
+            box.label(text=f"Installed in {env}", icon="CHECKMARK")
 
 
 def get_preferences(context=None):

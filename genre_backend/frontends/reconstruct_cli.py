@@ -188,6 +188,7 @@ def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
 
     parser = _parser(prog)
     args = parser.parse_args(argv)
+    _check_extras(parser, args)
     box = _mask_inputs(parser, args)
     try:
         options = from_arguments(args)
@@ -209,6 +210,16 @@ def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
     return ReconstructSpec(prog, tuple(images), tuple(output_paths(images, args.output, fmt)), args.output, fmt, up,
                            options, args.mask, box, args.strokes, not args.no_refine, args.save_intermediates,
                            args.preview, args.weights, args.device)
+
+
+def _check_extras(parser, args) -> None:
+    """--preview needs the ``genre[preview]`` extra (bpy, matplotlib), which the runtime install leaves out: say so
+    before any work.  (--save-intermediates without matplotlib draws its maps in grey.)"""
+    import importlib.util
+
+    missing = [name for name in ("bpy", "matplotlib") if args.preview and importlib.util.find_spec(name) is None]
+    if missing:
+        parser.error(f"--preview needs {' and '.join(missing)}, which this install lacks: pip install 'genre[preview]'")
 
 
 def _main(argv: list[str] | None, prog: str) -> int:

@@ -31,14 +31,18 @@ MASK_OVERLAY_SIDE = 320
 
 
 def _colour(values: np.ndarray, valid: np.ndarray, lo: float, hi: float, cmap: str) -> np.ndarray:
-    """(H, W) floats → (H, W, 3) uint8 colour map; invalid pixels black."""
+    """(H, W) floats → (H, W, 3) uint8 colour map; invalid pixels black.  Without matplotlib (the runtime install,
+    which the add-on's Install Backend makes: it asks for the intermediates only for the mask's pictures) grey levels."""
     from ..output.blender import private_matplotlib_config
 
-    private_matplotlib_config()  # (never $HOME/.config/matplotlib)
-    import matplotlib
-
     t = np.clip((values - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
-    rgb = (matplotlib.colormaps[cmap](t)[..., :3] * 255).astype(np.uint8)
+    private_matplotlib_config()  # (never $HOME/.config/matplotlib)
+    try:
+        import matplotlib
+    except ImportError:
+        rgb = np.repeat((t * 255).astype(np.uint8)[..., None], 3, axis=-1)
+    else:
+        rgb = (matplotlib.colormaps[cmap](t)[..., :3] * 255).astype(np.uint8)
     rgb[~valid] = 0
     return rgb
 

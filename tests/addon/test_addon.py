@@ -52,7 +52,8 @@ def _registration_state(bpy, module: str) -> dict:
 
     return {
         "enabled": module in {a.module for a in bpy.context.preferences.addons},
-        "ops": sorted(n for n in ("reconstruct", "cancel", "check_backend", "choose_file", "clear_mask", "option_help")
+        "ops": sorted(n for n in ("reconstruct", "cancel", "check_backend", "choose_file", "clear_mask", "option_help",
+                                  "install_backend", "cancel_install", "remove_backend", "show_install_log")
                       if n in dir(bpy.ops.genre)),
         "panel": hasattr(bpy.types, "GENRE_PT_panel"),
         "scene_settings": hasattr(bpy.types.Scene, "genre"),
@@ -122,6 +123,22 @@ def scenario_install(args: dict) -> dict:
         {"name": "test_time_mirror", "type": "bool", "min": None, "max": None, "choices": None, "default": True,
          "label": "Mirror Average", "help": "mirror"},
         {"name": "texture", "type": "bool", "default": False, "label": "Colour from Photo", "help": "the add-on's own"}]}
+    # before the backend has started, the Advanced rows are the cached schema's (a file load or the first timer tick)
+    mod.ops._fill_scenes()
+    out["cached_rows"] = [[r.name, r.kind, r.weights_value] for r in settings.options]
+    # no photo chosen (and no usable backend): the photo is asked for first
+    prefs = bpy.context.preferences.addons[module].preferences
+    prefs.backend_command = "/no/such/python"
+    try:
+        mod.ops.start_job(settings, prefs, bpy.context.window_manager.genre_status)
+    except mod.jobs.UserError as exc:
+        out["no_photo"] = str(exc)
+    prefs.backend_command = ""
+    # the preferences' Install Backend box, and where it installs
+    drawn = _Layout()
+    prefs.draw_install(drawn, bpy.context.window_manager.genre_status)
+    out["install_drawn"] = drawn.calls
+    out["user_folder"] = mod.ops.addon_user_folder()
     mod.ops.sync_options(settings, ready)
     settings.options["threshold"].override = True
     drawn = _Layout()
@@ -382,6 +399,61 @@ def scenario_reconstruct(args: dict) -> dict:
     return out
 
 
+def scenario_install_backend(args: dict) -> dict:
+    """The extension zip alone: Install Backend from a folder of wheels with this Python, then (by itself) Check
+    Backend; Reconstruct the example photo with the installed backend; Remove Backend."""
+    import bpy
+
+    module = _install_extension(bpy, args["zip"])
+    ops = sys.modules[module].ops
+    prefs = bpy.context.preferences.addons[module].preferences
+    status = bpy.context.window_manager.genre_status
+    prefs.backend_python = sys.executable
+    prefs.wheel_folder = args["wheels"]
+    out = {"command_before": prefs.backend_command}
+    started = time.monotonic()
+    out["install"] = sorted(bpy.ops.genre.install_backend())
+    out["minutes"] = (time.monotonic() - started) / 60
+    out["message"], out["ok"] = status.install_message, status.install_ok
+    out["command_after"] = prefs.backend_command
+    out["env"] = ops.backend_env()
+    out["checked"], out["backend_info"] = status.backend_ok, status.backend_info
+    scene = bpy.context.scene
+    scene.genre.photo_path = args["photo"]
+    job, outcome, states = _drive(ops, scene.genre, prefs, status, scene)
+    out["outcome"] = list(outcome)
+    out["meshes"] = [o.name for o in bpy.data.objects if o.type == "MESH"]
+    log = os.path.join(ops.addon_user_folder(), "install-backend.log")
+    out["log_has_pip"] = "Successfully installed" in open(log, encoding="utf-8").read()
+    out["remove"] = sorted(bpy.ops.genre.remove_backend())
+    out["env_after_remove"] = os.path.exists(out["env"])
+    out["log_after_remove"] = os.path.exists(log)
+    out["command_after_remove"] = prefs.backend_command
+    return out
+
+
+def scenario_blender_version(args: dict) -> dict:
+    """In one bpy release: the extension zip installs and registers, Check Backend answers, Reconstruct adds a mesh."""
+    import bpy
+
+    module = _install_extension(bpy, args["zip"])
+    out = {"version": list(bpy.app.version[:2]), "state": _registration_state(bpy, module)}
+    ops = sys.modules[module].ops
+    prefs = bpy.context.preferences.addons[module].preferences
+    prefs.backend_command, prefs.model, prefs.device = args["command"], "default", "cpu"
+    status = bpy.context.window_manager.genre_status
+    ops._fill_scenes()
+    out["cached_rows"] = len(bpy.context.scene.genre.options)
+    out["check"], out["backend_ok"] = sorted(bpy.ops.genre.check_backend()), status.backend_ok
+    out["user_folder"] = ops.addon_user_folder()
+    scene = bpy.context.scene
+    scene.genre.photo_path = args["photo"]
+    job, outcome, states = _drive(ops, scene.genre, prefs, status, scene)
+    out["outcome"] = list(outcome)
+    out["meshes"] = [o.name for o in bpy.data.objects if o.type == "MESH"]
+    return out
+
+
 def scenario_failures(args: dict) -> dict:
     """Every failure ends cleanly, leaves no half-made objects, says why; the next attempt works."""
     import signal
@@ -604,7 +676,8 @@ def scenario_annotation(args: dict) -> dict:
 
 
 SCENARIOS = {"install": scenario_install, "reconstruct": scenario_reconstruct, "failures": scenario_failures,
-             "annotation": scenario_annotation}
+             "annotation": scenario_annotation, "install_backend": scenario_install_backend,
+             "blender_version": scenario_blender_version}
 
 
 def _scenario_main(argv: list[str]) -> int:
@@ -627,13 +700,13 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 
-def run_scenario(name: str, args: dict, tmp_path: Path, timeout: float = 600.0) -> dict:
+def run_scenario(name: str, args: dict, tmp_path: Path, timeout: float = 600.0, python: str = sys.executable) -> dict:
     env = dict(os.environ)
     env["BLENDER_USER_RESOURCES"] = str(tmp_path / "blender-user")
     env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
     env["TMPDIR"] = str(tmp_path / "tmp")
     (tmp_path / "tmp").mkdir(exist_ok=True)
-    proc = subprocess.run([sys.executable, __file__, name, json.dumps(args)], cwd=REPO, env=env,
+    proc = subprocess.run([python, __file__, name, json.dumps(args)], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout)
     for line in proc.stdout.splitlines():
         if line.startswith(RESULT_TAG):
@@ -788,6 +861,56 @@ def test_build_writes_validated_extension_and_legacy_zip(built):
     assert "blender_manifest.toml" in ext and "__init__.py" in ext
     assert "genre/__init__.py" in legacy and not any(n.endswith("blender_manifest.toml") for n in legacy)
     assert not any("__pycache__" in n for n in ext + legacy)
+    # the backend travels with the add-on: its wheel and the mask net's hash-pinned requirement
+    wheel = "backend/genre-0.1.0-py3-none-any.whl"
+    assert {wheel, "backend/model-requirements.txt"} <= set(ext) and {f"genre/{wheel}", "genre/backend/model-requirements.txt"} <= set(legacy)
+    assert zipfile.ZipFile(built["extension"]).read(wheel) == zipfile.ZipFile(built["legacy"]).read(f"genre/{wheel}")
+    assert built["extension"].stat().st_size < 20_000_000 and built["legacy"].stat().st_size < 20_000_000
+
+
+def test_the_bundled_wheel_is_the_backend_alone(built, tmp_path):
+    """The wheel: every backend module, the default weights (not protocol's), no training; the runtime's requirements;
+    a RECORD that matches; the same bytes from the same tree; and it installs and finds its weights by name."""
+    import base64
+    import hashlib
+    import tomllib
+    import zipfile
+
+    sys.path.insert(0, str(REPO))
+    try:
+        import build_addon
+    finally:
+        sys.path.remove(str(REPO))
+    wheel = zipfile.ZipFile(built["extension"]).read("backend/genre-0.1.0-py3-none-any.whl")
+    (tmp_path / "genre-0.1.0-py3-none-any.whl").write_bytes(wheel)
+    zf = zipfile.ZipFile(tmp_path / "genre-0.1.0-py3-none-any.whl")
+    names = set(zf.namelist())
+    modules = {p.relative_to(REPO).as_posix() for p in (REPO / "genre_backend").rglob("*.py") if "__pycache__" not in p.parts}
+    assert modules <= names
+    assert {"genre_backend/weights/default.safetensors", "genre_backend/weights/default.json"} <= names
+    assert not any(n.startswith("training") or "protocol." in n for n in names)
+    meta = zf.read("genre-0.1.0.dist-info/METADATA").decode()
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    assert [line[len("Requires-Dist: "):] for line in meta.splitlines() if line.startswith("Requires-Dist: ")] == project["dependencies"]
+    assert "Requires-Python: >=3.11,<3.12" in meta
+    assert zf.read("genre-0.1.0.dist-info/entry_points.txt").decode() == "[console_scripts]\ngenre = genre_backend.cli:run\n"
+    for line in zf.read("genre-0.1.0.dist-info/RECORD").decode().splitlines():
+        name, digest, size = line.rsplit(",", 2)
+        if name.endswith("RECORD"):
+            continue
+        data = zf.read(name)
+        assert digest == "sha256=" + base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode() and int(size) == len(data)
+    (tmp_path / "again").mkdir()
+    assert build_addon.build_wheel(tmp_path / "again").read_bytes() == wheel  # (deterministic)
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index", "--target", str(target),
+                    str(tmp_path / "genre-0.1.0-py3-none-any.whl")], check=True, capture_output=True, timeout=300)
+    code = ("import genre_backend, genre_backend.weights_file as wf; print(genre_backend.__file__); print(wf.resolve_weights('default'));"
+            "print(wf.resolve_weights('protocol').exists())")
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(target)}, cwd=tmp_path,
+                         capture_output=True, text=True, check=True, timeout=120).stdout.split()
+    assert out[0].startswith(str(target)) and out[1].startswith(str(target)) and out[2] == "False"
+    assert (target / "bin" / "genre").is_file()
 
 
 @pytest.mark.parametrize("kind", ["extension", "legacy"])
@@ -795,7 +918,8 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
     r = run_scenario("install", {"kind": kind, "zip": str(built[kind])}, tmp_path)
     module = "bl_ext.user_default.genre" if kind == "extension" else "genre"
     assert r["module"] == module and r["package"] == module and r["prefs_idname"] == module
-    everything = {"enabled": True, "ops": ["cancel", "check_backend", "choose_file", "clear_mask", "option_help", "reconstruct"],
+    everything = {"enabled": True, "ops": ["cancel", "cancel_install", "check_backend", "choose_file", "clear_mask", "install_backend",
+                                           "option_help", "reconstruct", "remove_backend", "show_install_log"],
                   "panel": True,
                   "scene_settings": True, "status": True, "prefs": True, "loaded": True}
     assert r["after_enable"] == everything
@@ -835,6 +959,17 @@ def test_zip_installs_enables_and_unregisters_cleanly(built, kind, tmp_path):
                          "custom": ["--weights", "/some/w.safetensors"]}
     assert "no weights file is set" in r["custom_without_file"]
     assert str(tmp_path / "blender-user") in r["installed_at"]
+    # the Advanced rows before any backend: the cached schema's (the shipped weights' values), the add-on's own left out
+    cached = json.loads((ADDON / "options_schema.json").read_text())["options"]
+    assert r["cached_rows"] == [[o["name"], o["type"], json.dumps(o["default"])] for o in cached if o["name"] not in ("format", "up", "texture")]
+    assert len(r["cached_rows"]) >= 8
+    assert r["no_photo"] == "choose a photo to reconstruct from"
+    # Install Backend: in the extension's user folder on 4.2+, Blender's config folder for a legacy add-on
+    user = tmp_path / "blender-user"
+    assert r["user_folder"] == str(user / "extensions/.user/user_default/genre" if kind == "extension" else user / "config/genre")
+    assert [c for c in r["install_drawn"] if c[0] != "label"] == [
+        ["operator", "genre.install_backend", "Install Backend"], ["operator", "genre.remove_backend", None],
+        ["prop", "", "backend_python", None], ["prop", "", "wheel_folder", None]]
 
 
 # ------------------------------------------------------------------ against a real `genre serve`
@@ -1034,3 +1169,64 @@ def test_annotation_becomes_strokes_and_box(built, tmp_path):
     auto = segment(rgb).mask
     guided = segment(rgb, box=box_px, object_strokes=fg, background_strokes=bg).mask
     assert iou(auto, hand) > 0.85 and iou(guided, hand) > 0.84, (iou(auto, hand), iou(guided, hand))
+
+
+@pytest.mark.slow
+def test_install_backend_from_the_zip_alone(built, tmp_path):
+    """Install Backend in bpy 5.0 from the extension zip and a folder of wheels (standing in for the network), the
+    backend checked by itself, a reconstruction with it, then Remove Backend: Linux, run for real."""
+    from support.wheels import wheel_folder
+
+    wheels = wheel_folder()
+    if wheels is None:
+        pytest.skip("no package index reachable to fill the wheel folder (set GENRE_RUNTIME_WHEELS)")
+    r = run_scenario("install_backend", {"zip": str(built["extension"]), "wheels": str(wheels),
+                                         "photo": str(REPO / "examples/sofa.png")}, tmp_path, timeout=1500)
+    env = tmp_path / "blender-user/extensions/.user/user_default/genre/backend-env"
+    assert r["command_before"] == "" and r["install"] == ["FINISHED"], r
+    assert r["ok"] and r["message"] == f"Backend installed in {env}" and r["env"] == str(env)
+    assert r["command_after"] == str(env / "bin/python")
+    assert r["checked"] and r["backend_info"].startswith("GenRe backend 0.1.0") and "weights " + str(env) in r["backend_info"]
+    assert r["outcome"][0] == "INFO" and r["meshes"], r["outcome"]
+    assert r["log_has_pip"]
+    assert r["remove"] == ["FINISHED"] and not r["env_after_remove"] and r["log_after_remove"] and r["command_after_remove"] == ""
+    print(f"Install Backend in bpy 5.0.1: {r['minutes']:.1f} min from a local wheel folder")
+
+
+# the bpy releases artists use besides the project's own 5.0.1: the LTS lines 4.2 and 4.5 (bpy wheels from PyPI)
+OTHER_BPY = ("4.2.0", "4.5.0")
+
+
+def bpy_venv(version: str) -> Path | None:
+    """A venv with ``bpy==version`` (numpy < 2), made once under the GenRe home; None when pip cannot get it."""
+    from training.data.corpus import data_dir
+
+    venv = data_dir() / "bpy-venvs" / f"bpy-{version}"
+    python = venv / "bin" / "python"
+    if (venv / ".complete").exists():
+        return python
+    subprocess.run([sys.executable, "-m", "venv", "--clear", str(venv)], check=True, capture_output=True, timeout=300)
+    pip = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check", f"bpy=={version}", "numpy<2"],
+                         capture_output=True, text=True, timeout=1800)
+    if pip.returncode != 0:
+        return None
+    (venv / ".complete").write_text(version)
+    return python
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("version", OTHER_BPY)
+def test_the_extension_in_other_bpy_releases(built, version, tmp_path):
+    """bpy 4.2 LTS and 4.5 LTS (5.0.1 is the project's own, tested above): the extension zip installs, registers
+    every operator and panel, fills the Advanced rows from its cached schema, checks this checkout's backend and
+    reconstructs the example photo, headless."""
+    python = bpy_venv(version)
+    if python is None:
+        pytest.skip(f"bpy=={version} cannot be installed here")
+    r = run_scenario("blender_version", {"zip": str(built["extension"]), "command": sys.executable,
+                                         "photo": str(REPO / "examples/sofa.png")}, tmp_path, python=str(python))
+    assert r["version"] == [int(n) for n in version.split(".")[:2]]
+    assert r["state"]["enabled"] and r["state"]["panel"] and r["state"]["prefs"] and len(r["state"]["ops"]) == 10
+    assert r["cached_rows"] >= 8 and r["check"] == ["FINISHED"] and r["backend_ok"]
+    assert r["user_folder"] == str(tmp_path / "blender-user/extensions/.user/user_default/genre")
+    assert r["outcome"][0] == "INFO" and "sofa" in r["meshes"], r["outcome"]

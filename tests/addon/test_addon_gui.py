@@ -65,3 +65,32 @@ def test_annotation_points_are_image_view_space_in_a_drawn_editor(tmp_path):
     assert stroke[0][:2] == pytest.approx([0.25, 0.3], abs=0.01) and stroke[-1][:2] == pytest.approx([0.7, 0.8], abs=0.01)
     (line,) = r["object_pixels"]  # the add-on's photo pixels: x right, y down
     assert line[0] == pytest.approx([0.25 * 380, 0.7 * 254], abs=4) and line[-1] == pytest.approx([0.7 * 380, 0.2 * 254], abs=4)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(bool(_missing), reason=f"no GUI Blender here: {_missing}")
+def test_gui_blender_installs_the_backend_from_the_preferences(built, tmp_path):
+    """From an empty home folder and the legacy zip alone: Install Backend pressed in Edit > Preferences (a folder of
+    wheels stands in for the network; the system's Python 3.11, as Debian's Blender runs on it), then Reconstruct on
+    the example photo with the installed backend and its shipped default weights."""
+    from support.wheels import wheel_folder
+
+    wheels = wheel_folder()
+    if wheels is None:
+        pytest.skip("no package index reachable to fill the wheel folder (set GENRE_RUNTIME_WHEELS)")
+    if not Path("/usr/bin/python3.11").is_file():
+        pytest.skip("no /usr/bin/python3.11 for the backend's environment")
+    result = run_gui_e2e.run(tmp_path / "e2e", Path(), REPO / "examples" / "sofa.png", built["legacy"], timeout=300,
+                             install={"python": "/usr/bin/python3.11", "wheels": str(wheels)})
+    assert result["exit_code"] == 0, json.dumps(result, indent=2)
+    assert result["install_invoke"] == ["RUNNING_MODAL"] and result["install_ok"] and result["backend_ok"]
+    assert result["backend_command"].endswith("/config/genre/backend-env/bin/python")
+    assert "/backend-env/lib/python3.11/site-packages/genre_backend/weights/default.safetensors" in result["backend_info"]
+    steps = [s for s, _ in result["install_steps"]]
+    assert {"Installing PyTorch (CPU)", "Installing the backend"} <= set(steps)
+    fractions = [f for _, f in result["install_steps"]]
+    assert fractions == sorted(fractions)
+    assert result["mesh"]["name"] == "sofa.001" and result["message"].startswith("sofa: ")
+    for key in ("install_screenshot", "installed_screenshot", "screenshot"):
+        png = Path(result[key])
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000

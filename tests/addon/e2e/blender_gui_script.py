@@ -9,6 +9,11 @@ mesh appears, frames it, saves screenshots of the window (viewport with the
 panel) and of the view through the matching camera, writes RESULT.json and
 quits.  Any failure is written to RESULT.json too, and Blender exits non-zero.
 
+With ``"scenario": "install"`` (``run_gui_e2e.py --scenario install``) nothing is set but the Python and the
+folder of wheels: Edit > Preferences opens on the add-on, Install Backend is pressed (``install_progress.png``
+while it runs, ``installed.png`` when it has checked the backend), the window is closed, and Reconstruct runs as
+above with the backend it installed and its shipped default weights.
+
 With ``"scenario": "annotate"`` in ARGS (``run_gui_e2e.py``'s second run) the
 3D view is split and one part turned into an Image Editor showing the
 photo; the object strokes, background strokes and box of ARGS["annotation"]
@@ -36,6 +41,7 @@ OUT = ARGS["out"]
 RESULT = {"blender": bpy.app.version_string, "python": sys.version.split()[0], "ticks": 0, "log": []}
 T = {}
 ANNOTATE = ARGS.get("scenario") == "annotate"
+INSTALL = ARGS.get("scenario") == "install"  # Install Backend pressed in the preferences first (a folder of wheels)
 # annotation layers: name → colour (the add-on reads the names: docs/masks.md "In Blender")
 LAYERS = {"Note": (0.1, 1.0, 0.2), "Background": (1.0, 0.15, 0.15), "Box": (1.0, 0.85, 0.0)}
 
@@ -79,9 +85,14 @@ def setup():
     bpy.ops.preferences.addon_install(filepath=ARGS["zip"], overwrite=True)
     bpy.ops.preferences.addon_enable(module="genre")
     prefs = bpy.context.preferences.addons["genre"].preferences
-    prefs.backend_command = ARGS["backend_python"]
-    prefs.model = "custom"  # the weights file given (run_gui_e2e.py: the shipped default.safetensors, or tiny test weights)
-    prefs.weights = ARGS["weights"]
+    if INSTALL:  # Install Backend fills in Backend Command; the shipped default weights come with the backend
+        prefs.backend_python = ARGS["install"]["python"]
+        prefs.wheel_folder = ARGS["install"]["wheels"]
+        prefs.model = "default"
+    else:
+        prefs.backend_command = ARGS["backend_python"]
+        prefs.model = "custom"  # the weights file given (run_gui_e2e.py: the shipped default.safetensors, or tiny test weights)
+        prefs.weights = ARGS["weights"]
     prefs.device = "cpu"
     for obj in list(bpy.data.objects):  # an empty stage: no default cube, camera or light
         bpy.data.objects.remove(obj)
@@ -97,7 +108,84 @@ def setup():
     area.spaces.active.shading.type = "SOLID"
     area.spaces.active.shading.color_type = "TEXTURE"
     log("add-on installed and enabled")
-    bpy.app.timers.register(fit_photo if ANNOTATE else show_tab, first_interval=0.5)
+    if INSTALL:
+        open_preferences()
+        bpy.app.timers.register(press_install, first_interval=1.0)
+    else:
+        bpy.app.timers.register(fit_photo if ANNOTATE else show_tab, first_interval=0.5)
+
+
+def open_preferences():
+    """Edit > Preferences > Add-ons, filtered to GenRe and expanded: where an artist finds Install Backend."""
+    bpy.context.preferences.active_section = "ADDONS"
+    bpy.context.window_manager.addon_search = "GenRe"
+    bpy.ops.screen.userpref_show()
+    bpy.ops.preferences.addon_expand(module="genre")
+
+
+def preferences_window():
+    for window in bpy.context.window_manager.windows:
+        area = next((a for a in window.screen.areas if a.type == "PREFERENCES"), None)
+        if area is not None:
+            return window, area, next(r for r in area.regions if r.type == "WINDOW")
+    raise RuntimeError("no Preferences window")
+
+
+@guarded
+def press_install():
+    window, area, region = preferences_window()
+    log("pressing Install Backend")
+    T["install"] = time.monotonic()
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        RESULT["install_invoke"] = sorted(bpy.ops.genre.install_backend("INVOKE_DEFAULT"))
+    bpy.app.timers.register(watch_install, first_interval=0.1)
+
+
+@guarded
+def watch_install():
+    status = bpy.context.window_manager.genre_status
+    if status.installing:
+        step = (status.install_stage, round(status.install_progress, 2))
+        if not RESULT.get("install_steps") or RESULT["install_steps"][-1] != list(step):
+            RESULT.setdefault("install_steps", []).append(list(step))
+        if "install_screenshot" not in RESULT and status.install_stage == "Installing the backend":
+            shoot_preferences("install_progress.png", "install_screenshot")
+        if time.monotonic() - T["install"] > ARGS.get("timeout", 300) + 600:
+            RESULT["error"] = "timed out installing the backend"
+            finish(1)
+        return 0.2
+    if status.checking:  # Install Backend ends by checking the backend it made
+        return 0.2
+    RESULT["install_s"] = round(time.monotonic() - T["install"], 1)
+    RESULT["install_message"], RESULT["install_ok"] = status.install_message, status.install_ok
+    RESULT["backend_info"], RESULT["backend_ok"] = status.backend_info, status.backend_ok
+    RESULT["backend_command"] = bpy.context.preferences.addons["genre"].preferences.backend_command
+    log(f"install ended after {RESULT['install_s']} s: {status.install_message}; check: {status.backend_info}")
+    if not (status.install_ok and status.backend_ok):
+        RESULT["error"] = f"install: {status.install_message}; check: {status.backend_info}"
+        shoot_preferences("install_failed.png", "install_screenshot")
+        finish(1)
+        return None
+    bpy.app.timers.register(shoot_installed, first_interval=0.5)
+    return None
+
+
+def shoot_preferences(name, key):
+    window, area, region = preferences_window()
+    path = os.path.join(OUT, name)
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.screen.screenshot(filepath=path)
+    RESULT[key] = path
+    log(f"screenshot {path}")
+
+
+@guarded
+def shoot_installed():
+    shoot_preferences("installed.png", "installed_screenshot")
+    window, area, region = preferences_window()
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.wm.window_close()
+    bpy.app.timers.register(show_tab, first_interval=0.5)
 
 
 def image_editor():

@@ -45,7 +45,7 @@ PHOTOS = REPO / "examples" / "photos"
 ANNOTATED = "squirrel"
 ANNOTATED_BOX = [[127, 95], [364, 95], [364, 366], [127, 366], [127, 95]]
 SCREENSHOTS = ("viewport_with_panel.png", "through_camera.png", "side.png", "panel_while_running.png",
-               "annotated_photo.png", "annotate_result.png", "annotation_strokes.png")
+               "annotated_photo.png", "annotate_result.png", "annotation_strokes.png", "install_progress.png", "installed.png")
 
 
 def missing_tools() -> str:
@@ -57,10 +57,11 @@ def missing_tools() -> str:
 
 
 def run(out: Path, weights: Path, photo: Path, zip_path: Path, timeout: float = 300.0, event_simulate: bool = True,
-        mask: Path | None = None, annotation: dict | None = None) -> dict:
-    """One GUI Blender session; returns blender_gui_script.py's result (see result.json).
+        mask: Path | None = None, annotation: dict | None = None, install: dict | None = None) -> dict:
+    """One GUI Blender session, from an empty home folder; returns blender_gui_script.py's result (see result.json).
 
-    ``annotation`` (object/background polylines and a box loop, the photo's pixels): the annotate scenario."""
+    ``annotation`` (object/background polylines and a box loop, the photo's pixels): the annotate scenario.
+    ``install`` (``{"python": a Python 3.11, "wheels": a folder of the runtime's wheels}``): Install Backend first."""
     out.mkdir(parents=True, exist_ok=True)
     for name in ("result.json", *SCREENSHOTS):
         (out / name).unlink(missing_ok=True)
@@ -72,11 +73,14 @@ def run(out: Path, weights: Path, photo: Path, zip_path: Path, timeout: float = 
         args["event_simulate"] = event_simulate
         if annotation is not None:
             args["scenario"], args["annotation"] = "annotate", annotation
+        if install is not None:
+            args["scenario"], args["install"] = "install", install
         (tmp / "args.json").write_text(json.dumps(args))
         env = dict(os.environ)
         for var, sub in (("BLENDER_USER_CONFIG", "config"), ("BLENDER_USER_SCRIPTS", "scripts"),
                          ("BLENDER_USER_DATAFILES", "datafiles"), ("BLENDER_USER_RESOURCES", "resources"),
-                         ("XDG_CACHE_HOME", "cache"), ("XDG_CONFIG_HOME", "xdg-config"), ("TMPDIR", "tmp")):
+                         ("XDG_CACHE_HOME", "cache"), ("XDG_CONFIG_HOME", "xdg-config"), ("TMPDIR", "tmp"),
+                         *((("HOME", "home"),) if install else ())):  # (install: an artist's empty home folder)
             env[var] = str(tmp / sub)
             (tmp / sub).mkdir()
         # A .blend given on the command line keeps the splash screen away; event simulation lets the
@@ -88,7 +92,7 @@ def run(out: Path, weights: Path, photo: Path, zip_path: Path, timeout: float = 
         cmd_extra = ["--enable-event-simulate"] if event_simulate else []
         cmd = ["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", "blender", "--factory-startup", "-noaudio", "--window-geometry", "0", "0", "1600", "1000", *cmd_extra, str(blank), "--python", str(SCRIPT), "--", str(tmp / "args.json")]
         t0 = time.monotonic()
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout + 120)
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout + (900 if install else 120))
         wall = time.monotonic() - t0
         (out / "blender.log").write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
         result_file = out / "result.json"
@@ -178,6 +182,24 @@ def run_annotated(out: Path, weights: Path, zip_path: Path, timeout: float, turn
     return not problems, result
 
 
+def run_install(out: Path, zip_path: Path, args) -> bool:
+    """The install scenario: the legacy zip, Install Backend from a folder of wheels, Reconstruct on the example photo."""
+    from support.wheels import wheel_folder
+
+    wheels = Path(args.wheels) if args.wheels else wheel_folder()
+    if wheels is None:
+        print("e2e install: no folder of wheels (--wheels) and no index to fill one", file=sys.stderr)
+        return False
+    result = run(out, Path(), REPO / "examples" / "sofa.png", zip_path, args.timeout,
+                 install={"python": args.python, "wheels": str(wheels)})
+    ok = result.get("exit_code") == 0 and "press_to_mesh_s" in result
+    print(json.dumps({k: v for k, v in result.items() if k != "log"}, indent=2))
+    print(f"e2e install: {'OK' if ok else 'FAILED'}: Install Backend {result.get('install_s')} s ({result.get('install_message')}); "
+          f"button press to mesh {result.get('press_to_mesh_s')} s; screenshots {result.get('install_screenshot')}, "
+          f"{result.get('installed_screenshot')}, {result.get('screenshot')}")
+    return ok
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(REPO / "out" / "e2e"))
@@ -185,9 +207,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--photo", help="photo (default: examples/sofa.png with the shipped weights, else the tiny data's box)")
     parser.add_argument("--mask", help="mask file for the photo (white object on black)")
     parser.add_argument("--timeout", type=float, default=300.0)
-    parser.add_argument("--scenario", choices=("all", "reconstruct", "annotate"), default="all",
+    parser.add_argument("--scenario", choices=("all", "reconstruct", "annotate", "install"), default="all",
                         help="reconstruct: the photo, Reconstruct pressed twice (out/); annotate: the squirrel annotated in "
-                             "an Image Editor (out/annotate/); all (default): both")
+                             "an Image Editor (out/annotate/); all (default): both; install: the zip alone, Install Backend "
+                             "from a folder of wheels (--wheels), then Reconstruct on the example photo (out/install/)")
+    parser.add_argument("--wheels", help="install: the runtime's wheels (default: made once with pip download, tests/support/wheels.py)")
+    parser.add_argument("--python", default="/usr/bin/python3.11", help="install: the Python 3.11 for the backend's environment")
     args = parser.parse_args(argv)
     why = missing_tools()
     if why:
@@ -217,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
         photo = Path(args.photo) if args.photo else make_photo(data)
     prepared = time.monotonic() - t0
     ok = True
+    if args.scenario == "install":
+        return 0 if run_install(out / "install", built["legacy"], args) else 1
     if args.scenario in ("all", "reconstruct"):
         result = run(out, weights, photo, built["legacy"], args.timeout, mask=Path(args.mask) if args.mask else None)
         result["prepare_s"] = round(prepared, 2)
