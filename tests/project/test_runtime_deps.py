@@ -49,7 +49,7 @@ def hidden_modules() -> list[str]:
     runtime = _closure({_name(r) for r in project["dependencies"]})
     extras = {_name(r) for reqs in project["optional-dependencies"].values() for r in reqs} - {"genre"}
     only_extras = _closure(extras) - runtime
-    names = {"training"}
+    names = {"training", "benchmarks"}
     for dist in md.distributions():
         if dist.metadata["Name"].lower().replace("_", "-") in only_extras:
             names |= _top_level(dist)
@@ -64,7 +64,6 @@ def _top_level(dist) -> set[str]:
             continue
         out.add(f.parts[0] if len(f.parts) > 1 else (inspect.getmodulename(f.name) or "").split(".")[0])
     return out - {""}
-    return sorted(names)
 
 
 BLOCKER = """
