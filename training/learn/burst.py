@@ -416,8 +416,8 @@ class Speed:
     inpaint_bf16: bool = False
     refiner_channels_last: bool = False
     refiner_bf16: bool = False
-    # torch.compile of the refiner (in place: its state_dict keys stay): fuses the elementwise layers between
-    # its 3D convolutions, which at 64^3 are memory-bound; costs minutes of compiling at the first step
+    # torch.compile of the refiner (in place: its state_dict keys stay). Measured on the quiet 2-core Xeon: 1.06x in
+    # the refine stage, 0.99x joint (docs/lab/benchmarks.md), so CPU_SPEED leaves it off
     refiner_compile: bool = False
 
     @classmethod
