@@ -111,10 +111,10 @@ def flatness_table(records: list[dict], choice: dict, rows: list[str], group: st
              "| method | views | depth ÷ width (median) | truth (median) | ratio (median) | within 2× | CD (mean) |",
              "|---|---|---|---|---|---|---|"]
     for row in list(rows) + [FLOOR]:
-        t = threshold_key(choice["seen"].get(row, math.nan)) if row in choice["seen"] else None
         recs = [r for r in views if r["row"] == row]
-        if not recs or t is None:
+        if not recs or row not in choice["seen"]:
             continue
+        t = threshold_key(choice["seen"][row])
         pred = np.array([float(r[f"dw@{t}"]) for r in recs])
         true = np.array([float(r["dw_true"]) for r in recs])
         ratio = pred / true

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model
 
-__all__ = ["WAYS", "STAGES", "StepTimer", "step_seconds", "main"]
+__all__ = ["WAYS", "STAGES", "StepTimer", "main"]
 
 # way → (channels-last, bf16 autocast, the refiner compiled with torch.compile)
 WAYS = {"fp32": (False, False, False), "channels-last": (True, False, False), "bf16": (False, True, False),
@@ -98,11 +98,6 @@ class StepTimer:
             if k >= warmup:
                 times.append(time.perf_counter() - t)
         return times
-
-
-def step_seconds(weights: str, stage: str, way: str, batch: int, steps: int, warmup: int = 2, seed: int = 0) -> list[float]:
-    """Seconds of each of ``steps`` training steps (after ``warmup``) of ``stage`` run the ``way`` named."""
-    return StepTimer(weights, stage, way, batch, seed).seconds(steps, warmup)
 
 
 def _maker_seconds(pack: str, weights: str, batch: int, steps: int, voxels: bool, shapes: int) -> list[float]:
