@@ -262,17 +262,21 @@ class BurstRecipe:
     sph_teacher: float = 0.0  # the share of samples whose refiner input is the true full map (genre train session)
     reuse: int = 1  # genre train session: each made sample is trained on this many times on average (a replay buffer)
     buffer_steps: int = 0  # ... drawn from the samples of the last this many steps (0: the current step's only)
+    # genre train session --views: the share of fresh samples whose depth is the depth net's prediction on a render
+    # (training.learn.view_bank) instead of the true depth plus noise
+    bank_share: float = 0.0
 
     def __post_init__(self):
         for name in ("lr", "lr_final", "beta1", "beta2", "surface_weight", "sph_weight", "depth_noise", "warmup_s",
-                     "weight_decay", "sph_teacher"):
+                     "weight_decay", "sph_teacher", "bank_share"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
         if not (self.lr > 0 and self.lr_final <= 1 and self.beta1 < 1 and self.beta2 < 1):
             raise ValueError("lr must be > 0, lr_final ≤ 1, betas < 1")
-        if self.sph_teacher > 1:
-            raise ValueError(f"sph_teacher: a share in [0, 1], got {self.sph_teacher!r}")
+        for name in ("sph_teacher", "bank_share"):
+            if getattr(self, name) > 1:
+                raise ValueError(f"{name}: a share in [0, 1], got {getattr(self, name)!r}")
         for name in ("batch_size", "grid_factor", "reuse"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -313,6 +317,14 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
                     "feed the refiner the true full map (so that it learns to use the map); 2 fresh views a step, the "
                     "batch drawn from the last 100 steps' views",
         lr=5e-4, batch_size=4, total_steps=20_000, warmup_steps=200, reuse=2, buffer_steps=100, sph_teacher=0.25,
+    ),
+    BurstRecipe(
+        name="session-bank",
+        description="session-both with rendered views (genre train session --views): three quarters of the fresh "
+                    "samples take their depth from the depth net's prediction on a render, the rest the true depth "
+                    "plus noise; a tenth feed the refiner the true full map",
+        lr=5e-4, batch_size=4, total_steps=20_000, warmup_steps=200, reuse=2, buffer_steps=100, sph_teacher=0.1,
+        bank_share=0.75,
     ),
 )}
 

@@ -7,6 +7,10 @@ pack's meshes (:class:`training.learn.burst.ViewMaker`: random views from
 the refiner's distance target), on whatever device there is, with each net run
 as :class:`~training.learn.burst.Speed` says for that device.  No rendering is
 needed; the inpainting net needs no distance grid either, so it starts at once.
+With ``--views DIR`` (a recipe with ``bank_share`` > 0, e.g. ``session-bank``)
+that share of the samples are renders instead: their depth is the frozen depth
+net's prediction on the picture (:mod:`training.learn.view_bank`), the errors
+the refiner meets at inference.
 
 It never ends by itself unless ``--hours`` or ``--max-steps`` says so.  Every
 ``--checkpoint-minutes`` (default 3), on SIGINT / SIGTERM and at the end it
@@ -59,6 +63,7 @@ from ..data.pack import read_pack
 from .burst import Speed, ViewMaker, _step_loss, apply_speed, run_command
 from .checkpoint import cpu_seconds, optimizer_state, optimizer_tensors, read_state, write_state
 from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
+from .view_bank import ViewBank, load_view_bank
 
 __all__ = ["SessionSpec", "SampleStream", "lr_at", "run_session", "main"]
 
@@ -85,11 +90,16 @@ class SessionSpec:
     log_every: int = 25
     shapes: int | None = None  # only the first K shapes of the pack (tests)
     grid_cache: str | None = None  # None: $GENRE_HOME/cache/distance_grids
+    views: str | None = None  # a folder of renders: the recipe's bank_share of samples take the depth net's depth on them
 
     def __post_init__(self):
         if self.nets not in NETS:
             raise ValueError(f"nets: expected one of {', '.join(NETS)}, got {self.nets!r}")
-        get_burst_recipe(self.recipe)
+        recipe = get_burst_recipe(self.recipe)
+        if (self.views is None) != (recipe.bank_share == 0):
+            raise ValueError(f"recipe {recipe.name!r} has bank_share {recipe.bank_share:g}: "
+                             + ("--views names no renders to draw from" if self.views is None
+                                else "--views needs a recipe with bank_share > 0 (e.g. session-bank)"))
         for name in ("hours", "checkpoint_minutes"):
             v = getattr(self, name)
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -155,8 +165,10 @@ class SampleStream:
     buffer, mirrored at random when only the inpainting net trains (a view's reflection is a view of the reflected
     shape).  :meth:`resume` remakes the buffer an unbroken run would hold at a step."""
 
-    def __init__(self, maker: ViewMaker, model: GenRe, recipe: BurstRecipe, batch: int, seed: int, inpaint_only: bool):
+    def __init__(self, maker: ViewMaker, model: GenRe, recipe: BurstRecipe, batch: int, seed: int, inpaint_only: bool,
+                 bank: ViewBank | None = None):
         self.maker, self.model, self.recipe, self.batch, self.seed = maker, model, recipe, batch, seed
+        self.bank = bank
         self.inpaint_only = inpaint_only
         self.fresh = max(1, batch // recipe.reuse)
         self.keep = ("partial", "full_sph", "teacher") if inpaint_only else None
@@ -166,7 +178,15 @@ class SampleStream:
         """Step ``k``'s fresh views."""
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + k)
         shape, az, el = self.maker.draw(gen, self.fresh, self.recipe)
+        rendered = None
+        if self.bank is not None:  # these samples are renders: their pose, and the depth net's depth on them
+            rendered = torch.rand(self.fresh, generator=gen) < self.recipe.bank_share
+            b_shape, b_az, b_el, b_depth = self.bank.draw(gen, self.fresh)
+            shape, az, el = (torch.where(rendered, b, a) for a, b in ((shape, b_shape), (az, b_az), (el, b_el)))
         sample = self.maker.make(shape, az, el, self.recipe.depth_noise, gen)
+        if rendered is not None:
+            sample["depth"] = torch.where(rendered[:, None, None].to(sample["depth"].device),
+                                          b_depth.to(sample["depth"].device), sample["depth"])
         with torch.no_grad():
             sample["partial"] = self.model.partial_sph(sample["depth"])  # (the projection only: no parameters)
         if self.recipe.sph_teacher > 0:
@@ -208,8 +228,10 @@ def _set_up(spec: SessionSpec, recipe: BurstRecipe, device: torch.device, folder
         model, opt_state, meta0 = resumed
         say(f"session: resuming {folder} at step {meta0['step']} (from {meta0.get('init')})")
     model = apply_speed(model.to(device), Speed.for_device(device))
+    pack = read_pack(spec.pack)
+    bank = None if spec.views is None else load_view_bank(spec.views, list(pack.ids)[:spec.shapes], model, device, say=say)
     grid_cache = spec.grid_cache or str(data_dir() / "cache" / "distance_grids")
-    maker = ViewMaker(read_pack(spec.pack), model.config, device, recipe.grid_factor, spec.shapes, progress=say,
+    maker = ViewMaker(pack, model.config, device, recipe.grid_factor, spec.shapes, progress=say,
                       voxels=spec.nets == "both", grid_cache=grid_cache, targets="exact" if device.type == "cpu" else "grid")
     for p in model.parameters():
         p.requires_grad_(False)
@@ -223,7 +245,7 @@ def _set_up(spec: SessionSpec, recipe: BurstRecipe, device: torch.device, folder
     model.eval()
     for net in trained:
         net.train()
-    return model, opt, maker, meta0
+    return model, opt, maker, bank, meta0
 
 
 def run_session(spec: SessionSpec, say=print) -> dict:
@@ -236,13 +258,13 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     speed = Speed.for_device(device)
     folder = Path(spec.out) / spec.nets
     folder.mkdir(parents=True, exist_ok=True)
-    model, opt, maker, meta0 = _set_up(spec, recipe, device, folder, say)
+    model, opt, maker, bank, meta0 = _set_up(spec, recipe, device, folder, say)
     batch = spec.batch_size or recipe.batch_size
     step, samples, cpu_before = int(meta0["step"]), int(meta0["samples"]), float(meta0["cpu_s"])
     rows = _trim_log(folder / LOG, step)
     stop = {"signal": None}  # (a signal while the buffer is remade ends the run at its first step, state unchanged)
     old = {s: signal.signal(s, lambda signum, _frame: stop.update(signal=signum)) for s in (signal.SIGINT, signal.SIGTERM)}
-    stream = SampleStream(maker, model, recipe, batch, spec.seed, spec.nets == "inpaint")
+    stream = SampleStream(maker, model, recipe, batch, spec.seed, spec.nets == "inpaint", bank)
     session_start, session_step0, last_ck = time.time(), step, time.time()
     deadline = None if spec.hours is None else session_start + spec.hours * 3600.0
 
@@ -250,7 +272,7 @@ def run_session(spec: SessionSpec, say=print) -> dict:
         elapsed, done = time.time() - session_start, step - session_step0
         m = {"step": step, "samples": samples, "cpu_s": cpu_before + cpu_seconds(), "init": meta0.get("init"),
              "recipe": recipe.name, "nets": spec.nets, "batch": batch, "device": str(device),
-             "threads": torch.get_num_threads(), "speed": speed.__dict__, "final": final,
+             "threads": torch.get_num_threads(), "speed": speed.__dict__, "final": final, "views": spec.views,
              "session_steps": done, "session_samples_per_s": done * batch / max(elapsed, 1e-9)}
         _save_state(folder, model, opt, m)
         save_model(model, folder / WEIGHTS, {"session": {k: m[k] for k in ("step", "samples", "recipe", "nets", "init")}},
@@ -319,6 +341,9 @@ def main(argv: list[str] | None = None, prog: str = "genre train session") -> in
     parser.add_argument("--log-every", type=int, default=25)
     parser.add_argument("--shapes", type=int, default=None)
     parser.add_argument("--grid-cache", default=None)
+    parser.add_argument("--views", default=None, help="a folder of renders (genre data render) of the pack's shapes: "
+                        "the recipe's bank_share of the samples take the depth net's prediction on them as their depth "
+                        "(training/learn/view_bank.py; e.g. --recipe session-bank)")
     args = parser.parse_args(argv)
     return run_command(prog, lambda: run_session(SessionSpec(**vars(args)), say=lambda m: print(m, flush=True)))
 

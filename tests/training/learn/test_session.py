@@ -171,3 +171,106 @@ def test_exact_view_targets_match_the_resampled_grid(prim_pack):
     assert float((a - b)[band].abs().mean()) < 0.05
     iou = ((a > 0.45) & (b > 0.45)).sum() / ((a > 0.45) | (b > 0.45)).sum()
     assert float(iou) > 0.9
+
+
+def _write_bank_views(pack_dir, folder, config, poses, seed=0):
+    """Views of the pack's shapes written in the renders' format without Blender: each one's depth and mask are the
+    pack mesh's own at the pose (what a render of it measures), its picture random, its camera the frame's."""
+    import numpy as np
+
+    from genre_backend.frame import camera_rotation
+    from training.data.pack import read_pack
+    from training.data.views import write_view
+    from training.learn.burst import ViewMaker
+
+    pack = read_pack(pack_dir)
+    maker = ViewMaker(pack, config, torch.device("cpu"), voxels=False)
+    rng = np.random.default_rng(seed)
+    s = config.geometry.image_size
+    for k, (i, az, el) in enumerate(poses):
+        made = maker.make(torch.tensor([i]), torch.tensor([az]), torch.tensor([el]))
+        rot = camera_rotation(az, el, dtype=torch.float64)[0].tolist()
+        (folder / pack.ids[i]).mkdir(parents=True, exist_ok=True)
+        write_view(folder / pack.ids[i], k, rng.integers(0, 256, (s, s, 3), dtype=np.uint8),
+                   made["true_depth"][0].numpy(), made["mask"][0].numpy().astype(np.float32),
+                   {"shape_id": pack.ids[i], "azimuth_deg": az, "elevation_deg": el, "rotation_cam_to_obj": rot})
+    return pack
+
+
+def test_rendered_views_give_the_depth_nets_prediction_and_the_targets_at_their_pose(prim_pack, tmp_path):
+    """--views: a bank sample's depth is the depth net's masked prediction on its picture, its full map and voxel
+    target those of its shape at its pose; the predictions are cached per depth net."""
+    import numpy as np
+
+    from training.data.views import load_view
+    from training.learn import view_bank
+    from training.learn.recipe import get_burst_recipe
+    from training.learn.session import SampleStream
+
+    pack_dir, init = prim_pack
+    model = load_model(init)
+    poses = [(0, 30.0, 80.0), (1, 200.0, -5.0), (2, 95.0, 45.0)]
+    pack = _write_bank_views(pack_dir, tmp_path / "views", model.config, poses)
+    bank = view_bank.load_view_bank(tmp_path / "views", list(pack.ids), model, torch.device("cpu"), say=lambda m: None)
+    assert len(bank) == 3
+    by_key = dict(zip(bank.keys, range(3)))
+    for k, (i, az, el) in enumerate(poses):
+        j = by_key[f"{pack.ids[i]}/{k:03d}"]
+        assert int(bank.shape[j]) == i and float(bank.azimuth[j]) == pytest.approx(az) and float(bank.elevation[j]) == pytest.approx(el)
+        v = load_view(tmp_path / "views" / pack.ids[i], k)
+        with torch.no_grad():
+            pred = model.depth_net(torch.from_numpy(v["rgb"]).permute(2, 0, 1)[None].float() / 255)["depth"][0]
+        mask = torch.from_numpy(v["mask"] > 0.5)
+        assert mask.any() and torch.allclose(bank.depth[j].float(), torch.where(mask, pred, 0.0), atol=2e-3)
+        assert (bank.depth[j][~mask] == 0).all()
+    # the second load reads the cache; another depth net makes its own
+    cached = list((tmp_path / "views").glob("depth_predictions-*.npz"))
+    assert len(cached) == 1
+    again = view_bank.load_view_bank(tmp_path / "views", list(pack.ids), model, torch.device("cpu"), say=lambda m: None)
+    assert torch.equal(again.depth, bank.depth)
+    other = load_model(init)
+    with torch.no_grad():
+        next(other.depth_net.parameters()).add_(0.1)
+    view_bank.load_view_bank(tmp_path / "views", list(pack.ids), other, torch.device("cpu"), say=lambda m: None)
+    assert len(list((tmp_path / "views").glob("depth_predictions-*.npz"))) == 2
+    # every fresh sample from the bank (bank_share 1): its depth is a bank view's, its targets the maker's at that pose
+    from training.learn.burst import ViewMaker
+    from dataclasses import replace
+
+    maker = ViewMaker(pack, model.config, torch.device("cpu"), voxels=True, targets="exact")
+    recipe = replace(get_burst_recipe("session-bank"), bank_share=1.0, reuse=1, sph_teacher=0.0)
+    stream = SampleStream(maker, model, recipe, 2, seed=3, inpaint_only=False, bank=bank)
+    sample = stream.make(0)
+    for b in range(2):
+        j = next(j for j in range(3) if torch.equal(sample["depth"][b], bank.depth[j].float()))
+        ref = maker.make(bank.shape[j:j + 1], bank.azimuth[j:j + 1], bank.elevation[j:j + 1])
+        assert torch.allclose(sample["full_sph"][b], ref["full_sph"][0]) and torch.allclose(sample["voxels"][b], ref["voxels"][0])
+        assert torch.allclose(sample["partial"][b], model.partial_sph(bank.depth[j:j + 1].float())[0])
+    assert np.isfinite(sample["voxels"].numpy()).all()
+
+
+def test_a_view_whose_camera_disagrees_with_its_angles_is_refused(prim_pack, tmp_path):
+    import json
+
+    from training.learn.view_bank import load_view_bank
+
+    pack_dir, init = prim_pack
+    model = load_model(init)
+    pack = _write_bank_views(pack_dir, tmp_path / "views", model.config, [(0, 10.0, 20.0)])
+    meta_path = tmp_path / "views" / pack.ids[0] / "view_000.json"
+    meta = json.loads(meta_path.read_text())
+    meta["azimuth_deg"] = 40.0
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="recorded rotation"):
+        load_view_bank(tmp_path / "views", list(pack.ids), model, torch.device("cpu"), say=lambda m: None)
+    with pytest.raises(FileNotFoundError, match="no complete rendered view"):
+        load_view_bank(tmp_path / "views", ["another"], model, torch.device("cpu"), say=lambda m: None)
+
+
+def test_views_and_the_recipes_bank_share_go_together():
+    from training.learn.session import SessionSpec
+
+    with pytest.raises(ValueError, match="names no renders"):
+        SessionSpec(pack="p", out="o", nets="both", recipe="session-bank")
+    with pytest.raises(ValueError, match="bank_share > 0"):
+        SessionSpec(pack="p", out="o", nets="both", recipe="session-both", views="v")
