@@ -1,0 +1,82 @@
+"""The depth net's stage table: its depth on rendered views against the render's own, for several weights.
+
+For each views folder (``genre data render``: the product test split's renders, the flat-from-above group) and
+each weights file, the depth net runs on every view's picture and its depth is compared with the render's planar
+depth inside the render's silhouette, eroded by 2 pixels (the outline, where any net blurs into the background,
+is left out: it is the silhouette's error, not the relief's).  Each view's constant offset (the median error)
+is removed first, since a constant offset moves the whole shape and the pipeline's voxels follow it; what is left
+is the **relief** error:
+
+* ``relief MAE``: the mean absolute error after removing the offset (median over views, and mean);
+* ``relief ÷ truth``: the predicted relief's interquartile range over the true one (1 = as deep as the truth,
+  > 1 too curved), median over views;
+* ``better``: on how many views the weights beat the first weights named.
+
+Usage::
+
+    python scripts/depth_errors.py --views $GENRE_HOME/views/product_eval $GENRE_HOME/views/flat_eval \\
+        --weights default --weights $GENRE_HOME/runs/up88/depth/best.safetensors --out results/stage_errors/depth.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.ndimage import binary_erosion
+
+from genre_backend.nets.model import load_model
+from genre_backend.weights_file import resolve_weights
+from training.data.views import find_views, load_view
+
+
+def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float] | None:
+    """(relief MAE, relief IQR ÷ the truth's) of one view, or None when the eroded silhouette is too small."""
+    inner = binary_erosion(view["mask"] > 0.5, iterations=erode)
+    if inner.sum() < 20:
+        return None
+    rgb = torch.from_numpy(view["rgb"]).permute(2, 0, 1)[None].float() / 255.0
+    with torch.no_grad():
+        pred = net.depth_net(rgb)["depth"][0].numpy()[inner]
+    true = view["depth"][inner]
+    err = pred - true
+    iqr = lambda x: float(np.subtract(*np.percentile(x, [75, 25])))  # noqa: E731
+    return float(np.mean(np.abs(err - np.median(err)))), iqr(pred) / max(iqr(true), 1e-6)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--views", nargs="+", required=True, help="folders of rendered views")
+    parser.add_argument("--weights", action="append", required=True, help="weights (name or file); repeat to compare")
+    parser.add_argument("--out", default=None, help="write the table here (markdown) as well as printing it")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    nets = [load_model(resolve_weights(w)).eval() for w in args.weights]
+    lines = ["| views | weights | n | relief MAE median | relief MAE mean | relief ÷ truth (median) | better than the first |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for folder in args.views:
+        rows = [[] for _ in nets]
+        for ref in find_views(folder, targets=False):
+            view = load_view(ref.shape_dir, ref.view)
+            got = [view_errors(net, view) for net in nets]
+            if any(g is None for g in got):
+                continue
+            for k, g in enumerate(got):
+                rows[k].append(g)
+        first = np.array([r[0] for r in rows[0]])
+        for w, r in zip(args.weights, rows):
+            mae, ratio = np.array([x[0] for x in r]), np.array([x[1] for x in r])
+            lines.append(f"| {Path(folder).name} | {w} | {len(r)} | {np.median(mae):.4f} | {np.mean(mae):.4f} | "
+                         f"{np.median(ratio):.2f} | {int((mae < first).sum())} / {len(r)} |")
+    text = "\n".join(lines) + "\n"
+    print(text, end="")
+    if args.out:
+        Path(args.out).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
