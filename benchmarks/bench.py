@@ -222,7 +222,7 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
     import threading
 
     from genre_backend.nets.model import GenRe
-    from genre_backend.inference.reconstruct import STAGES, Reconstructor
+    from genre_backend.inference.reconstruct import STAGES, Hooks, Reconstructor
 
     base_rss = _rss_bytes()
     torch.manual_seed(0)
@@ -258,7 +258,7 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
         out_path = Path(tmp) / "mesh.obj"
         for i in range(repeats + 1):  # the first run warms up caches and the allocator
             t0 = time.perf_counter()
-            result = rec.run(image, threshold=threshold, progress=progress, test_time_mirror=mirror)
+            result = rec.run(image, hooks=Hooks(progress), threshold=threshold, test_time_mirror=mirror)
             progress("write", 1.0)
             result.save_mesh(out_path)
             if cuda:

@@ -45,7 +45,7 @@ def warm(image: str, weights: str) -> None:
     from pathlib import Path
 
     t0 = time.perf_counter()
-    from genre_backend.inference.reconstruct import Reconstructor
+    from genre_backend.inference.reconstruct import Hooks, Reconstructor
 
     try:
         from genre_backend.weights_file import resolve_weights
@@ -60,7 +60,7 @@ def warm(image: str, weights: str) -> None:
     def one(out: Path) -> tuple[dict, object]:
         marks: list[tuple[str, float]] = []
         start = time.perf_counter()
-        result = rec.run(image, progress=lambda stage, fraction: marks.append((stage, time.perf_counter())))
+        result = rec.run(image, hooks=Hooks(lambda stage, fraction: marks.append((stage, time.perf_counter()))))
         end = time.perf_counter()
         result.save_mesh(out)
         written = time.perf_counter()

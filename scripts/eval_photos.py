@@ -61,7 +61,7 @@ sys.path.insert(0, str(ROOT))
 
 from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
 from genre_backend.photo.preprocess import preprocess  # noqa: E402
-from genre_backend.inference.reconstruct import Reconstructor  # noqa: E402
+from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
 from genre_backend.photo.segment import SEEDINGS, border_touch, cover, doubt  # noqa: E402
 
@@ -115,7 +115,7 @@ def auto_masks(rec: Reconstructor, photo: Path, seedings) -> dict[str, np.ndarra
     for s in seedings:
         with torch.inference_mode():
             rec._first_pass = None
-            out[s] = preprocess(image, rec.config, silhouette=rec._silhouette, refine=True, seeding=s).photo_mask
+            out[s] = preprocess(image, rec.config, MaskGuidance(seeding=s), silhouette=rec._silhouette).photo_mask
     return out
 
 
@@ -208,9 +208,9 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         image = load_image(photo)
         hand_mask = load_mask(hand_path, image)
-        before = rec.run(photo, refine=False, visible_fusion=args.visible_fusion)
+        before = rec.run(photo, MaskGuidance(refine=False), visible_fusion=args.visible_fusion)
         auto = rec.run(photo, visible_fusion=args.visible_fusion)
-        hand = rec.run(photo, mask_path=hand_path, visible_fusion=args.visible_fusion)
+        hand = rec.run(photo, MaskGuidance(mask=hand_path), visible_fusion=args.visible_fusion)
         tilt_deg, roll_deg, defined = tilt(hand.vertices, hand.faces)
         row = {
             "name": name,

@@ -21,6 +21,7 @@ from ..output.mesh_export import OutputError, check_output_path, resolve_format,
 from ..output.colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
 from .options import MeshOptions
 from ..photo.decode import LoadedImage
+from ..photo.guidance import MaskGuidance
 from ..photo.preprocess import composite, crop_resize
 
 __all__ = ["Reconstruction", "MASK_OVERLAY_SIDE"]
@@ -69,6 +70,7 @@ class Reconstruction:
     no field ``None``); ``threshold``, ``hole_closing``, ``silhouette_carve``, ``visible_fusion``, ``pit_sealing``,
     ``primitive_snap`` and ``test_time_mirror`` read them.  ``primitive``: the family of the fitted shape that replaced the
     mesh (``"box"``, ``"cylinder"``, ``"cone"``, ``"torus"``, ``"ellipsoid"``), else None.
+    ``guidance``: the mask inputs it was run with (:class:`genre_backend.photo.guidance.MaskGuidance`).
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -94,8 +96,7 @@ class Reconstruction:
     config: GenreConfig
     intermediates: dict[str, torch.Tensor] = field(repr=False)
     notes: list[str] = field(default_factory=list)
-    mask_path: Path | None = None
-    strokes_path: Path | None = None
+    guidance: MaskGuidance = field(default_factory=MaskGuidance)
     photo: LoadedImage | None = field(default=None, repr=False)
     fill: tuple[int, int, int] = (0, 0, 0)
     clean: CleanReport | None = None
@@ -117,7 +118,7 @@ class Reconstruction:
     @property
     def inputs(self) -> tuple[Path, ...]:
         """The files this result was made from (never overwritten by its own outputs)."""
-        return (self.image, *(p for p in (self.mask_path, self.strokes_path) if p is not None))
+        return (self.image, *self.guidance.files)
 
     def camera(self) -> dict:
         """The view the mesh is posed for (protocol ``camera`` object).

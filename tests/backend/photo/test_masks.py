@@ -12,6 +12,7 @@ from PIL import Image
 from genre_backend.frontends import reconstruct_cli
 from genre_backend.photo.decode import load_image, load_mask
 from genre_backend.inference.reconstruct import Reconstructor
+from genre_backend.photo.guidance import MaskGuidance
 from genre_backend.photo.segment import border_touch, cover, doubt, refine_mask
 
 
@@ -105,7 +106,7 @@ def test_mask_warning_when_the_silhouette_is_the_whole_frame(trained, photo, tmp
     rec = Reconstructor(trained[0])
     rec.model.depth_net = _FrameSilhouette(rec.model.depth_net)
     path, truth = photo
-    res = rec.run(path, refine=False)  # the silhouette as it is: the whole photo
+    res = rec.run(path, MaskGuidance(refine=False))  # the silhouette as it is: the whole photo
     assert res.mask_source == "silhouette" and res.photo_mask.all()
     assert res.mask_warning == "the mask covers 100% of the photo and touches 100% of its border: it is probably the photo's frame, not the object"
     res = rec.run(path)  # refined: the salient net's mask, whatever the silhouette
@@ -154,7 +155,7 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
     assert np.abs(overlay[far] - dimmed).max() <= 1
     edge = auto.photo_mask & ~binary_erosion(auto.photo_mask)
     assert (np.abs(overlay[edge] - [255, 220, 0]).sum(1) == 0).mean() > 0.8
-    again = rec.run(path, mask_path=written["mask_in_photo.png"])
+    again = rec.run(path, MaskGuidance(mask=written["mask_in_photo.png"]))
     assert again.mask_source == "file"
     assert again.crop_box == auto.crop_box
     assert torch.equal(again.intermediates["mask"], auto.intermediates["mask"])
@@ -163,7 +164,7 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
     # that mask, in the photo's pixels and cropped again by the same square, is the network's mask
     from genre_backend.photo.preprocess import crop_resize
 
-    plain = rec.run(path, refine=False)
+    plain = rec.run(path, MaskGuidance(refine=False))
     back = tmp_path / "plain_mask.png"
     Image.fromarray(plain.mask_in_photo().astype(np.uint8) * 255, "L").save(back)
     assert np.array_equal(load_mask(back, load_image(path)), plain.photo_mask)
@@ -456,12 +457,12 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
         box = (float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1))  # over the stored pixels
         image = load_image(path)
         assert image.exif_orientation == o and image.original_size == (535, 426)
-        pre = preprocess(image, config, box=box, strokes_path=tmp_path / f"strokes_o{o}.png", guidance_frame="stored")
+        pre = preprocess(image, config, MaskGuidance(box=box, strokes=tmp_path / f"strokes_o{o}.png", frame="stored"))
         assert pre.mask_source == "box+strokes"
         ious[o] = _iou(pre.photo_mask, hand_upright)
         if o != 1:  # the same inputs read as upright (the frame before guidance_frame): refused, or off the squirrel
             try:
-                wrong = preprocess(image, config, box=box, strokes_path=tmp_path / f"strokes_o{o}.png").photo_mask
+                wrong = preprocess(image, config, MaskGuidance(box=box, strokes=tmp_path / f"strokes_o{o}.png")).photo_mask
             except ImageError as exc:
                 assert o in (5, 6, 7, 8) and exc.code == "bad_mask" and "strokes image is 426×535, the image is 535×426" in str(exc)
             else:
@@ -469,9 +470,9 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
     # (as the upright photo with its upright scribbles, 0.872 in docs/masks.md; JPEG's re-encoding moves it a little)
     assert all(v > 0.85 for v in ious.values()) and max(ious.values()) - min(ious.values()) < 0.03, ious
     with pytest.raises(ImageError, match=r"strokes image is 535×426, the image is 426×535 as stored"):
-        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, strokes_path=tmp_path / "strokes_o1.png", guidance_frame="stored")
+        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, MaskGuidance(strokes=tmp_path / "strokes_o1.png", frame="stored"))
     with pytest.raises(ImageError, match=r"the box 500,0,535,10 is not inside the 426×535 photo as stored"):
-        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, box=(500, 0, 535, 10), guidance_frame="stored")
+        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, MaskGuidance(box=(500, 0, 535, 10), frame="stored"))
 
 
 @pytest.mark.parametrize("name", ["apple", "bus", "hand", "quokka"])
