@@ -119,7 +119,7 @@ def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float)
     """The visible face's holes and pits filled in a sphere's (V, V, V) distance grid: one ``add`` per op."""
     import dataclasses
 
-    from genre_backend.geometry.mesh_voxels import depth_to_distance, fuse_visible_surface, seal_pits
+    from genre_backend.geometry.visible_front import depth_to_distance, fuse_visible_surface, seal_pits
 
     # the holes in the visible face (geometry.visible_fusion): the depth map's own distance grid; the whole
     # fusion into a grid with a tunnel through the sphere's front
@@ -148,7 +148,8 @@ def _time_ground_truth_ops(add: Callable, g, r: float) -> None:
     """Ground truth from a sphere mesh (offline data preparation) and the Chamfer distance: one ``add`` per op."""
     import trimesh
 
-    from genre_backend.geometry.mesh_voxels import mesh_to_distance, mesh_to_shell, point_mesh_distance_reference
+    from genre_backend.geometry.mesh_voxels import mesh_to_distance, mesh_to_shell
+    from genre_backend.geometry.triangle_distance import point_mesh_distance_reference
     from genre_backend.geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
     from genre_backend.geometry.spherical import mesh_to_sph
 

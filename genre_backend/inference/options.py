@@ -246,7 +246,7 @@ class MeshOptions:
         the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (``pit_sealing``); the
         last two at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`.net_outputs.View`).
         """
-        from ..geometry.mesh_voxels import fuse_visible_surface, seal_pits
+        from ..geometry.visible_front import fuse_visible_surface, seal_pits
         from ..geometry.voxels import silhouette_ramp
 
         if self.silhouette_carve:

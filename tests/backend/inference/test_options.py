@@ -127,7 +127,7 @@ def test_request_options_are_parsed_from_the_record():
 def test_the_steps_run_in_their_one_order():
     """Carve, then fusion, then pit sealing: each step sees the grid the one before made."""
     from genre_backend.config import CameraConfig
-    from genre_backend.geometry.mesh_voxels import fuse_visible_surface, seal_pits
+    from genre_backend.geometry.visible_front import fuse_visible_surface, seal_pits
     from genre_backend.geometry.voxels import silhouette_ramp
     from genre_backend.inference.net_outputs import View
 

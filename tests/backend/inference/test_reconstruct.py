@@ -332,7 +332,8 @@ def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys,
 def test_pit_sealing_fills_the_pits_of_the_grids_own_front(photos, tmp_path, capsys, trained):
     import dataclasses
 
-    from genre_backend.geometry.mesh_voxels import fill_enclosed, seal_pits
+    from genre_backend.geometry.mesh_voxels import fill_enclosed
+    from genre_backend.geometry.visible_front import seal_pits
     from genre_backend.nets.model import load_model
 
     model = load_model(trained[0])
@@ -365,7 +366,8 @@ def test_pit_sealing_fills_the_pits_of_the_grids_own_front(photos, tmp_path, cap
 def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photos, tmp_path, capsys, trained):
     import dataclasses
 
-    from genre_backend.geometry.mesh_voxels import fill_enclosed, fuse_visible_surface
+    from genre_backend.geometry.mesh_voxels import fill_enclosed
+    from genre_backend.geometry.visible_front import fuse_visible_surface
     from genre_backend.nets.model import load_model
 
     model = load_model(trained[0])
