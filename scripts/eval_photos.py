@@ -10,7 +10,7 @@ shipped weights (or ``--weights``):
   --no-refine``) and *after* (the default automatic mask: GrabCut's when
   ``results/photos/`` was written, the salient net's since issue 48,
   ``docs/masks.md``), both at the photo's pixels; with ``--seedings`` also the IoU of each GrabCut seeding
-  (``border``, ``network``, ``auto``: :mod:`genre_backend.photo.segment`;
+  (``border``, ``network``, ``auto``: :mod:`genre_backend.photo.grabcut`;
   ``auto`` judges the silhouette of the whole photo, the first pass) and
   ``auto*``: the same rule judged on the silhouette the old pipeline used as
   mask (the second pass, the *before* mask): border seeding when that is
@@ -63,7 +63,8 @@ from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
 from genre_backend.photo.preprocess import preprocess  # noqa: E402
 from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
-from genre_backend.photo.segment import SEEDINGS, border_touch, cover, doubt  # noqa: E402
+from genre_backend.photo.mask_doubt import border_touch, cover, doubt  # noqa: E402
+from genre_backend.photo.segment import SEEDINGS  # noqa: E402
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 ROUND_AXES = 1.15  # the up axis is ill-defined when its spread is within 15 % of another's

@@ -41,7 +41,7 @@ from .result import Reconstruction
 from ..photo.decode import ImageError, MIN_OBJECT_PIXELS, load_image
 from ..photo.preprocess import Preprocessed, preprocess, uncrop
 from ..photo.guidance import MaskGuidance
-from ..photo.segment import doubt
+from ..photo.mask_doubt import doubt
 
 __all__ = [
     "STAGES",

@@ -62,9 +62,9 @@ class Reconstruction:
     ``"box"``, ``"strokes"``, ``"box+strokes"`` or ``"silhouette"``.  ``photo_mask``: (H, W) bool, the mask the networks
     used at the decoded photo's pixels (:meth:`mask_in_photo` gives it at
     the photo's own size).  ``mask_warning``: one line when that mask is
-    doubtful (:func:`genre_backend.photo.segment.doubt`: it covers most
-    of the photo or touches most of its border; :func:`~genre_backend.photo.segment.cut_doubt`:
-    GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.photo.segment.salient_doubt`:
+    doubtful (:func:`genre_backend.photo.mask_doubt.doubt`: it covers most
+    of the photo or touches most of its border; :func:`~genre_backend.photo.mask_doubt.cut_doubt`:
+    GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.photo.mask_doubt.salient_doubt`:
     the salient net's mask; or the net could not be loaded and GrabCut's mask was used), else None.
     ``options``: the mesh options as the mesh was made (:class:`.options.MeshOptions`, resolved against the weights:
     no field ``None``); ``threshold``, ``hole_closing``, ``silhouette_carve``, ``visible_fusion``, ``pit_sealing``,

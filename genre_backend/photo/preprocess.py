@@ -17,7 +17,7 @@ framing here, and only here:
    else the depth net's own silhouette (two passes: the whole image padded
    to a square, then the crop around that silhouette).  A final mask that
    covers most of the photo or touches most of its border is reported as
-   doubtful (:func:`.segment.doubt`, done by the caller).
+   doubtful (:func:`.mask_doubt.doubt`, done by the caller).
 3. **Framing** (:func:`square_crop_box`, :func:`crop_resize`): a square
    centred on the mask's bounding box whose side makes the box's longest side
    span ``GeometryConfig.object_fraction`` of the image; parts outside the
@@ -41,7 +41,8 @@ import torch
 from ..config import GenreConfig, GeometryConfig
 from .decode import ALPHA_OBJECT_MIN, MIN_OBJECT_PIXELS, ImageError, LoadedImage, load_mask, load_strokes, photo_box
 from .guidance import MaskGuidance
-from .segment import SEEDINGS, doubt, segment
+from .mask_doubt import doubt
+from .segment import SEEDINGS, segment
 
 __all__ = [
     "Preprocessed",
@@ -74,9 +75,9 @@ class Preprocessed:
     (None for ``"silhouette"``: the caller projects the crop's silhouette
     back with :func:`uncrop`).  ``network_doubt``: when the depth net's own
     silhouette of the whole photo was doubtful
-    (:func:`.segment.doubt`), why; else None.  ``mask_doubt``: when the
-    found mask is doubtful (:func:`.segment.salient_doubt`,
-    :func:`.segment.cut_doubt`) or was made without the salient net because
+    (:func:`.mask_doubt.doubt`), why; else None.  ``mask_doubt``: when the
+    found mask is doubtful (:func:`.mask_doubt.salient_doubt`,
+    :func:`.mask_doubt.cut_doubt`) or was made without the salient net because
     it could not be loaded, why; else None.
     ``mask_source`` is also ``"box"``, ``"strokes"`` or ``"box+strokes"``
     for a mask found from a person's box and strokes.

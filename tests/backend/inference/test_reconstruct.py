@@ -399,7 +399,8 @@ def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photo
 @pytest.mark.slow
 def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.cleanup import is_watertight
-    from genre_backend.geometry.primitives import FAMILIES, snap
+    from genre_backend.geometry.primitive_shapes import FAMILIES
+    from genre_backend.geometry.primitives import snap
 
     assert rec.config.geometry.primitive_snap == 0.0  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)

@@ -13,7 +13,8 @@ from genre_backend.frontends import reconstruct_cli
 from genre_backend.photo.decode import load_image, load_mask
 from genre_backend.inference.reconstruct import Reconstructor
 from genre_backend.photo.guidance import MaskGuidance
-from genre_backend.photo.segment import border_touch, cover, doubt, refine_mask
+from genre_backend.photo.mask_doubt import border_touch, cover, doubt
+from genre_backend.photo.segment import refine_mask
 
 
 def _photo(w: int = 240, h: int = 180, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -175,7 +176,8 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
 
 # ---- the doubt of a cut, box and strokes ------------------------------------------------------
 def test_edge_run_and_model_overlap():
-    from genre_backend.photo.segment import cut_doubt, edge_run, grabcut_models, model_overlap, border_seeds
+    from genre_backend.photo.grabcut import grabcut_models, border_seeds
+    from genre_backend.photo.mask_doubt import cut_doubt, edge_run, model_overlap
 
     m = np.zeros((20, 30), bool)
     m[5:15, 5:25] = True
@@ -279,7 +281,7 @@ def test_real_photos_box_and_doubt_figures():
     assert wrong == {"robin", "squirrel"} and wrong <= warned and warned - wrong == {"hand", "quokka"}
     assert "colours that barely separate" in rows["robin"]["auto_warning"]
     assert "runs along the photo's edge" in rows["squirrel"]["auto_warning"]
-    # the box's cut sees sharpness too (segment.feature_grabcut): the robin's box mask, still wrong, is warned by its colours
+    # the box's cut sees sharpness too (feature_cut.feature_grabcut): the robin's box mask, still wrong, is warned by its colours
     assert {n for n, r in rows.items() if r["box_warning"]} == {"robin"} and rows["robin"]["box_iou"] < 0.8
     assert "colours that barely separate" in rows["robin"]["box_warning"]
     assert rows["quokka"]["box_iou"] > 0.9 and rows["robin"]["box_iou"] > 0.75
@@ -477,20 +479,21 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
 
 @pytest.mark.parametrize("name", ["apple", "bus", "hand", "quokka"])
 def test_the_box_cut_without_sharpness_is_opencvs_grabcut(name, monkeypatch):
-    """segment.feature_grabcut (GrabCut over PyMaxflow with a sharpness feature) against its reference, OpenCV's
+    """feature_cut.feature_grabcut (GrabCut over PyMaxflow with a sharpness feature) against its reference, OpenCV's
     GrabCut, from the same labels: with the sharpness weighted 0 the two cuts agree (IoU ≥ 0.99; they differ in
     the mixtures' start and the floating point, and on the robin, whose cut is unstable, they part to 0.89)."""
-    from genre_backend.photo import segment as S
+    from genre_backend.photo import feature_cut
+    from genre_backend.photo.grabcut import box_seeds, grabcut
 
     with Image.open(next(PHOTOS.glob(f"{name}.*"))) as im:
         im = im.convert("RGB")
         im.thumbnail((320, 320))
         rgb = np.asarray(im)
     h, w = rgb.shape[:2]
-    labels = S.box_seeds(h, w, (0.1 * w, 0.1 * h, 0.9 * w, 0.9 * h))
-    reference = S.grabcut(rgb, labels)
-    monkeypatch.setattr(S, "SHARPNESS_WEIGHT", 0.0)
-    ours, objects, backgrounds = S.feature_grabcut(rgb, labels)
+    labels = box_seeds(h, w, (0.1 * w, 0.1 * h, 0.9 * w, 0.9 * h))
+    reference = grabcut(rgb, labels)
+    monkeypatch.setattr(feature_cut, "SHARPNESS_WEIGHT", 0.0)
+    ours, objects, backgrounds = feature_cut.feature_grabcut(rgb, labels)
     assert objects is not None and backgrounds is not None
     assert 0.1 < reference.mean() < 0.9
     assert (reference & ours).sum() / (reference | ours).sum() >= 0.99
