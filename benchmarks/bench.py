@@ -119,7 +119,7 @@ def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float)
     """The visible face's holes and pits filled in a sphere's (V, V, V) distance grid: one ``add`` per op."""
     import dataclasses
 
-    from genre_backend.geometry.mesh_voxels import depth_to_distance, fuse_visible_surface, seal_pits
+    from genre_backend.geometry.visible_front import depth_to_distance, fuse_visible_surface, seal_pits
 
     # the holes in the visible face (geometry.visible_fusion): the depth map's own distance grid; the whole
     # fusion into a grid with a tunnel through the sphere's front
@@ -148,7 +148,8 @@ def _time_ground_truth_ops(add: Callable, g, r: float) -> None:
     """Ground truth from a sphere mesh (offline data preparation) and the Chamfer distance: one ``add`` per op."""
     import trimesh
 
-    from genre_backend.geometry.mesh_voxels import mesh_to_distance, mesh_to_shell, point_mesh_distance_reference
+    from genre_backend.geometry.mesh_voxels import mesh_to_distance, mesh_to_shell
+    from genre_backend.geometry.triangle_distance import point_mesh_distance_reference
     from genre_backend.geometry.metrics import chamfer_distance, chamfer_distance_reference, sample_surface
     from genre_backend.geometry.spherical import mesh_to_sph
 
@@ -222,7 +223,7 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
     import threading
 
     from genre_backend.nets.model import GenRe
-    from genre_backend.inference.reconstruct import STAGES, Reconstructor
+    from genre_backend.inference.reconstruct import STAGES, Hooks, Reconstructor
 
     base_rss = _rss_bytes()
     torch.manual_seed(0)
@@ -258,7 +259,7 @@ def _inference_worker(preset: str, device: str, repeats: int, threshold: float |
         out_path = Path(tmp) / "mesh.obj"
         for i in range(repeats + 1):  # the first run warms up caches and the allocator
             t0 = time.perf_counter()
-            result = rec.run(image, threshold=threshold, progress=progress, test_time_mirror=mirror)
+            result = rec.run(image, hooks=Hooks(progress), threshold=threshold, test_time_mirror=mirror)
             progress("write", 1.0)
             result.save_mesh(out_path)
             if cuda:

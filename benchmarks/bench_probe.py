@@ -3,7 +3,7 @@
 ``genre bench reconstruct`` starts this file (``runpy`` with the timed checkout first on ``sys.path``) so that
 the same probe can time this checkout and an older one side by side; it therefore uses only the API that
 ``genre reconstruct`` itself uses (``genre_backend.cli.main`` and, where the checkout has it, the end of its
-process, ``process.exit_process``; ``Reconstructor(weights).run(image, progress=…)``, ``Reconstruction.save_mesh``).  Two modes:
+process, ``process.exit_process``; ``Reconstructor(weights).run(image, hooks=Hooks(progress))``, ``Reconstruction.save_mesh``).  Two modes:
 
 ``warm IMAGE WEIGHTS``
     one process: load the weights, run the image once to warm up and print a summary line, then one timed
@@ -45,7 +45,7 @@ def warm(image: str, weights: str) -> None:
     from pathlib import Path
 
     t0 = time.perf_counter()
-    from genre_backend.inference.reconstruct import Reconstructor
+    from genre_backend.inference import reconstruct
 
     try:
         from genre_backend.weights_file import resolve_weights
@@ -53,14 +53,14 @@ def warm(image: str, weights: str) -> None:
         from genre_backend.io import resolve_weights
 
     t1 = time.perf_counter()
-    rec = Reconstructor(resolve_weights(weights))
+    rec = reconstruct.Reconstructor(resolve_weights(weights))
     t2 = time.perf_counter()
     import torch
 
     def one(out: Path) -> tuple[dict, object]:
         marks: list[tuple[str, float]] = []
         start = time.perf_counter()
-        result = rec.run(image, progress=lambda stage, fraction: marks.append((stage, time.perf_counter())))
+        result = rec.run(image, **_progress(reconstruct, lambda stage, fraction: marks.append((stage, time.perf_counter()))))
         end = time.perf_counter()
         result.save_mesh(out)
         written = time.perf_counter()
@@ -112,13 +112,20 @@ class _StampImport:
                 stamps.append(("import reconstruct", time.time()))
             run_module(module)
             stamps.append(("cli", time.time()))
-            _wrap(module.Reconstructor, stamps)
+            _wrap(module.Reconstructor, getattr(module, "Hooks", None), stamps)
 
         spec.loader.exec_module = exec_module
         return spec
 
 
-def _wrap(cls, stamps: list) -> None:
+def _progress(module, progress) -> dict:
+    """``run``'s keyword for a progress callback: ``hooks=Hooks(progress)``, or ``progress=`` in a checkout from before
+    the hooks were one value (an --against one)."""
+    hooks_type = getattr(module, "Hooks", None)
+    return {"progress": progress} if hooks_type is None else {"hooks": hooks_type(progress)}
+
+
+def _wrap(cls, hooks_type, stamps: list) -> None:
     init, run = cls.__init__, cls.run
 
     def timed_init(self, *args, **kwargs):
@@ -126,13 +133,25 @@ def _wrap(cls, stamps: list) -> None:
         init(self, *args, **kwargs)
         stamps.append(("cli", time.time()))
 
-    def timed_run(self, *args, progress=None, **kwargs):
+    def timed_run(self, *args, **kwargs):
+        if hooks_type is None:  # a checkout from before the hooks were one value: run(..., progress=…)
+            given = kwargs.pop("progress", None)
+        else:
+            if len(args) > 3:  # (image, guidance, options, hooks)
+                args, kwargs = args[:3], {**kwargs, "hooks": args[3]}
+            hooks = kwargs.pop("hooks", None) or hooks_type()
+            given = hooks.progress
+
         def stamped(stage, fraction):
             stamps.append((stage, time.time()))
-            if progress is not None:
-                progress(stage, fraction)
+            if given is not None:
+                given(stage, fraction)
 
-        result = run(self, *args, progress=stamped, **kwargs)
+        if hooks_type is None:
+            kwargs["progress"] = stamped
+        else:
+            kwargs["hooks"] = hooks_type(stamped, hooks.should_cancel)
+        result = run(self, *args, **kwargs)
         stamps.append(("cli", time.time()))
         save = result.save_mesh
 

@@ -175,14 +175,14 @@ class GeometryConfig:
     # in training).  The refiner's blur spills past the outline the photo shows (measured:
     # docs/lab/reconstruct-settings.md, "Trimmed to the outline").  Weights stored without the key: off.
     silhouette_carve: bool = False
-    # Holes in the face the camera sees (geometry.mesh_voxels.fuse_visible_surface): the object's pixels
+    # Holes in the face the camera sees (geometry.visible_front.fuse_visible_surface): the object's pixels
     # whose ray meets nothing above the level get the masked depth map's own surface (its distance
     # target, max with the refiner's) before the mesh is made, in reconstruction and in evaluation
     # (every row with a depth map alike). Chosen per weights on seen-test views by
     # scripts/visible_fusion.py (docs/lab/reconstruct-settings.md, "Holes in the side the photo shows").
     # Weights stored without the key: off.
     visible_fusion: bool = False
-    # Pits in the face the camera sees (geometry.mesh_voxels.seal_pits): a blurry front wall whose
+    # Pits in the face the camera sees (geometry.visible_front.seal_pits): a blurry front wall whose
     # crossing falls through onto the inside of the back leaves a narrow, deep well, dark in a render
     # (real photos: the apple's and the orange's fronts).  The basins of the grid's own visible front
     # deeper than 2 voxels and at most about twice this many voxels across are filled with the front

@@ -24,7 +24,7 @@ CASES = [("examples/sofa.png", None), ("examples/photos/apple.jpg", "examples/ph
 
 def main() -> int:
     from genre_backend.output.colour_check import photo_colour_error
-    from genre_backend.inference.reconstruct import Reconstructor
+    from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor
     from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -34,7 +34,7 @@ def main() -> int:
     args = p.parse_args()
     rec = Reconstructor(args.weights)
     for photo, mask in CASES:
-        result = rec.run(REPO / photo, mask_path=None if mask is None else REPO / mask, visible_fusion=args.visible_fusion)
+        result = rec.run(REPO / photo, MaskGuidance(mask=None if mask is None else REPO / mask), visible_fusion=args.visible_fusion)
         mae, coverage = photo_colour_error(result)
         print(f"{photo:<28} mask {result.mask_source:<8} MAE {mae:4.2f}/255  mask covered {coverage:.0%}  "
               f"parts {result.clean.parts} (before clean-up {result.clean.parts_before})", flush=True)

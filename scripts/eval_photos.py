@@ -10,7 +10,7 @@ shipped weights (or ``--weights``):
   --no-refine``) and *after* (the default automatic mask: GrabCut's when
   ``results/photos/`` was written, the salient net's since issue 48,
   ``docs/masks.md``), both at the photo's pixels; with ``--seedings`` also the IoU of each GrabCut seeding
-  (``border``, ``network``, ``auto``: :mod:`genre_backend.photo.segment`;
+  (``border``, ``network``, ``auto``: :mod:`genre_backend.photo.grabcut`;
   ``auto`` judges the silhouette of the whole photo, the first pass) and
   ``auto*``: the same rule judged on the silhouette the old pipeline used as
   mask (the second pass, the *before* mask): border seeding when that is
@@ -61,9 +61,10 @@ sys.path.insert(0, str(ROOT))
 
 from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
 from genre_backend.photo.preprocess import preprocess  # noqa: E402
-from genre_backend.inference.reconstruct import Reconstructor  # noqa: E402
+from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
-from genre_backend.photo.segment import SEEDINGS, border_touch, cover, doubt  # noqa: E402
+from genre_backend.photo.mask_doubt import border_touch, cover, doubt  # noqa: E402
+from genre_backend.photo.segment import SEEDINGS  # noqa: E402
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 ROUND_AXES = 1.15  # the up axis is ill-defined when its spread is within 15 % of another's
@@ -115,7 +116,7 @@ def auto_masks(rec: Reconstructor, photo: Path, seedings) -> dict[str, np.ndarra
     for s in seedings:
         with torch.inference_mode():
             rec._first_pass = None
-            out[s] = preprocess(image, rec.config, silhouette=rec._silhouette, refine=True, seeding=s).photo_mask
+            out[s] = preprocess(image, rec.config, MaskGuidance(seeding=s), silhouette=rec._silhouette).photo_mask
     return out
 
 
@@ -208,9 +209,9 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         image = load_image(photo)
         hand_mask = load_mask(hand_path, image)
-        before = rec.run(photo, refine=False, visible_fusion=args.visible_fusion)
+        before = rec.run(photo, MaskGuidance(refine=False), visible_fusion=args.visible_fusion)
         auto = rec.run(photo, visible_fusion=args.visible_fusion)
-        hand = rec.run(photo, mask_path=hand_path, visible_fusion=args.visible_fusion)
+        hand = rec.run(photo, MaskGuidance(mask=hand_path), visible_fusion=args.visible_fusion)
         tilt_deg, roll_deg, defined = tilt(hand.vertices, hand.faces)
         row = {
             "name": name,

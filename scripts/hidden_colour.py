@@ -69,7 +69,7 @@ def figures(texture, faces: np.ndarray, mask: np.ndarray) -> dict[str, float]:
 
 def main() -> int:
     from genre_backend.output.colour_check import photo_colour_error
-    from genre_backend.inference.reconstruct import Reconstructor
+    from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor
     from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -79,7 +79,7 @@ def main() -> int:
     rec = Reconstructor(args.weights)
     rows = {}
     for photo, mask in CASES:
-        result = rec.run(REPO / photo, mask_path=None if mask is None else REPO / mask)
+        result = rec.run(REPO / photo, MaskGuidance(mask=None if mask is None else REPO / mask))
         tex = result.texture()
         row = figures(tex, result.faces, result.intermediates["mask"].numpy().astype(bool))
         row["front_mae"], _ = photo_colour_error(result)

@@ -35,7 +35,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.geometry.mesh_voxels import seal_pits  # noqa: E402
+from genre_backend.geometry.visible_front import seal_pits  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402

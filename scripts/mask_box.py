@@ -8,9 +8,9 @@ of
 * the **automatic** mask (the salient-object net's, what ``genre
   reconstruct`` does without a mask; with ``--grabcut``, GrabCut seeded by
   the photo's border, its fallback), and whether it is warned as doubtful
-  (:func:`genre_backend.photo.segment.doubt`,
-  :func:`~genre_backend.photo.segment.salient_doubt` or
-  :func:`~genre_backend.photo.segment.cut_doubt`, as ``genre
+  (:func:`genre_backend.photo.mask_doubt.doubt`,
+  :func:`~genre_backend.photo.mask_doubt.salient_doubt` or
+  :func:`~genre_backend.photo.mask_doubt.cut_doubt`, as ``genre
   reconstruct`` warns);
 * the mask from a **box** alone (``--box``): the hand mask's bounding box,
   its width and height grown by ``--grow`` (5 %, half on each side),
@@ -39,7 +39,8 @@ sys.path.insert(0, str(ROOT))
 
 from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
 from genre_backend.photo.preprocess import composite, mask_bbox  # noqa: E402
-from genre_backend.photo.segment import doubt, segment  # noqa: E402
+from genre_backend.photo.mask_doubt import doubt  # noqa: E402
+from genre_backend.photo.segment import segment  # noqa: E402
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 

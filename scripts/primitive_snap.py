@@ -82,7 +82,8 @@ def _init(weights: str) -> None:
 def _score(item) -> dict:
     import torch
 
-    from genre_backend.geometry.mesh_voxels import grid_to_surface, seal_pits
+    from genre_backend.geometry.mesh_voxels import grid_to_surface
+    from genre_backend.geometry.visible_front import seal_pits
     from genre_backend.geometry.metrics import CloudScorer, sample_surface
     from genre_backend.geometry.primitives import POINTS, fit_primitive, visible_points
     from training.data.dataset import ViewDataset, ViewRef

@@ -45,7 +45,7 @@ def _fit(image: np.ndarray, tile: int) -> Image.Image:
 
 def main() -> int:
     from genre_backend.output.blender import render_views
-    from genre_backend.inference.reconstruct import Reconstructor
+    from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor
     from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -64,7 +64,7 @@ def main() -> int:
         t0 = time.perf_counter()
         path = REPO / "examples" / "photos" / photo
         mask = path.with_name(path.stem + "_mask.png") if args.hand_masks else None
-        result = rec.run(path, mask_path=mask)
+        result = rec.run(path, MaskGuidance(mask=mask))
         tex = result.texture()
         views = render_views(result.vertices, result.faces, tile * 2, camera=result.config.camera,
                              uv=tex.face_uv, texture=tex.image, views=("front", "side", "back"))

@@ -10,7 +10,7 @@ face.  ``visible_fusion`` finds the object's pixels whose ray meets nothing
 behind the depth map: a pit, the front missing) and adds the masked depth
 map's own surface there, moved onto the grid's front,
 ``max(grid, its distance target)``, before the mesh is made
-(:func:`genre_backend.geometry.mesh_voxels.fuse_visible_surface`).  (Fusing the
+(:func:`genre_backend.geometry.visible_front.fuse_visible_surface`).  (Fusing the
 depth map's surface over the whole object instead cost CD on the seen-test
 views: +2.5 % for the protocol weights, +4.4 % for the default ones; filling
 the holes alone, +0.1 % and +1.8 %.)
@@ -34,7 +34,7 @@ to choose.
 
 ``--pit-sealing K[,K...]`` compares, instead of the fusion, the sealing of the
 narrow wells in the grid's own front (``geometry.pit_sealing``,
-:func:`genre_backend.geometry.mesh_voxels.seal_pits`) at each width K; its rule
+:func:`genre_backend.geometry.visible_front.seal_pits`) at each width K; its rule
 (``results/decisions.md``) picks the largest K whose CD rises by at
 most ``CD_TOLERANCE`` on the group given by ``--choose-group``.
 
@@ -56,7 +56,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.geometry.mesh_voxels import fuse_visible_surface, seal_pits  # noqa: E402
+from genre_backend.geometry.visible_front import fuse_visible_surface, seal_pits  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 from genre_backend.output.colour import zbuffer  # noqa: E402

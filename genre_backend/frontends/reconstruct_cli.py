@@ -134,7 +134,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
 class ReconstructSpec:
     """One ``genre reconstruct`` call, checked: ``outputs[i]`` is the mesh of ``images[i]``, written as ``fmt`` with
     ``up`` as its up axis; ``options`` the mesh options (:class:`.options.MeshOptions`, None fields: the weights');
-    ``box`` (x0, y0, x1, y1, the photo's pixels), ``mask`` and ``strokes`` the (single) photo's mask inputs."""
+    ``guidance`` the (single) photo's mask inputs (:class:`genre_backend.photo.guidance.MaskGuidance`: ``--mask``,
+    ``--box`` (x0, y0, x1, y1, the photo's pixels), ``--strokes``, ``--no-refine``)."""
 
     prog: str
     images: tuple[Path, ...]
@@ -143,10 +144,7 @@ class ReconstructSpec:
     fmt: str
     up: str
     options: Any
-    mask: str | None
-    box: tuple[float, float, float, float] | None
-    strokes: str | None
-    refine: bool
+    guidance: Any
     save_intermediates: str | None
     preview: bool
     weights: str | None
@@ -185,6 +183,7 @@ def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
     from ..output.mesh_export import resolve_up
     from ..inference.options import OptionError, from_arguments
     from ..inference.reconstruct import MESH_FORMATS
+    from ..photo.guidance import MaskGuidance
 
     parser = _parser(prog)
     args = parser.parse_args(argv)
@@ -208,8 +207,8 @@ def parse_spec(argv: list[str] | None, prog: str) -> ReconstructSpec:
     except ValueError as exc:
         parser.error(f"--{exc}")
     return ReconstructSpec(prog, tuple(images), tuple(output_paths(images, args.output, fmt)), args.output, fmt, up,
-                           options, args.mask, box, args.strokes, not args.no_refine, args.save_intermediates,
-                           args.preview, args.weights, args.device)
+                           options, MaskGuidance(mask=args.mask, box=box, strokes=args.strokes, refine=not args.no_refine),
+                           args.save_intermediates, args.preview, args.weights, args.device)
 
 
 def _check_extras(parser, args) -> None:
@@ -317,9 +316,8 @@ def _reconstruct_one(spec: ReconstructSpec, rec, image: Path, out: Path, say: Ca
         if spec.save_intermediates:
             intermediates = Path(spec.save_intermediates) / image.stem if spec.many else Path(spec.save_intermediates)
         preview = out.with_name(out.stem + "_preview.png") if spec.preview else None
-        check_outputs(out, spec.fmt, textured, (image, spec.mask, spec.strokes), intermediates, preview)  # every output, before any work
-        result = rec.run(image, mask_path=spec.mask, options=spec.options, refine=spec.refine, box=spec.box,
-                         strokes_path=spec.strokes)
+        check_outputs(out, spec.fmt, textured, (image, *spec.guidance.files), intermediates, preview)  # every output, before any work
+        result = rec.run(image, spec.guidance, spec.options)
         path, used = result.save_mesh(out, spec.fmt, texture=textured, up=spec.up)
         if intermediates is not None:
             result.save_intermediates(intermediates)

@@ -346,7 +346,7 @@ class Server:
 
     def _run(self, job: Job) -> None:
         from ..output.mesh_export import check_outputs
-        from ..inference.reconstruct import STAGE_START, Cancelled, error_code
+        from ..inference.reconstruct import STAGE_START, Cancelled, Hooks, MaskGuidance, error_code
 
         if job.cancel.is_set():
             self._end(job, {"type": "cancelled", "id": job.id})
@@ -358,13 +358,10 @@ class Server:
             check_outputs(job.output, opts.format, bool(opts.texture), (job.image, job.mask, job.strokes), job.save_intermediates)
             result = self.rec.run(
                 job.image,
-                mask_path=job.mask,
-                options=opts,
-                box=job.box,
-                strokes_path=job.strokes,
-                guidance_frame=job.guidance_frame,
-                progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
-                should_cancel=job.cancel.is_set,
+                MaskGuidance(mask=job.mask, box=job.box, strokes=job.strokes, frame=job.guidance_frame),
+                opts,
+                Hooks(progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
+                      should_cancel=job.cancel.is_set),
             )
             if job.cancel.is_set():
                 raise Cancelled("cancelled before stage write")

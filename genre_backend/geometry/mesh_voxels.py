@@ -11,7 +11,7 @@ view-frame cube ``[-0.5, 0.5]^3``, voxel centre ``(i + 0.5)/N − 0.5``.
 * :func:`mesh_to_distance` is the ``distance`` target: a truncated unsigned
   distance ``clip(1 − d/(band·h), 0, 1)`` at the voxel centres (``h`` the
   pitch), exact point–triangle distances (libigl's AABB tree, checked against
-  :func:`point_mesh_distance_reference`).  Its level set at ``t`` lies
+  :func:`.triangle_distance.point_mesh_distance_reference`).  Its level set at ``t`` lies
   ``(1 − t)·band`` voxels from the surface, so marching cubes recovers the
   surface to a fraction of a voxel instead of the shell's 1–2 voxels.
 * :func:`mesh_to_target` picks the one ``GeometryConfig.target`` names.
@@ -25,15 +25,11 @@ view-frame cube ``[-0.5, 0.5]^3``, voxel centre ``(i + 0.5)/N − 0.5``.
   resampling floor CD 0.030, the shell 0.082): plain marching cubes 0.052 at
   t = 0.5 and 0.037 at t = 0.75; moved all the way 0.031 and 0.029; as
   shipped (filled, margin 0.25 voxel) 0.033 and 0.031.
-* :func:`depth_to_distance` is the distance target of the surface a depth
-  map shows (its pixels triangulated, jumps dropped); :func:`fuse_visible_surface`
-  adds it to a predicted grid where the grid leaves a hole (optionally: a
-  deep pit) in what the camera sees, so that the mesh's front is whole
-  (``GeometryConfig.visible_fusion``).  :func:`seal_pits` fills the narrow
-  wells in the grid's own visible front from the front around them
-  (``GeometryConfig.pit_sealing``).
 * :func:`voxels_to_mesh` runs marching cubes (scikit-image) and places every
   vertex exactly in the view frame.
+
+The visible face made whole before a mesh is made (the depth map's own distance grid, the pits sealed):
+:mod:`.visible_front`; exact point–triangle distances in torch: :mod:`.triangle_distance`.
 """
 
 from __future__ import annotations
@@ -42,7 +38,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..validation import check_hole_closing, check_positive_int, check_tensor, check_threshold
+from ..validation import check_positive_int, check_tensor, check_threshold
 
 __all__ = [
     "surface_lattice",
@@ -53,15 +49,7 @@ __all__ = [
     "lattice_to_shell",
     "band_voxels",
     "mesh_to_distance",
-    "point_triangles_distance",
-    "near_surface_distance",
-    "closest_on_triangles",
-    "point_mesh_distance_reference",
     "mesh_to_target",
-    "depth_to_distance",
-    "fuse_visible_surface",
-    "seal_pits",
-    "PIT_MIN_DEPTH_VOXELS",
     "voxels_to_mesh",
     "grid_to_surface",
     "fill_enclosed",
@@ -210,145 +198,6 @@ def mesh_to_distance(vertices: torch.Tensor, faces: torch.Tensor, resolution: in
     return torch.from_numpy(out)
 
 
-def _closest_on_triangle(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """The point of triangle abc nearest to p (all (3,) float64), by its Voronoi regions."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = ab @ ap, ac @ ap
-    if d1 <= 0 and d2 <= 0:
-        return a
-    bp = p - b
-    d3, d4 = ab @ bp, ac @ bp
-    if d3 >= 0 and d4 <= d3:
-        return b
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0 and d1 >= 0 and d3 <= 0:
-        return a + d1 / (d1 - d3) * ab
-    cp = p - c
-    d5, d6 = ab @ cp, ac @ cp
-    if d6 >= 0 and d5 <= d6:
-        return c
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0 and d2 >= 0 and d6 <= 0:
-        return a + d2 / (d2 - d6) * ac
-    va = d3 * d6 - d5 * d4
-    if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
-        return b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b)
-    denom = 1.0 / (va + vb + vc)
-    return a + ab * (vb * denom) + ac * (vc * denom)
-
-
-def closest_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    """The point of triangle abc nearest to p, elementwise over broadcast (..., 3) tensors.
-
-    Voronoi regions as in Ericson, *Real-Time Collision Detection*, 5.1.5
-    (``_closest_on_triangle`` is the scalar reference); degenerate triangles
-    fall on a vertex or an edge.
-    """
-    ab, ac = b - a, c - a
-    ap, bp, cp = p - a, p - b, p - c
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    tiny = torch.finfo(p.dtype).tiny
-
-    def safe(x):
-        return torch.where(x.abs() > tiny, x, torch.full_like(x, tiny))
-
-    denom = safe(va + vb + vc)
-    q = a + ab * (vb / denom)[..., None] + ac * (vc / denom)[..., None]  # inside the face
-    # the regions in the reverse of the reference's order, so that a later (= earlier there) one wins
-    w_bc = ((d4 - d3) / safe((d4 - d3) + (d5 - d6)))[..., None]
-    q = torch.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None], b + w_bc * (c - b), q)
-    w_ac = (d2 / safe(d2 - d6))[..., None]
-    q = torch.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + w_ac * ac, q)
-    q = torch.where(((d6 >= 0) & (d5 <= d6))[..., None], c.expand_as(q), q)
-    w_ab = (d1 / safe(d1 - d3))[..., None]
-    q = torch.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], a + w_ab * ab, q)
-    q = torch.where(((d3 >= 0) & (d4 <= d3))[..., None], b.expand_as(q), q)
-    q = torch.where(((d1 <= 0) & (d2 <= 0))[..., None], a.expand_as(q), q)
-    return q
-
-
-def point_triangles_distance(points: torch.Tensor, triangles: torch.Tensor, *, chunk_pairs: int = 16_000_000) -> torch.Tensor:
-    """Distance (P,) from each point (P, 3) to the nearest of the triangles (T, 3, 3); torch, any device.
-
-    :func:`closest_on_triangles` over every (point, triangle) pair, in chunks
-    of about ``chunk_pairs``; :func:`point_mesh_distance_reference` is the
-    plain loop it is tested against.  inf for every point when there is no triangle.
-    """
-    check_tensor("points", points, (None, 3))
-    check_tensor("triangles", triangles, (None, 3, 3))
-    out = points.new_full((points.shape[0],), float("inf"))
-    if triangles.shape[0] == 0 or points.shape[0] == 0:
-        return out
-    a, b, c = (t[None] for t in triangles.unbind(dim=1))  # (1, T, 3)
-    step = max(1, chunk_pairs // triangles.shape[0])
-    for start in range(0, points.shape[0], step):
-        p = points[start:start + step, None, :]  # (p, 1, 3)
-        out[start:start + step] = torch.linalg.vector_norm(p - closest_on_triangles(p, a, b, c), dim=-1).min(dim=1).values
-    return out
-
-
-def near_surface_distance(points: torch.Tensor, triangles: torch.Tensor, reach: float, *, block: float = 0.0625,
-                          chunk_pairs: int = 16_000_000) -> torch.Tensor:
-    """Distance (P,) from each point to the nearest triangle, exact where it is at most ``reach``; inf elsewhere
-    when no triangle comes within ``reach`` of the point's block.
-
-    The points are binned in cubes of edge ``block``; a point is measured only
-    against the triangles whose bounding box comes within ``reach`` of its
-    cube's, as (point, triangle) pairs in chunks of about ``chunk_pairs``.
-    Above ``reach`` a value may be larger than the true distance (a nearer
-    triangle was culled), never smaller.  For the truncated distance target,
-    whose band is ``reach``, this is exact and far cheaper than
-    :func:`point_triangles_distance` over every pair.
-    """
-    check_tensor("points", points, (None, 3))
-    check_tensor("triangles", triangles, (None, 3, 3))
-    out = points.new_full((points.shape[0],), float("inf"))
-    if triangles.shape[0] == 0 or points.shape[0] == 0:
-        return out
-    cell = torch.floor(points / block).long()
-    cell = cell - cell.min(dim=0).values
-    span = int(cell.max()) + 1
-    key = (cell[:, 0] * span + cell[:, 1]) * span + cell[:, 2]
-    keys, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
-    order = torch.argsort(inverse, stable=True)
-    first = torch.cumsum(counts, 0) - counts  # the blocks' first positions in ``order``
-    bmin = torch.full((len(keys), 3), float("inf"), dtype=points.dtype, device=points.device)
-    bmin = bmin.scatter_reduce(0, inverse[:, None].expand(-1, 3), points, reduce="amin")
-    bmax = torch.full_like(bmin, -float("inf")).scatter_reduce(0, inverse[:, None].expand(-1, 3), points, reduce="amax")
-    lo, hi = triangles.min(dim=1).values, triangles.max(dim=1).values
-    near = ((lo[None] <= bmax[:, None] + reach) & (hi[None] >= bmin[:, None] - reach)).all(dim=-1)  # (blocks, T)
-    blk, tri = torch.nonzero(near, as_tuple=True)
-    if blk.numel() == 0:
-        return out
-    per = counts[blk]  # each (block, triangle) entry pairs the triangle with every point of the block
-    ends = torch.cumsum(per, 0)
-    start = 0
-    while start < blk.numel():
-        base = int(ends[start - 1]) if start > 0 else 0
-        stop = max(int(torch.searchsorted(ends, base + chunk_pairs, right=True)), start + 1)
-        cnt = per[start:stop]
-        e = torch.repeat_interleave(torch.arange(start, stop, device=points.device), cnt)
-        k = torch.arange(e.numel(), device=points.device) - torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt, cnt)
-        pidx = order[first[blk[e]] + k]
-        t = triangles[tri[e]]
-        d = torch.linalg.vector_norm(points[pidx] - closest_on_triangles(points[pidx], t[:, 0], t[:, 1], t[:, 2]), dim=-1)
-        out.scatter_reduce_(0, pidx, d, reduce="amin", include_self=True)
-        start = stop
-    return out
-
-
-def point_mesh_distance_reference(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Plain-loop reference: distance (P,) from each point (P, 3) to the nearest triangle (slow; tests)."""
-    v = np.asarray(vertices, np.float64)
-    out = []
-    for p in np.asarray(points, np.float64):
-        out.append(min(np.linalg.norm(p - _closest_on_triangle(p, *v[list(f)])) for f in np.asarray(faces)))
-    return np.asarray(out)
-
-
 def mesh_to_target(vertices: torch.Tensor, faces: torch.Tensor, geometry) -> torch.Tensor:
     """The refiner's target (N, N, N) float32 in [0, 1] of a view-frame mesh, as ``geometry.target`` names it."""
     n = geometry.voxel_size
@@ -356,167 +205,6 @@ def mesh_to_target(vertices: torch.Tensor, faces: torch.Tensor, geometry) -> tor
     if geometry.target == "shell":
         return dilate(surface, geometry.shell_dilation).float()
     return mesh_to_distance(vertices, faces, n, geometry.distance_band, surface=surface)
-
-
-def depth_to_distance(depth: torch.Tensor, camera, geometry, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """The distance target (N, N, N) float32 of the surface one depth map shows, in the view frame.
-
-    depth: (S, S) planar depth (background 0); mask: (S, S) bool, optional
-    (default: depth > 0).  Neighbouring pixels are joined into triangles
-    (:func:`..spherical.depth_to_triangles`: a triangle across a depth jump,
-    longer than ``geometry.depth_edge_max_ratio`` pixel footprints, is
-    dropped) and the grid is :func:`mesh_to_distance` of that open sheet, the
-    same truncated distance the refiner is trained to predict.  All zeros when
-    no triangle is left.
-    """
-    from .spherical import depth_to_triangles
-
-    check_tensor("depth", depth, ("S", "S"))
-    tris, _ = depth_to_triangles(depth[None].float(), camera, geometry.depth_edge_max_ratio,
-                                 None if mask is None else mask[None])
-    n = geometry.voxel_size
-    if len(tris) == 0:
-        return torch.zeros((n, n, n), dtype=torch.float32)
-    vertices = tris.reshape(-1, 3).double()
-    faces = torch.arange(len(vertices), dtype=torch.int64).reshape(-1, 3)
-    return mesh_to_distance(vertices, faces, n, geometry.distance_band)
-
-
-def fuse_visible_surface(prob: torch.Tensor, depth: torch.Tensor, camera, geometry, level: float,
-                         grow_px: int = 2, pit_voxels: float | None = None) -> torch.Tensor:
-    """A distance-target grid (N, N, N) with the holes in its visible face filled from the depth map.
-
-    prob: (N, N, N) float in [0, 1] (the refiner's sigmoid, carved if the
-    weights carve); depth: (S, S) the masked depth (background 0); ``level``:
-    the iso-level the mesh is made at.  An object pixel whose ray meets no
-    value above ``level`` (:func:`..voxels.ray_first_hit`: a hole through the
-    front, a part the photo shows left out) is filled: those pixels are grown
-    by ``grow_px`` so that the patch overlaps the grid's surface around them,
-    and there the depth map's own surface is added, ``max(prob, visible)``
-    (:func:`depth_to_distance`).  Where the grid covers a pixel nothing
-    changes.  Returns ``prob`` (as float32, on the CPU) when nothing needs
-    filling.  Only for ``geometry.target == "distance"``.
-
-    ``pit_voxels``: also fill the pixels whose ray meets the grid more than
-    this many voxels behind the depth map (a pit: the front face missing, the
-    inside of the back seen).  The depth map is then first moved along the
-    view axis onto the grid's front (by the median difference over the pixels
-    that meet something, the tube's crossing lying ``(1 − level)·band`` voxels
-    in front of its surface), and the moved map is what fills.  Measured on
-    the seen-test views (``scripts/visible_fusion.py --pit-voxels 3``) it cost
-    4.4–4.6 % CD against 0.1–1.9 % for the holes alone (the default weights
-    with pits deeper than 6 or 10 voxels: 3.8 %, 2.9 %), so the setting
-    (``GeometryConfig.visible_fusion``) fills holes only.
-    """
-    from scipy import ndimage
-
-    from .voxels import ray_first_hit
-
-    if geometry.target != "distance":
-        raise ValueError("fuse_visible_surface: the visible surface is fused only into distance-target grids")
-    n = geometry.voxel_size
-    check_tensor("prob", prob, (n, n, n))
-    check_tensor("depth", depth, ("S", "S"))
-    if pit_voxels is not None and not (np.isfinite(pit_voxels) and pit_voxels > 0):
-        raise ValueError(f"pit_voxels: expected a positive number of voxels, got {pit_voxels!r}")
-    prob = prob.detach().cpu().float()
-    depth = depth.detach().cpu().float()
-    obj = depth > 0
-    hit = ray_first_hit(prob, level, camera, depth.shape[-1])
-    met = obj & torch.isfinite(hit)
-    holes = obj & ~met
-    moved = depth
-    if pit_voxels is not None and met.any():
-        h = 1.0 / n
-        front = hit + (1.0 - level) * geometry.distance_band * h  # the surface behind the tube's crossing
-        moved = torch.where(obj, depth + float((front - depth)[met].median()), depth)
-        holes = holes | (met & (front - moved > pit_voxels * h))
-    if not holes.any():
-        return prob
-    holes = holes.numpy()
-    if grow_px > 0:
-        holes = ndimage.binary_dilation(holes, np.ones((3, 3), bool), iterations=int(grow_px)) & obj.numpy()
-    visible = depth_to_distance(moved.clamp(min=0.0) * obj, camera, geometry, torch.from_numpy(holes))
-    return torch.maximum(prob, visible)
-
-
-# A pit's floor must lie at least this many voxels behind its rim for seal_pits to fill it: the level
-# crossing of a blurry front wanders by about a voxel, which is not a pit.
-PIT_MIN_DEPTH_VOXELS = 2.0
-
-
-def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: float, width_voxels: int,
-              grow_px: int = 2) -> torch.Tensor:
-    """A distance-target grid (N, N, N) with the narrow pits in its visible face sealed by its own front.
-
-    prob: (N, N, N) float in [0, 1] (the refiner's sigmoid, after any
-    carving or fusion); mask: (S, S) bool, the object's pixels; ``level``:
-    the iso-level the mesh is made at; ``width_voxels`` (int, 0-8; 0 returns
-    ``prob``): the widest pit sealed is about ``2·width_voxels`` voxels across.
-
-    The depth at which each object pixel's ray first meets the grid
-    (:func:`..voxels.ray_first_hit`; a ray that meets nothing counts as far
-    behind the object) is a height field seen from the camera.  A pit is a
-    basin of it: pixels from which every path to the outside of the mask
-    first climbs to a nearer depth, the well a blurry front wall leaves when
-    its crossing falls through to the inside of the back.  The basins are
-    filled to the depth of their rim (morphological reconstruction by
-    erosion, scikit-image); those whose floor lies more than
-    :data:`PIT_MIN_DEPTH_VOXELS` behind the filled surface and whose half-width
-    (the largest distance from a pixel of the basin to its edge) is at most
-    ``width_voxels`` voxels' worth of pixels are sealed: over the basin, grown
-    by ``grow_px`` pixels so that the patch meets the front around it, the
-    filled height field's own surface (moved behind the crossing to the
-    surface the tube stands for) is added as a distance target,
-    ``max(prob, patch)`` (:func:`depth_to_distance`).  A front that falls
-    away toward the outline (a convex face) and a basin wider than the limit
-    (a bowl seen from above) are left alone, and nothing is ever removed.
-    Returns ``prob`` (float32, on the CPU) when nothing is sealed.  Only for
-    ``geometry.target == "distance"``.
-    """
-    from scipy import ndimage
-    from skimage.morphology import reconstruction
-
-    from .voxels import ray_first_hit
-
-    if geometry.target != "distance":
-        raise ValueError("seal_pits: pits are sealed only in distance-target grids")
-    n = geometry.voxel_size
-    check_tensor("prob", prob, (n, n, n))
-    check_tensor("mask", mask, ("S", "S"), floating=False)
-    if mask.dtype != torch.bool:
-        raise ValueError(f"mask: expected a bool tensor, got {mask.dtype}")
-    level = check_threshold("level", level)
-    width_voxels = check_hole_closing("width_voxels", width_voxels)  # (the same kind of width as hole_closing's)
-    prob = prob.detach().cpu().float()
-    if width_voxels == 0:
-        return prob
-    obj = mask.detach().cpu().numpy()
-    size = obj.shape[-1]
-    h = 1.0 / n
-    far = float(camera.distance) + 1.0  # beyond the cube's far side: what a ray that meets nothing sees
-    hit = ray_first_hit(prob, level, camera, size).numpy().astype(np.float64)
-    front = np.where(obj & np.isfinite(hit), hit, far)
-    height = -front  # nearer is higher; outside the mask: the lowest, the sea every basin drains to
-    seed = np.full_like(height, height.max())
-    seed[0, :], seed[-1, :], seed[:, 0], seed[:, -1] = height[0, :], height[-1, :], height[:, 0], height[:, -1]
-    filled = -reconstruction(seed, height, method="erosion")  # each basin raised to its rim: nearer depths
-    rimmed = filled < far - h  # pixels with a nearer front to seal them with
-    basins = obj & rimmed & (front - filled > PIT_MIN_DEPTH_VOXELS * h)
-    if not basins.any():
-        return prob
-    labels, count = ndimage.label(basins)
-    half_width = ndimage.distance_transform_edt(basins)
-    widest = ndimage.maximum(half_width, labels, np.arange(1, count + 1))
-    narrow = np.isin(labels, 1 + np.flatnonzero(np.asarray(widest) <= width_voxels * size / n))
-    if not narrow.any():
-        return prob
-    if grow_px > 0:
-        narrow = ndimage.binary_dilation(narrow, np.ones((3, 3), bool), iterations=int(grow_px)) & obj & rimmed
-    surface = filled + (1.0 - level) * geometry.distance_band * h  # the crossing lies this far in front of the surface
-    region = torch.from_numpy(narrow)
-    patch = depth_to_distance(torch.from_numpy(np.where(narrow, surface, 0.0)).float(), camera, geometry, region)
-    return torch.maximum(prob, patch)
 
 
 def grid_index_to_view(index, resolution: int):

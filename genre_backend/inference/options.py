@@ -41,6 +41,7 @@ from typing import Any
 import torch
 
 from ..validation import MAX_HOLE_CLOSING
+from .net_outputs import View
 
 __all__ = [
     "Option",
@@ -238,22 +239,22 @@ class MeshOptions:
         return 0.0 if self.all_parts else self.min_part_share
 
     # ---- the steps after the networks, in their one order --------------------------------------------------
-    def shape_grid(self, prob: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor, camera, geometry) -> torch.Tensor:
+    def shape_grid(self, prob: torch.Tensor, view: View, geometry) -> torch.Tensor:
         """The probability grid (N, N, N) float32 on the CPU, steered by the resolved options before a mesh is made.
 
         In order: capped by the mask's outline ramp (``silhouette_carve``), the holes in the visible face filled from
         the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (``pit_sealing``); the
-        last two at ``threshold``.  ``mask``: (S, S) bool, ``depth``: (S, S) masked depth (0 off the object).
+        last two at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`.net_outputs.View`).
         """
-        from ..geometry.mesh_voxels import fuse_visible_surface, seal_pits
+        from ..geometry.visible_front import fuse_visible_surface, seal_pits
         from ..geometry.voxels import silhouette_ramp
 
         if self.silhouette_carve:
-            prob = torch.minimum(prob, silhouette_ramp(mask[None].cpu(), camera, prob.shape[-1])[0, 0])
+            prob = torch.minimum(prob, silhouette_ramp(view.mask[None].cpu(), view.camera, prob.shape[-1])[0, 0])
         if self.visible_fusion:
-            prob = fuse_visible_surface(prob, depth, camera, geometry, self.threshold)
+            prob = fuse_visible_surface(prob, view.depth, view.camera, geometry, self.threshold)
         if self.pit_sealing:
-            prob = seal_pits(prob, mask.cpu().bool(), camera, geometry, self.threshold, self.pit_sealing)
+            prob = seal_pits(prob, view.mask.cpu().bool(), view.camera, geometry, self.threshold, self.pit_sealing)
         return prob
 
     def mesh(self, prob: torch.Tensor, geometry, clean: bool = True):
@@ -263,14 +264,14 @@ class MeshOptions:
         """
         return mesh_of_probability(prob, self.threshold, geometry, self.hole_closing, self.keep_fraction, clean=clean)
 
-    def snap_mesh(self, vertices, faces, depth: torch.Tensor, camera):
+    def snap_mesh(self, vertices, faces, view: View):
         """The regular shape that replaces the mesh (``primitive_snap``; 0: off): ``(vertices (V, 3) float32, faces (F, 3)
-        int64, fit)`` of the accepted fit, or the mesh as it was and ``None``.  ``depth``: (S, S) masked depth."""
+        int64, fit)`` of the accepted fit, or the mesh as it was and ``None``.  ``view``: its masked depth and camera."""
         from ..geometry.primitives import snap
 
         if not self.primitive_snap > 0:
             return vertices, faces, None
-        v, f, fit = snap(vertices, faces, depth, camera, self.primitive_snap)
+        v, f, fit = snap(vertices, faces, view.depth, view.camera, self.primitive_snap)
         if fit is not None and fit.accepted(self.primitive_snap):
             return v, f, fit
         return v, f, None

@@ -25,19 +25,23 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..weights_file import DEFAULT_WEIGHTS_NAME, named_weights
-from ..geometry.cleanup import clean_mesh
+from ..geometry.cleanup import CleanReport, clean_mesh
 from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
 from ..output.mesh_export import MESH_FORMATS, OutputError, check_output_path, write_mesh
+from .net_outputs import NetOutputs
 from .options import MeshOptions, mesh_of_probability
 from .result import Reconstruction
 from ..photo.decode import ImageError, MIN_OBJECT_PIXELS, load_image
 from ..photo.preprocess import Preprocessed, preprocess, uncrop
-from ..photo.segment import DEFAULT_SEEDING, doubt
+from ..photo.guidance import MaskGuidance
+from ..photo.mask_doubt import doubt
 
 __all__ = [
     "STAGES",
@@ -45,6 +49,8 @@ __all__ = [
     "mesh_of_probability",
     "DEFAULT_WEIGHTS",
     "Cancelled",
+    "Hooks",
+    "MaskGuidance",
     "OutputError",
     "Reconstructor",
     "error_code",
@@ -99,12 +105,22 @@ def resolve_device(device: str | torch.device) -> torch.device:
     return dev
 
 
-class _StageClock:
-    """Times the stages of one job, reports each as it starts (``progress(stage, fraction)``) and polls
-    ``should_cancel()`` at every boundary (:class:`Cancelled`); ``timings``: stage → seconds."""
+@dataclass(frozen=True)
+class Hooks:
+    """What a caller hears of a job and how it stops one: ``progress(stage, fraction)`` is called as each stage starts
+    (fraction of the whole job done so far, :data:`STAGE_START`); ``should_cancel()`` is polled at every stage boundary,
+    and when it returns True, :class:`Cancelled` is raised.  Either may be None."""
 
-    def __init__(self, sync: Callable[[], None], progress: ProgressFn | None, should_cancel: Callable[[], bool] | None):
-        self.sync, self.progress, self.should_cancel = sync, progress, should_cancel
+    progress: ProgressFn | None = None
+    should_cancel: Callable[[], bool] | None = None
+
+
+class _StageClock:
+    """Times the stages of one job, reports each as it starts and polls for cancellation at every boundary
+    (:class:`Hooks`); ``timings``: stage → seconds."""
+
+    def __init__(self, sync: Callable[[], None], hooks: Hooks):
+        self.sync, self.progress, self.should_cancel = sync, hooks.progress, hooks.should_cancel
         self.timings: dict[str, float] = {}
         self.name: str | None = None
         self.t0 = 0.0
@@ -180,46 +196,29 @@ class Reconstructor:
         """(3, S, S) float → (S, S) float: the depth net's silhouette logits."""
         return self._depth_net(rgb)["silhouette_logits"][0].float().cpu()
 
-    def run(
-        self,
-        image_path: str | os.PathLike,
-        mask_path: str | os.PathLike | None = None,
-        options: MeshOptions | None = None,
-        *,
-        progress: ProgressFn | None = None,
-        should_cancel: Callable[[], bool] | None = None,
-        refine: bool = True,
-        seeding: str = DEFAULT_SEEDING,
-        box: tuple[float, float, float, float] | None = None,
-        strokes_path: str | os.PathLike | None = None,
-        guidance_frame: str = "upright",
-        **overrides,
-    ) -> Reconstruction:
+    def run(self, image_path: str | os.PathLike, guidance: MaskGuidance | None = None, options: MeshOptions | None = None,
+            hooks: Hooks | None = None, **overrides) -> Reconstruction:
         """Reconstruct one image; see :class:`Reconstruction` for the result.
 
-        ``options``: the mesh options (:class:`.options.MeshOptions`; its ``None`` fields, and all of them when it is
-        None, take the weights' settings); ``overrides``: options by name laid over it (``threshold=0.4``), checked
-        alike (:class:`.options.OptionError`, a ValueError naming the option).  ``progress(stage, fraction)`` is
-        called as each stage starts (fraction of the whole job done so far).  ``should_cancel()`` is polled at every
-        stage boundary; when it returns True, :class:`Cancelled` is raised.  ``refine`` and ``seeding``: without a
-        mask file or alpha, find the mask in the photo (the salient net's, :func:`.preprocess.preprocess`); ``refine=False`` takes the
-        depth net's silhouette as it is.  ``box`` (x0, y0, x1, y1, the photo's pixels) and ``strokes_path`` (white
-        object and black background strokes on grey, the photo's size): a person's guidance for the mask instead of
-        the automatic one (:func:`.preprocess.preprocess`), over the photo's pixels as ``guidance_frame`` says
-        (``"upright"``: EXIF orientation applied; ``"stored"``: as stored in the file).  The steps after the networks are the options' own
-        (:meth:`.options.MeshOptions.shape_grid`, :meth:`~.options.MeshOptions.mesh`,
-        :meth:`~.options.MeshOptions.snap_mesh`).  Raises :class:`ImageError` for bad images, masks or images with
-        no object.
+        ``guidance``: the mask inputs and switches (:class:`.guidance.MaskGuidance`: a mask file, a person's box and
+        strokes and the pixels they are over, ``refine`` and ``seeding``; None: the automatic mask, found in the photo
+        when it has no alpha, :func:`.preprocess.preprocess`).  ``options``: the mesh options
+        (:class:`.options.MeshOptions`; its ``None`` fields, and all of them when it is None, take the weights'
+        settings); ``overrides``: options by name laid over it (``threshold=0.4``), checked alike
+        (:class:`.options.OptionError`, a ValueError naming the option).  ``hooks``: progress and cancellation
+        (:class:`Hooks`).  The steps after the networks are the options' own (:meth:`.options.MeshOptions.shape_grid`,
+        :meth:`~.options.MeshOptions.mesh`, :meth:`~.options.MeshOptions.snap_mesh`).  Raises :class:`ImageError` for bad
+        images, masks or images with no object.
         """
+        guidance = MaskGuidance() if guidance is None else guidance
         opts = MeshOptions.from_mapping(overrides).over(options or MeshOptions()).resolved(self.config.geometry)
-        stage = _StageClock(self._sync, progress, should_cancel)
+        stage = _StageClock(self._sync, hooks or Hooks())
         self._first_pass = None
         with torch.inference_mode():
             stage("load")
             image = load_image(image_path)
             stage("preprocess")
-            pre: Preprocessed = preprocess(image, self.config, mask_path=mask_path, silhouette=self._silhouette, refine=refine, seeding=seeding,
-                                           box=box, strokes_path=strokes_path, guidance_frame=guidance_frame)
+            pre: Preprocessed = preprocess(image, self.config, guidance, silhouette=self._silhouette)
             nets = self._networks(pre, opts, stage, image.path)
             stage("mesh")
             mesh = self._mesh(nets, opts, image.path, list(pre.notes))
@@ -227,19 +226,12 @@ class Reconstructor:
         photo_mask = pre.photo_mask
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
             crop = tuple(v * image.scale for v in pre.crop_box)
-            photo_mask = uncrop(nets["mask"][0].cpu().numpy(), crop, image.size)
-        inter = {
-            "rgb": pre.rgb,
-            "depth": nets["depth"][0],
-            "silhouette_logits": nets["silhouette_logits"][0],
-            **{k: nets[k][0] for k in ("mask", "masked_depth", "partial_sph", "full_sph")},
-            **{k: nets[k][0, 0] for k in ("vox_sph", "vox_depth", "logits")},
-            "probability": mesh["probability"],
-        }
+            photo_mask = uncrop(nets.mask[0].cpu().numpy(), crop, image.size)
+        inter = {"rgb": pre.rgb, **nets.images(), "probability": mesh.probability}
         return Reconstruction(
             image=Path(image_path),
-            vertices=mesh["vertices"],
-            faces=mesh["faces"],
+            vertices=mesh.vertices,
+            faces=mesh.faces,
             mask_source=pre.mask_source,
             options=opts,
             timings=stage.timings,
@@ -247,21 +239,18 @@ class Reconstructor:
             image_size=pre.image_size,
             config=self.config,
             intermediates={k: v.detach().cpu() for k, v in inter.items()},
-            notes=mesh["notes"],
-            mask_path=None if mask_path is None else Path(mask_path),
-            strokes_path=None if strokes_path is None else Path(strokes_path),
+            notes=mesh.notes,
+            guidance=guidance,
             photo=image,
             fill=pre.fill,
-            clean=mesh["clean"],
+            clean=mesh.clean,
             photo_mask=photo_mask,
             mask_warning="; ".join(w for w in (doubt(photo_mask), pre.mask_doubt) if w) or None,
-            primitive=mesh["primitive"],
+            primitive=mesh.primitive,
         )
 
-    def _networks(self, pre: Preprocessed, opts: MeshOptions, stage: _StageClock, path) -> dict[str, torch.Tensor]:
-        """The networks on one framed photo (S = image size, H = spherical map size, N = voxel grid size): ``depth``
-        (1, 1, S, S), ``silhouette_logits`` (1, 1, S, S), ``mask`` (1, 1, S, S) bool, ``masked_depth`` (1, 1, S, S),
-        ``partial_sph`` and ``full_sph`` (1, 1, H, H), ``vox_sph``, ``vox_depth`` and ``logits`` (1, 1, N, N, N)."""
+    def _networks(self, pre: Preprocessed, opts: MeshOptions, stage: _StageClock, path) -> NetOutputs:
+        """The networks on one framed photo (:class:`.net_outputs.NetOutputs`)."""
         model = self.model
         stage("depth")
         out = self._depth_net(pre.rgb)
@@ -283,24 +272,36 @@ class Reconstructor:
         if opts.test_time_mirror:  # the mirror image through every net, its output reflected back
             logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k)["logits"], pre.rgb[None].to(self.device), mask,
                                      logits=logits)
-        return {"depth": out["depth"], "silhouette_logits": out["silhouette_logits"], "mask": mask, "masked_depth": masked,
-                "partial_sph": partial, "full_sph": full, "vox_sph": vox_sph, "vox_depth": vox_depth, "logits": logits}
+        return NetOutputs(depth=out["depth"], silhouette_logits=out["silhouette_logits"], mask=mask, masked_depth=masked,
+                          partial_sph=partial, full_sph=full, vox_sph=vox_sph, vox_depth=vox_depth, logits=logits)
 
-    def _mesh(self, nets: dict[str, torch.Tensor], opts: MeshOptions, path, notes: list[str]) -> dict:
-        """The steps after the networks, in the options' one order: ``probability`` (N, N, N) CPU float,
-        ``vertices`` (V, 3), ``faces`` (F, 3), ``clean`` (the cleanup's report), ``primitive`` (a fitted family or
-        None) and ``notes`` (``notes`` with the fit's, when one replaced the mesh)."""
+    def _mesh(self, nets: NetOutputs, opts: MeshOptions, path, notes: list[str]) -> _Meshed:
+        """The steps after the networks, in the options' one order (:class:`_Meshed`)."""
         model = self.model
-        prob = torch.sigmoid(nets["logits"][0, 0]).float().cpu()
-        prob = opts.shape_grid(prob, nets["mask"][0], nets["masked_depth"][0], model.config.camera, model.config.geometry)
+        view = nets.view(model.config.camera)
+        prob = torch.sigmoid(nets.logits[0, 0]).float().cpu()
+        prob = opts.shape_grid(prob, view, model.config.geometry)
         prob, vertices, faces, clean = opts.mesh(prob, model.config.geometry)
         if clean is None:
             raise ImageError("no_object", f"{path}: no object found (no voxel reaches the threshold {opts.threshold:g})")
         primitive = None
-        vertices, faces, fit = opts.snap_mesh(vertices, faces, nets["masked_depth"][0], model.config.camera)
+        vertices, faces, fit = opts.snap_mesh(vertices, faces, view)
         if fit is not None:
             primitive = fit.family
             vertices, faces, clean = clean_mesh(vertices, faces, 0.0)
             notes = [*notes, f"the mesh is a fitted {fit.describe()}"]
-        return {"probability": prob, "vertices": vertices, "faces": faces, "clean": clean, "primitive": primitive,
-                "notes": notes}
+        return _Meshed(prob, vertices, faces, clean, primitive, notes)
+
+
+@dataclass(frozen=True)
+class _Meshed:
+    """What the steps after the networks make: ``probability`` (N, N, N) CPU float (the grid as meshed), ``vertices``
+    (V, 3), ``faces`` (F, 3), ``clean`` (the cleanup's report), ``primitive`` (a fitted family or None) and ``notes``
+    (the run's, with the fit's when one replaced the mesh)."""
+
+    probability: torch.Tensor
+    vertices: np.ndarray
+    faces: np.ndarray
+    clean: CleanReport
+    primitive: str | None
+    notes: list[str]

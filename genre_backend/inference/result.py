@@ -21,6 +21,7 @@ from ..output.mesh_export import OutputError, check_output_path, resolve_format,
 from ..output.colour import MAX_TEXTURE_SIDE, PhotoTexture, photo_texture
 from .options import MeshOptions
 from ..photo.decode import LoadedImage
+from ..photo.guidance import MaskGuidance
 from ..photo.preprocess import composite, crop_resize
 
 __all__ = ["Reconstruction", "MASK_OVERLAY_SIDE"]
@@ -61,14 +62,15 @@ class Reconstruction:
     ``"box"``, ``"strokes"``, ``"box+strokes"`` or ``"silhouette"``.  ``photo_mask``: (H, W) bool, the mask the networks
     used at the decoded photo's pixels (:meth:`mask_in_photo` gives it at
     the photo's own size).  ``mask_warning``: one line when that mask is
-    doubtful (:func:`genre_backend.photo.segment.doubt`: it covers most
-    of the photo or touches most of its border; :func:`~genre_backend.photo.segment.cut_doubt`:
-    GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.photo.segment.salient_doubt`:
+    doubtful (:func:`genre_backend.photo.mask_doubt.doubt`: it covers most
+    of the photo or touches most of its border; :func:`~genre_backend.photo.mask_doubt.cut_doubt`:
+    GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.photo.mask_doubt.salient_doubt`:
     the salient net's mask; or the net could not be loaded and GrabCut's mask was used), else None.
     ``options``: the mesh options as the mesh was made (:class:`.options.MeshOptions`, resolved against the weights:
     no field ``None``); ``threshold``, ``hole_closing``, ``silhouette_carve``, ``visible_fusion``, ``pit_sealing``,
     ``primitive_snap`` and ``test_time_mirror`` read them.  ``primitive``: the family of the fitted shape that replaced the
     mesh (``"box"``, ``"cylinder"``, ``"cone"``, ``"torus"``, ``"ellipsoid"``), else None.
+    ``guidance``: the mask inputs it was run with (:class:`genre_backend.photo.guidance.MaskGuidance`).
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
     original image.  ``intermediates`` (S = image size, H = spherical map
     size, N = voxel grid size), CPU tensors: ``rgb`` (3, S, S), ``depth``
@@ -94,8 +96,7 @@ class Reconstruction:
     config: GenreConfig
     intermediates: dict[str, torch.Tensor] = field(repr=False)
     notes: list[str] = field(default_factory=list)
-    mask_path: Path | None = None
-    strokes_path: Path | None = None
+    guidance: MaskGuidance = field(default_factory=MaskGuidance)
     photo: LoadedImage | None = field(default=None, repr=False)
     fill: tuple[int, int, int] = (0, 0, 0)
     clean: CleanReport | None = None
@@ -117,7 +118,7 @@ class Reconstruction:
     @property
     def inputs(self) -> tuple[Path, ...]:
         """The files this result was made from (never overwritten by its own outputs)."""
-        return (self.image, *(p for p in (self.mask_path, self.strokes_path) if p is not None))
+        return (self.image, *self.guidance.files)
 
     def camera(self) -> dict:
         """The view the mesh is posed for (protocol ``camera`` object).

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .segment import STROKE_BACKGROUND_MAX, STROKE_OBJECT_MIN
+from .grabcut import STROKE_BACKGROUND_MAX, STROKE_OBJECT_MIN
 
 __all__ = [
     "ImageError",
@@ -317,8 +317,8 @@ def load_strokes(path: str | os.PathLike, image: LoadedImage, frame: str = "upri
     The file has the image's size (after EXIF rotation of both; with ``frame``
     ``"stored"``, :data:`GUIDANCE_FRAMES`, the size of the photo's pixels as
     stored, and it is turned by the photo's EXIF orientation): grey level
-    (luminance) ≥ :data:`.segment.STROKE_OBJECT_MIN` (white) is sure object,
-    ≤ :data:`.segment.STROKE_BACKGROUND_MAX` (black) sure background, anything
+    (luminance) ≥ :data:`.grabcut.STROKE_OBJECT_MIN` (white) is sure object,
+    ≤ :data:`.grabcut.STROKE_BACKGROUND_MAX` (black) sure background, anything
     between (mid grey, 128) says nothing, and so do transparent pixels (alpha
     < 128), so strokes may be drawn on a transparent layer.  It must mark at
     least one pixel.  Raises :class:`ImageError` ``bad_mask``.

@@ -17,7 +17,7 @@ framing here, and only here:
    else the depth net's own silhouette (two passes: the whole image padded
    to a square, then the crop around that silhouette).  A final mask that
    covers most of the photo or touches most of its border is reported as
-   doubtful (:func:`.segment.doubt`, done by the caller).
+   doubtful (:func:`.mask_doubt.doubt`, done by the caller).
 3. **Framing** (:func:`square_crop_box`, :func:`crop_resize`): a square
    centred on the mask's bounding box whose side makes the box's longest side
    span ``GeometryConfig.object_fraction`` of the image; parts outside the
@@ -32,7 +32,6 @@ Every failure raises :class:`ImageError` whose ``code`` is one of the
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -41,7 +40,9 @@ import torch
 
 from ..config import GenreConfig, GeometryConfig
 from .decode import ALPHA_OBJECT_MIN, MIN_OBJECT_PIXELS, ImageError, LoadedImage, load_mask, load_strokes, photo_box
-from .segment import DEFAULT_SEEDING, SEEDINGS, doubt, segment
+from .guidance import MaskGuidance
+from .mask_doubt import doubt
+from .segment import SEEDINGS, segment
 
 __all__ = [
     "Preprocessed",
@@ -74,9 +75,9 @@ class Preprocessed:
     (None for ``"silhouette"``: the caller projects the crop's silhouette
     back with :func:`uncrop`).  ``network_doubt``: when the depth net's own
     silhouette of the whole photo was doubtful
-    (:func:`.segment.doubt`), why; else None.  ``mask_doubt``: when the
-    found mask is doubtful (:func:`.segment.salient_doubt`,
-    :func:`.segment.cut_doubt`) or was made without the salient net because
+    (:func:`.mask_doubt.doubt`), why; else None.  ``mask_doubt``: when the
+    found mask is doubtful (:func:`.mask_doubt.salient_doubt`,
+    :func:`.mask_doubt.cut_doubt`) or was made without the salient net because
     it could not be loaded, why; else None.
     ``mask_source`` is also ``"box"``, ``"strokes"`` or ``"box+strokes"``
     for a mask found from a person's box and strokes.
@@ -200,51 +201,43 @@ def _probability(silhouette_out: torch.Tensor) -> np.ndarray:
     return torch.sigmoid(silhouette_out.detach().float()).cpu().numpy()
 
 
-def preprocess(
-    image: LoadedImage,
-    config: GenreConfig,
-    *,
-    mask_path: str | os.PathLike | None = None,
-    silhouette: SilhouetteFn | None = None,
-    refine: bool = True,
-    seeding: str = DEFAULT_SEEDING,
-    box: tuple[float, float, float, float] | None = None,
-    strokes_path: str | os.PathLike | None = None,
-    guidance_frame: str = "upright",
-) -> Preprocessed:
+def preprocess(image: LoadedImage, config: GenreConfig, guidance: MaskGuidance | None = None, *,
+               silhouette: SilhouetteFn | None = None) -> Preprocessed:
     """Select the mask and bring the image to the canonical framing.
 
-    ``silhouette``: a function (3, S, S) float RGB → (S, S) silhouette
+    ``guidance``: the mask inputs and switches (:class:`.guidance.MaskGuidance`; None: none given, the automatic
+    mask).  ``silhouette``: a function (3, S, S) float RGB → (S, S) silhouette
     logits (float) or mask (bool) of the depth net, needed only when neither
     a mask file nor real alpha is there; it runs once on the whole image
-    padded to a square.  Then, with ``refine`` (the default), the object's
-    mask is found in the photo (:func:`.segment.segment`, ``seeding`` one of
+    padded to a square.  Then, with ``guidance.refine`` (the default), the object's
+    mask is found in the photo (:func:`.segment.segment`, ``guidance.seeding`` one of
     :data:`.segment.SEEDINGS`: by default the salient-object net's, else
     GrabCut's) and used like a mask file (``mask_source`` ``"salient"`` or
     ``"grabcut"``); without it (or when nothing is found) the returned ``mask`` is None so that the caller takes the
     silhouette of the final crop (``mask_source`` ``"silhouette"``).
-    ``box`` (x0, y0, x1, y1, the photo's pixels, :func:`photo_box`) and
-    ``strokes_path`` (:func:`load_strokes`): a person's guidance for the mask
+    ``guidance.box`` (x0, y0, x1, y1, the photo's pixels, :func:`photo_box`) and
+    ``guidance.strokes`` (:func:`load_strokes`): a person's guidance for the mask
     (:func:`.segment.segment`); they take the place of the alpha channel and
     of the automatic seeding, not of a mask file (giving both is a
-    ``ValueError``).  ``guidance_frame``: the pixels they are drawn over
+    ``ValueError``), over the pixels ``guidance.frame`` says
     (:data:`GUIDANCE_FRAMES`: ``"upright"``, the photo with its EXIF
     orientation applied; ``"stored"``, as stored in its file).  Raises :class:`ImageError`.
     """
+    guidance = MaskGuidance() if guidance is None else guidance
     g = config.geometry
     size = g.image_size
     rgb = composite(image)
     h, w = rgb.shape[:2]
     notes = list(image.notes)
 
-    if box is not None or strokes_path is not None:
-        if mask_path is not None:
+    if guidance.guided:
+        if guidance.mask is not None:
             raise ValueError("give either a mask file or a box and strokes, not both")
-        return _guided(image, rgb, g, notes, box, strokes_path, guidance_frame)
+        return _guided(image, rgb, g, notes, guidance)
 
-    if mask_path is not None or image.has_transparency():
-        if mask_path is not None:
-            mask, source = load_mask(mask_path, image), "file"
+    if guidance.mask is not None or image.has_transparency():
+        if guidance.mask is not None:
+            mask, source = load_mask(guidance.mask, image), "file"
         else:
             mask, source = image.alpha >= ALPHA_OBJECT_MIN, "alpha"
             if int(mask.sum()) < MIN_OBJECT_PIXELS:
@@ -253,6 +246,7 @@ def preprocess(
 
     if silhouette is None:
         raise ValueError("preprocess: an image without mask file or transparency needs the silhouette function")
+    seeding = guidance.seeding
     if seeding not in SEEDINGS:
         raise ValueError(f"seeding: expected one of {', '.join(SEEDINGS)}, got {seeding!r}")
     # pass 1: the whole image, padded to a square, to find the object
@@ -264,7 +258,7 @@ def preprocess(
     network_doubt = doubt(photo_prob > 0.5, "depth net's silhouette")
     if network_doubt:
         notes.append(network_doubt)
-    if refine:
+    if guidance.refine:
         found = segment(rgb, photo_prob, seeding)
         if int(found.mask.sum()) >= MIN_OBJECT_PIXELS:
             notes.append(_mask_note(found))
@@ -308,10 +302,11 @@ def _framed(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[
                         photo_mask=mask, network_doubt=network_doubt, mask_doubt=mask_doubt)
 
 
-def _guided(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], box: tuple[float, float, float, float] | None,
-            strokes_path: str | os.PathLike | None, frame: str = "upright") -> Preprocessed:
-    """The mask from the salient net (GrabCut without it) guided by a person's ``box`` and/or strokes file (over the photo's ``frame``), framed."""
-    fg, bg = load_strokes(strokes_path, image, frame) if strokes_path is not None else (None, None)
+def _guided(image: LoadedImage, rgb: np.ndarray, g: GeometryConfig, notes: list[str], guidance: MaskGuidance) -> Preprocessed:
+    """The mask from the salient net (GrabCut without it) guided by a person's box and/or strokes file (over the photo's
+    ``guidance.frame``), framed."""
+    box, strokes, frame = guidance.box, guidance.strokes, guidance.frame
+    fg, bg = load_strokes(strokes, image, frame) if strokes is not None else (None, None)
     found = segment(rgb, box=None if box is None else photo_box(box, image, frame), object_strokes=fg, background_strokes=bg)
     if int(found.mask.sum()) < MIN_OBJECT_PIXELS:
         raise ImageError("no_object", f"{image.path}: no object found inside the {found.seeding.replace('+', ' and ')}")

@@ -48,6 +48,7 @@ __all__ = [
     "OUTPUT_NAME",
     "MEAN",
     "STD",
+    "SALIENT_THRESHOLD",
     "SalientNetError",
     "model_path",
     "file_md5",
@@ -66,6 +67,8 @@ OUTPUT_NAME = "1959"
 # ImageNet's channel means and standard deviations (RGB, 0–1), the net's input normalisation
 MEAN = (0.485, 0.456, 0.406)
 STD = (0.229, 0.224, 0.225)
+# the (min–max normalised) saliency above this is object (:mod:`.segment`)
+SALIENT_THRESHOLD = 0.5
 # the environment variable that points at another copy of the ONNX file (still checked by MD5)
 PATH_VARIABLE = "GENRE_SALIENT_MODEL"
 

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import torch
 
 from genre_backend.config import GenreConfig
+from genre_backend.inference.net_outputs import View
 from genre_backend.inference.options import MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
@@ -124,11 +125,11 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     camera = m.config.camera
     for row in out.values():  # the steps after the networks, genre reconstruct's own (options.py), every learned row alike
         if isinstance(row, dict) and "depth" in row:  # (the depth maps go either way: no row after this point carries one)
-            d = row.pop("depth")
-            row["prob"] = opts.shape_grid(row["prob"], mask[0], d, camera, m.config.geometry)
+            view = View(mask[0], row.pop("depth"), camera)
+            row["prob"] = opts.shape_grid(row["prob"], view, m.config.geometry)
             if opts.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
                 _, v, f, _ = opts.mesh(row["prob"], m.config.geometry, clean=False)
-                v, f, fit = opts.snap_mesh(v, f, d, camera)
+                v, f, fit = opts.snap_mesh(v, f, view)
                 if fit is not None:
                     row["mesh"] = (v, f)
     if REPRESENTATION in models.wanted:

@@ -51,7 +51,8 @@ import torch
 
 from genre_backend.config import GenreConfig, get_preset
 from genre_backend.frame import camera_rotation
-from genre_backend.geometry.mesh_voxels import dilate, near_surface_distance, surface_lattice
+from genre_backend.geometry.mesh_voxels import dilate, surface_lattice
+from genre_backend.geometry.triangle_distance import near_surface_distance
 from genre_backend.geometry.raster import mesh_depth
 from genre_backend.geometry.spherical import crop_sph, pad_sph, raycast_triangles
 from genre_backend.nets.model import GenRe, load_model, save_model

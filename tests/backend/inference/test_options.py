@@ -127,8 +127,9 @@ def test_request_options_are_parsed_from_the_record():
 def test_the_steps_run_in_their_one_order():
     """Carve, then fusion, then pit sealing: each step sees the grid the one before made."""
     from genre_backend.config import CameraConfig
-    from genre_backend.geometry.mesh_voxels import fuse_visible_surface, seal_pits
+    from genre_backend.geometry.visible_front import fuse_visible_surface, seal_pits
     from genre_backend.geometry.voxels import silhouette_ramp
+    from genre_backend.inference.net_outputs import View
 
     g = GeometryConfig(target="distance", image_size=32, voxel_size=16, sph_size=16, sph_pad=8)
     cam = CameraConfig()
@@ -140,10 +141,11 @@ def test_the_steps_run_in_their_one_order():
     opts = MeshOptions(threshold=0.5, silhouette_carve=True, visible_fusion=True, pit_sealing=2).resolved(g)
     want = torch.minimum(prob, silhouette_ramp(mask[None], cam, 16)[0, 0])
     want = seal_pits(fuse_visible_surface(want, depth, cam, g, 0.5), mask, cam, g, 0.5, 2)
-    assert torch.equal(opts.shape_grid(prob, mask, depth, cam, g), want)
+    view = View(mask, depth, cam)
+    assert torch.equal(opts.shape_grid(prob, view, g), want)
     off = MeshOptions(silhouette_carve=False, visible_fusion=False, pit_sealing=0).resolved(g)
-    assert torch.equal(off.shape_grid(prob, mask, depth, cam, g), prob)
-    v, f, fit = off.snap_mesh("v", "f", depth, cam)  # snapping off: the mesh as it is, untouched
+    assert torch.equal(off.shape_grid(prob, view, g), prob)
+    v, f, fit = off.snap_mesh("v", "f", view)  # snapping off: the mesh as it is, untouched
     assert (v, f, fit) == ("v", "f", None)
 
 

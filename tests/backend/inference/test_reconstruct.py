@@ -16,7 +16,9 @@ from PIL import Image
 
 from genre_backend.frontends import reconstruct_cli
 from genre_backend.nets.model import WEIGHTS_FORMAT, WeightsError, load_model
-from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, STAGES, Cancelled, OutputError, Reconstructor, error_code
+from genre_backend.inference.reconstruct import (DEFAULT_WEIGHTS, STAGES, Cancelled, Hooks, OutputError, Reconstructor,
+                                                 error_code)
+from genre_backend.photo.guidance import MaskGuidance
 from genre_backend.photo.decode import ImageError
 from support.files import huge_png
 from support.tiny_data import TINY
@@ -90,7 +92,7 @@ def photos(trained, tmp_path_factory):
 # ---- the pipeline ------------------------------------------------------------------------------
 def test_reconstructs_a_rendered_view_in_the_view_frame(rec, photos, trained, tmp_path):
     stages = []
-    res = rec.run(photos["rgb"], progress=lambda s, f: stages.append((s, f)))
+    res = rec.run(photos["rgb"], hooks=Hooks(lambda s, f: stages.append((s, f))))
     assert res.mask_source == "salient"
     assert [s for s, _ in stages] == list(STAGES[:-1])
     fractions = [f for _, f in stages]
@@ -126,11 +128,11 @@ def test_reconstructs_a_rendered_view_in_the_view_frame(rec, photos, trained, tm
 
 
 def test_mask_source_order(rec, photos):
-    assert rec.run(photos["rgb"], mask_path=photos["mask"]).mask_source == "file"
-    assert rec.run(photos["rgba"], mask_path=photos["mask"]).mask_source == "file"
+    assert rec.run(photos["rgb"], MaskGuidance(mask=photos["mask"])).mask_source == "file"
+    assert rec.run(photos["rgba"], MaskGuidance(mask=photos["mask"])).mask_source == "file"
     assert rec.run(photos["rgba"]).mask_source == "alpha"
     assert rec.run(photos["rgb"]).mask_source == "salient"
-    assert rec.run(photos["rgb"], refine=False).mask_source == "silhouette"
+    assert rec.run(photos["rgb"], MaskGuidance(refine=False)).mask_source == "silhouette"
     # an opaque alpha channel is no mask: the photo is segmented
     opaque = photos["rgba"].with_name("opaque.png")
     Image.open(photos["rgb"]).convert("RGBA").save(opaque)
@@ -139,7 +141,7 @@ def test_mask_source_order(rec, photos):
 
 @pytest.mark.parametrize("kind", ["gray16", "gray", "palette", "cmyk", "animated"])
 def test_odd_but_valid_images_reconstruct(rec, photos, kind):
-    res = rec.run(photos[kind], mask_path=photos["mask"])
+    res = rec.run(photos[kind], MaskGuidance(mask=photos["mask"]))
     assert len(res.faces) > 0 and res.mask_source == "file"
 
 
@@ -150,7 +152,7 @@ def test_cancel_at_a_stage_boundary(rec, photos):
         seen.append(stage)
 
     with pytest.raises(Cancelled):
-        rec.run(photos["rgba"], progress=progress, should_cancel=lambda: "inpaint" in seen)
+        rec.run(photos["rgba"], hooks=Hooks(progress, lambda: "inpaint" in seen))
     assert seen[-1] == "inpaint" and seen == list(STAGES[: STAGES.index("inpaint") + 1])
 
 
@@ -330,7 +332,8 @@ def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys,
 def test_pit_sealing_fills_the_pits_of_the_grids_own_front(photos, tmp_path, capsys, trained):
     import dataclasses
 
-    from genre_backend.geometry.mesh_voxels import fill_enclosed, seal_pits
+    from genre_backend.geometry.mesh_voxels import fill_enclosed
+    from genre_backend.geometry.visible_front import seal_pits
     from genre_backend.nets.model import load_model
 
     model = load_model(trained[0])
@@ -363,7 +366,8 @@ def test_pit_sealing_fills_the_pits_of_the_grids_own_front(photos, tmp_path, cap
 def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photos, tmp_path, capsys, trained):
     import dataclasses
 
-    from genre_backend.geometry.mesh_voxels import fill_enclosed, fuse_visible_surface
+    from genre_backend.geometry.mesh_voxels import fill_enclosed
+    from genre_backend.geometry.visible_front import fuse_visible_surface
     from genre_backend.nets.model import load_model
 
     model = load_model(trained[0])
@@ -395,7 +399,8 @@ def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photo
 @pytest.mark.slow
 def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.cleanup import is_watertight
-    from genre_backend.geometry.primitives import FAMILIES, snap
+    from genre_backend.geometry.primitive_shapes import FAMILIES
+    from genre_backend.geometry.primitives import snap
 
     assert rec.config.geometry.primitive_snap == 0.0  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)

@@ -348,9 +348,9 @@ def test_shipped_model_coloured_mesh_reproduces_the_photo_through_its_camera(pho
     mask, where the mesh covers it, the mean absolute error to the photo is at most 8/255; one part.
     (``scripts/colour_check.py`` prints the figures.)"""
     from genre_backend.output.colour_check import photo_colour_error
-    from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, Reconstructor
+    from genre_backend.inference.reconstruct import DEFAULT_WEIGHTS, MaskGuidance, Reconstructor
 
-    result = Reconstructor(DEFAULT_WEIGHTS).run(REPO / photo, mask_path=None if mask is None else REPO / mask)
+    result = Reconstructor(DEFAULT_WEIGHTS).run(REPO / photo, MaskGuidance(mask=None if mask is None else REPO / mask))
     assert result.clean.parts == 1 and result.clean.watertight
     mae, coverage = photo_colour_error(result, 256)
     assert coverage >= 0.9, coverage  # the mesh covers the mask

@@ -12,7 +12,9 @@ from PIL import Image
 from genre_backend.frontends import reconstruct_cli
 from genre_backend.photo.decode import load_image, load_mask
 from genre_backend.inference.reconstruct import Reconstructor
-from genre_backend.photo.segment import border_touch, cover, doubt, refine_mask
+from genre_backend.photo.guidance import MaskGuidance
+from genre_backend.photo.mask_doubt import border_touch, cover, doubt
+from genre_backend.photo.segment import refine_mask
 
 
 def _photo(w: int = 240, h: int = 180, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -105,7 +107,7 @@ def test_mask_warning_when_the_silhouette_is_the_whole_frame(trained, photo, tmp
     rec = Reconstructor(trained[0])
     rec.model.depth_net = _FrameSilhouette(rec.model.depth_net)
     path, truth = photo
-    res = rec.run(path, refine=False)  # the silhouette as it is: the whole photo
+    res = rec.run(path, MaskGuidance(refine=False))  # the silhouette as it is: the whole photo
     assert res.mask_source == "silhouette" and res.photo_mask.all()
     assert res.mask_warning == "the mask covers 100% of the photo and touches 100% of its border: it is probably the photo's frame, not the object"
     res = rec.run(path)  # refined: the salient net's mask, whatever the silhouette
@@ -154,7 +156,7 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
     assert np.abs(overlay[far] - dimmed).max() <= 1
     edge = auto.photo_mask & ~binary_erosion(auto.photo_mask)
     assert (np.abs(overlay[edge] - [255, 220, 0]).sum(1) == 0).mean() > 0.8
-    again = rec.run(path, mask_path=written["mask_in_photo.png"])
+    again = rec.run(path, MaskGuidance(mask=written["mask_in_photo.png"]))
     assert again.mask_source == "file"
     assert again.crop_box == auto.crop_box
     assert torch.equal(again.intermediates["mask"], auto.intermediates["mask"])
@@ -163,7 +165,7 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
     # that mask, in the photo's pixels and cropped again by the same square, is the network's mask
     from genre_backend.photo.preprocess import crop_resize
 
-    plain = rec.run(path, refine=False)
+    plain = rec.run(path, MaskGuidance(refine=False))
     back = tmp_path / "plain_mask.png"
     Image.fromarray(plain.mask_in_photo().astype(np.uint8) * 255, "L").save(back)
     assert np.array_equal(load_mask(back, load_image(path)), plain.photo_mask)
@@ -174,7 +176,8 @@ def test_mask_in_photo_projects_back_exactly(trained, photo, tmp_path):
 
 # ---- the doubt of a cut, box and strokes ------------------------------------------------------
 def test_edge_run_and_model_overlap():
-    from genre_backend.photo.segment import cut_doubt, edge_run, grabcut_models, model_overlap, border_seeds
+    from genre_backend.photo.grabcut import grabcut_models, border_seeds
+    from genre_backend.photo.mask_doubt import cut_doubt, edge_run, model_overlap
 
     m = np.zeros((20, 30), bool)
     m[5:15, 5:25] = True
@@ -278,7 +281,7 @@ def test_real_photos_box_and_doubt_figures():
     assert wrong == {"robin", "squirrel"} and wrong <= warned and warned - wrong == {"hand", "quokka"}
     assert "colours that barely separate" in rows["robin"]["auto_warning"]
     assert "runs along the photo's edge" in rows["squirrel"]["auto_warning"]
-    # the box's cut sees sharpness too (segment.feature_grabcut): the robin's box mask, still wrong, is warned by its colours
+    # the box's cut sees sharpness too (feature_cut.feature_grabcut): the robin's box mask, still wrong, is warned by its colours
     assert {n for n, r in rows.items() if r["box_warning"]} == {"robin"} and rows["robin"]["box_iou"] < 0.8
     assert "colours that barely separate" in rows["robin"]["box_warning"]
     assert rows["quokka"]["box_iou"] > 0.9 and rows["robin"]["box_iou"] > 0.75
@@ -456,12 +459,12 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
         box = (float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1))  # over the stored pixels
         image = load_image(path)
         assert image.exif_orientation == o and image.original_size == (535, 426)
-        pre = preprocess(image, config, box=box, strokes_path=tmp_path / f"strokes_o{o}.png", guidance_frame="stored")
+        pre = preprocess(image, config, MaskGuidance(box=box, strokes=tmp_path / f"strokes_o{o}.png", frame="stored"))
         assert pre.mask_source == "box+strokes"
         ious[o] = _iou(pre.photo_mask, hand_upright)
         if o != 1:  # the same inputs read as upright (the frame before guidance_frame): refused, or off the squirrel
             try:
-                wrong = preprocess(image, config, box=box, strokes_path=tmp_path / f"strokes_o{o}.png").photo_mask
+                wrong = preprocess(image, config, MaskGuidance(box=box, strokes=tmp_path / f"strokes_o{o}.png")).photo_mask
             except ImageError as exc:
                 assert o in (5, 6, 7, 8) and exc.code == "bad_mask" and "strokes image is 426×535, the image is 535×426" in str(exc)
             else:
@@ -469,27 +472,28 @@ def test_stored_frame_box_and_strokes_land_on_the_object_for_every_exif_orientat
     # (as the upright photo with its upright scribbles, 0.872 in docs/masks.md; JPEG's re-encoding moves it a little)
     assert all(v > 0.85 for v in ious.values()) and max(ious.values()) - min(ious.values()) < 0.03, ious
     with pytest.raises(ImageError, match=r"strokes image is 535×426, the image is 426×535 as stored"):
-        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, strokes_path=tmp_path / "strokes_o1.png", guidance_frame="stored")
+        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, MaskGuidance(strokes=tmp_path / "strokes_o1.png", frame="stored"))
     with pytest.raises(ImageError, match=r"the box 500,0,535,10 is not inside the 426×535 photo as stored"):
-        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, box=(500, 0, 535, 10), guidance_frame="stored")
+        preprocess(load_image(tmp_path / "squirrel_o6.jpg"), config, MaskGuidance(box=(500, 0, 535, 10), frame="stored"))
 
 
 @pytest.mark.parametrize("name", ["apple", "bus", "hand", "quokka"])
 def test_the_box_cut_without_sharpness_is_opencvs_grabcut(name, monkeypatch):
-    """segment.feature_grabcut (GrabCut over PyMaxflow with a sharpness feature) against its reference, OpenCV's
+    """feature_cut.feature_grabcut (GrabCut over PyMaxflow with a sharpness feature) against its reference, OpenCV's
     GrabCut, from the same labels: with the sharpness weighted 0 the two cuts agree (IoU ≥ 0.99; they differ in
     the mixtures' start and the floating point, and on the robin, whose cut is unstable, they part to 0.89)."""
-    from genre_backend.photo import segment as S
+    from genre_backend.photo import feature_cut
+    from genre_backend.photo.grabcut import box_seeds, grabcut
 
     with Image.open(next(PHOTOS.glob(f"{name}.*"))) as im:
         im = im.convert("RGB")
         im.thumbnail((320, 320))
         rgb = np.asarray(im)
     h, w = rgb.shape[:2]
-    labels = S.box_seeds(h, w, (0.1 * w, 0.1 * h, 0.9 * w, 0.9 * h))
-    reference = S.grabcut(rgb, labels)
-    monkeypatch.setattr(S, "SHARPNESS_WEIGHT", 0.0)
-    ours, objects, backgrounds = S.feature_grabcut(rgb, labels)
+    labels = box_seeds(h, w, (0.1 * w, 0.1 * h, 0.9 * w, 0.9 * h))
+    reference = grabcut(rgb, labels)
+    monkeypatch.setattr(feature_cut, "SHARPNESS_WEIGHT", 0.0)
+    ours, objects, backgrounds = feature_cut.feature_grabcut(rgb, labels)
     assert objects is not None and backgrounds is not None
     assert 0.1 < reference.mean() < 0.9
     assert (reference & ours).sum() / (reference | ours).sum() >= 0.99

@@ -12,6 +12,7 @@ from PIL import Image, ImageOps
 from genre_backend.config import get_preset
 from support.files import huge_png
 from genre_backend.photo.decode import ImageError, load_image
+from genre_backend.photo.guidance import MaskGuidance
 from genre_backend.photo.preprocess import (
     NEUTRAL_BACKGROUND,
     crop_resize,
@@ -171,7 +172,7 @@ def test_square_crop_box():
 def test_framing_puts_the_object_in_the_middle_at_object_fraction(tmp_path):
     img = load_image(_save(tmp_path, "p.png", _photo(box=(20, 10, 100, 50))))
     for refine, source in ((False, "silhouette"), (True, "salient")):
-        pre = preprocess(img, CFG, silhouette=_not_background, refine=refine)
+        pre = preprocess(img, CFG, MaskGuidance(refine=refine), silhouette=_not_background)
         assert pre.mask_source == source and pre.rgb.shape == (3, S, S)
         assert (pre.mask is None) == (not refine)
         sil = _not_background(pre.rgb).numpy()
@@ -195,15 +196,15 @@ def test_mask_order_file_alpha_silhouette(tmp_path):
     def no_silhouette(_):
         raise AssertionError("the silhouette must not be used when a mask or alpha is there")
 
-    pre = preprocess(rgba, CFG, mask_path=mpath, silhouette=no_silhouette)
+    pre = preprocess(rgba, CFG, MaskGuidance(mask=mpath), silhouette=no_silhouette)
     assert pre.mask_source == "file"
     x0, y0, x1, y1 = mask_bbox(pre.mask.numpy())
     assert abs((x1 - x0) - CFG.geometry.object_fraction * S) <= 2
     pre = preprocess(rgba, CFG, silhouette=no_silhouette)
     assert pre.mask_source == "alpha" and pre.mask.sum() > 0
     assert preprocess(rgb, CFG, silhouette=_not_background).mask_source == "salient"
-    assert preprocess(rgb, CFG, silhouette=_not_background, seeding="border").mask_source == "grabcut"
-    assert preprocess(rgb, CFG, silhouette=_not_background, refine=False).mask_source == "silhouette"
+    assert preprocess(rgb, CFG, MaskGuidance(seeding="border"), silhouette=_not_background).mask_source == "grabcut"
+    assert preprocess(rgb, CFG, MaskGuidance(refine=False), silhouette=_not_background).mask_source == "silhouette"
 
 
 def test_rgba_is_composited_over_the_neutral_background(tmp_path):
@@ -222,11 +223,11 @@ def test_mask_errors(tmp_path):
         ("small.png", np.full((60, 100), 255, np.uint8), "mask is 100×60, the image is 200×120"),
     ):
         with pytest.raises(ImageError, match=text) as exc:
-            preprocess(img, CFG, mask_path=_save(tmp_path, name, mask), silhouette=_not_background)
+            preprocess(img, CFG, MaskGuidance(mask=_save(tmp_path, name, mask)), silhouette=_not_background)
         assert exc.value.code == "bad_mask"
     (tmp_path / "zero.png").write_bytes(b"")
     with pytest.raises(ImageError, match="0 bytes") as exc:
-        preprocess(img, CFG, mask_path=tmp_path / "zero.png")
+        preprocess(img, CFG, MaskGuidance(mask=tmp_path / "zero.png"))
     assert exc.value.code == "bad_mask"
 
 

@@ -12,6 +12,7 @@ import pytest
 
 from genre_backend.photo import salient
 from genre_backend.photo import segment as S
+from genre_backend.photo.mask_doubt import salient_doubt
 from genre_backend.photo.decode import load_image, load_mask
 from genre_backend.photo.preprocess import composite
 
@@ -189,22 +190,22 @@ def test_doubt_of_the_nets_mask_on_made_up_saliency():
     prob = np.zeros((h, w), np.float32)
     prob[30:70, 40:80] = 1.0
     mask = prob > 0.5
-    assert S.salient_doubt(prob, mask) is None
+    assert salient_doubt(prob, mask) is None
     two = prob.copy()
     two[10:30, 90:115] = 1.0  # a second object, 500 px against 1600
-    assert "one of 2 large objects" in S.salient_doubt(two, mask)
+    assert "one of 2 large objects" in salient_doubt(two, mask)
     soft = np.zeros((h, w), np.float32)  # an outline the net is unsure of: 0.7 in its outer 6 px, 0.3 just outside
     soft[28:72, 38:82] = 0.3
     soft[30:70, 40:80] = 0.7
     soft[36:64, 46:74] = 1.0
-    assert "unsure" in S.salient_doubt(soft, soft > 0.5) and "7.4 px wide" in S.salient_doubt(soft, soft > 0.5)
+    assert "unsure" in salient_doubt(soft, soft > 0.5) and "7.4 px wide" in salient_doubt(soft, soft > 0.5)
     narrow = prob.copy()  # a sure outline, a 1 px band of 0.5 outside it
     narrow[29:71, 39:81] = np.maximum(narrow[29:71, 39:81], 0.5)
-    assert S.salient_doubt(narrow, mask) is None
+    assert salient_doubt(narrow, mask) is None
     cut = np.zeros((h, w), np.float32)
     cut[40:100, 30:90] = 1.0
-    assert "cut off by the photo's edge" in S.salient_doubt(cut, cut > 0.5)
-    assert S.salient_doubt(cut, cut > 0.5, window=cut > 0.5) is None  # a box's crop: the frame is not judged
+    assert "cut off by the photo's edge" in salient_doubt(cut, cut > 0.5)
+    assert salient_doubt(cut, cut > 0.5, window=cut > 0.5) is None  # a box's crop: the frame is not judged
     tiny = np.zeros((h, w), np.float32)
     tiny[50:53, 50:53] = 1.0
-    assert "covers only" in S.salient_doubt(tiny, tiny > 0.5)
+    assert "covers only" in salient_doubt(tiny, tiny > 0.5)

@@ -157,7 +157,7 @@ def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_no
 def test_weights_that_fuse_the_visible_surface_fill_every_depth_row_from_its_own_depth(tiny):
     import dataclasses
 
-    from genre_backend.geometry.mesh_voxels import fuse_visible_surface
+    from genre_backend.geometry.visible_front import fuse_visible_surface
     from training.eval.protocol import REPRESENTATION
     from training.eval.rows import Models, predict
 
@@ -185,8 +185,8 @@ def test_weights_that_fuse_the_visible_surface_fill_every_depth_row_from_its_own
 def test_weights_that_seal_pits_seal_every_learned_row_through_the_views_mask(tiny, monkeypatch):
     import dataclasses
 
-    import genre_backend.geometry.mesh_voxels as mesh_voxels
-    from genre_backend.geometry.mesh_voxels import seal_pits
+    import genre_backend.geometry.visible_front as visible_front
+    from genre_backend.geometry.visible_front import seal_pits
     from training.eval.protocol import REPRESENTATION
     from training.eval.rows import Models, predict
 
@@ -200,7 +200,7 @@ def test_weights_that_seal_pits_seal_every_learned_row_through_the_views_mask(ti
         calls.append((prob.clone(), mask.clone(), level, width))
         return seal_pits(prob, mask, camera, g, level, width)
 
-    monkeypatch.setattr(mesh_voxels, "seal_pits", recording)  # (the options record imports it as each job runs)
+    monkeypatch.setattr(visible_front, "seal_pits", recording)  # (the options record imports it as each job runs)
     genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(geometry, pit_sealing=8))
     sealed = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
     rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle"]

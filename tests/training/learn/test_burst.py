@@ -14,7 +14,8 @@ import trimesh
 
 from genre_backend.config import CameraConfig
 from genre_backend.frame import camera_rotation
-from genre_backend.geometry.mesh_voxels import mesh_to_distance, point_mesh_distance_reference, point_triangles_distance
+from genre_backend.geometry.mesh_voxels import mesh_to_distance
+from genre_backend.geometry.triangle_distance import point_mesh_distance_reference, point_triangles_distance
 from genre_backend.geometry.raster import mesh_depth, mesh_depth_reference
 from genre_backend.geometry.spherical import mesh_to_sph
 from genre_backend.nets.model import GenRe, load_model, save_model
@@ -64,7 +65,7 @@ def test_point_triangles_distance_matches_its_reference(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_near_surface_distance_is_exact_within_its_reach(device):
-    from genre_backend.geometry.mesh_voxels import near_surface_distance
+    from genre_backend.geometry.triangle_distance import near_surface_distance
 
     torus = trimesh.creation.torus(0.3, 0.06, major_sections=24, minor_sections=8)
     tris = torch.from_numpy(torus.vertices[torus.faces]).to(device)
