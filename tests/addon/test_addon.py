@@ -1172,6 +1172,7 @@ def test_annotation_becomes_strokes_and_box(built, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.network  # (the runtime's wheels, pip-downloaded once into the GenRe home)
 def test_install_backend_from_the_zip_alone(built, tmp_path):
     """Install Backend in bpy 5.0 from the extension zip and a folder of wheels (standing in for the network), the
     backend checked by itself, a reconstruction with it, then Remove Backend: Linux, run for real."""
@@ -1215,6 +1216,7 @@ def bpy_venv(version: str) -> Path | None:
 
 
 @pytest.mark.slow
+@pytest.mark.network  # (bpy from PyPI, once per version into the GenRe home)
 @pytest.mark.parametrize("version", OTHER_BPY)
 def test_the_extension_in_other_bpy_releases(built, version, tmp_path):
     """bpy 4.2 LTS and 4.5 LTS (5.0.1 is the project's own, tested above): the extension zip installs, registers

@@ -68,6 +68,7 @@ def test_annotation_points_are_image_view_space_in_a_drawn_editor(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.network  # (the runtime's wheels, pip-downloaded once into the GenRe home)
 @pytest.mark.skipif(bool(_missing), reason=f"no GUI Blender here: {_missing}")
 def test_gui_blender_installs_the_backend_from_the_preferences(built, tmp_path):
     """From an empty home folder and the legacy zip alone: Install Backend pressed in Edit > Preferences (a folder of

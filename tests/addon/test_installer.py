@@ -244,6 +244,7 @@ def test_an_offline_folder_without_torch_says_so(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.network  # (the runtime's wheels, pip-downloaded once into the GenRe home)
 @pytest.mark.timeout(1800)  # (the install took 8.6 min beside a training job at load 9 on 2 cores: past the 900 s default)
 def test_a_whole_offline_install_serves_a_reconstruction(tmp_path):
     """The add-on's bundle (built here), installed from a folder of wheels into a fresh venv of this Python 3.11: the
