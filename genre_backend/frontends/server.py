@@ -345,8 +345,10 @@ class Server:
         self.emit(event)
 
     def _run(self, job: Job) -> None:
-        from ..output.mesh_export import check_outputs
+        from ..config import SETTINGS
+        from ..inference.options import OPTIONS
         from ..inference.reconstruct import STAGE_START, Cancelled, error_code
+        from ..output.mesh_export import check_outputs
 
         if job.cancel.is_set():
             self._end(job, {"type": "cancelled", "id": job.id})
@@ -404,14 +406,9 @@ class Server:
                 "files": [str(p) for p in result.files],
                 "mask_source": result.mask_source,
                 "mask_warning": result.mask_warning,
-                "threshold": result.threshold,
-                "hole_closing": result.hole_closing,
-                "silhouette_carve": result.silhouette_carve,
-                "visible_fusion": result.visible_fusion,
-                "pit_sealing": result.pit_sealing,
-                "primitive_snap": result.primitive_snap,
+                **{spec.name: getattr(result.options, spec.name) for spec in SETTINGS},  # the weights' settings as used
+                "options": {spec.name: getattr(result.options, spec.name) for spec in OPTIONS},  # the whole record
                 "primitive": result.primitive,
-                "test_time_mirror": result.test_time_mirror,
                 "timings": {k: round(v, 4) for k, v in result.timings.items()},
                 "camera": result.camera(),
             }

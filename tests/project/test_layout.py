@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 BACKEND_LAYERS = {
     "genre_backend.config": 0, "genre_backend.validation": 0, "genre_backend.atomic": 0, "genre_backend.weights_file": 0,
-    "genre_backend.process": 0,
+    "genre_backend.process": 0, "genre_backend.protocol": 0,
     "genre_backend.frame": 1, "genre_backend.geometry": 2, "genre_backend.nets": 3,
     "genre_backend.photo": 4, "genre_backend.output": 5, "genre_backend.inference": 6, "genre_backend.frontends": 7,
     "genre_backend.cli": 8,
