@@ -135,7 +135,7 @@ def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float)
         note="ray coverage + the depth's distance grid of the hole's pixels")
     add(f"fuse the visible surface {g.voxel_size}³ (no hole)", lambda: fuse_visible_surface(tube, depth[0], cam, dg, g.default_threshold),
         note="ray coverage only")
-    # the pits in the visible face (geometry.pit_sealing): the front cap missing over a narrow disc
+    # the pits in the visible face (Seal Pits): the front cap missing over a narrow disc
     well = (c[:, None, None] ** 2 + c[None, :, None] ** 2 < 0.025 ** 2) & (c[None, None, :] > 0)
     pitted, obj = torch.where(well, torch.zeros_like(tube), tube), depth[0] > 0
     add(f"seal pits {g.voxel_size}³ (a pit)", lambda: seal_pits(pitted, obj, cam, dg, g.default_threshold, 2),

@@ -150,7 +150,7 @@ class _Record:
         """The probability grid (N, N, N) float32 on the CPU, steered by the resolved options before a mesh is made.
 
         In order: capped by the mask's outline ramp (``silhouette_carve``), the holes in the visible face filled from
-        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (``pit_sealing``); the
+        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*); the
         last two at ``threshold``.  ``mask``: (S, S) bool, ``depth``: (S, S) masked depth (0 off the object).
         """
         from ..geometry.mesh_voxels import fuse_visible_surface, seal_pits
@@ -160,8 +160,9 @@ class _Record:
             prob = torch.minimum(prob, silhouette_ramp(mask[None].cpu(), camera, prob.shape[-1])[0, 0])
         if self.visible_fusion:
             prob = fuse_visible_surface(prob, depth, camera, geometry, self.threshold)
-        if self.pit_sealing:
-            prob = seal_pits(prob, mask.cpu().bool(), camera, geometry, self.threshold, self.pit_sealing)
+        pits = self.pit_sealing
+        if pits:
+            prob = seal_pits(prob, mask.cpu().bool(), camera, geometry, self.threshold, pits)
         return prob
 
     def mesh(self, prob: torch.Tensor, geometry, clean: bool = True):
