@@ -276,7 +276,7 @@ def add_arguments(parser) -> None:
 
 def from_arguments(args) -> MeshOptions:
     """The record of parsed :func:`add_arguments` flags (the quality's set under them); :class:`OptionError` names the
-    flag (``--hole-closing: expected an integer in [0, 8] (voxels), got 9``)."""
+    flag (``--pit-sealing: expected an integer in [0, 8] (voxels), got 9``)."""
     given = MeshOptions.from_mapping({spec.name: getattr(args, spec.name) for spec in OPTIONS}, where=lambda o: o.flag,
                                      show=lambda v: f"{v:g}" if isinstance(v, float) else _shown(v))
     return given.over(QUALITIES[args.quality or DEFAULT_QUALITY])

@@ -816,7 +816,7 @@ def test_rows_come_from_the_backends_schema():
     assert sch.check_value(by["threshold"], 0.5) is None and sch.check_value(by["primitive_snap"], 0.0) is None
     assert sch.check_value(by["threshold"], 1.0) == "Threshold: expected a number in (0, 1), got 1"
     assert sch.check_value(by["primitive_snap"], 1.0) == "Snap Shapes: expected a number in [0, 1), got 1"
-    assert sch.check_value(by["hole_closing"], 9) == "Seal Holes: expected an integer in [0, 8], got 9"
+    assert sch.check_value(by["pit_sealing"], 9) == "Seal Pits: expected an integer in [0, 8], got 9"
     assert sch.check_value(by["test_time_mirror"], 1) == "Mirror Average: expected on or off"
     assert [sch.shown(by["threshold"], 0.45), sch.shown(by["test_time_mirror"], True), sch.shown(by["pit_sealing"], None)] == [
         "0.45", "On", "?"]

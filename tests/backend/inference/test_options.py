@@ -101,7 +101,7 @@ def test_the_cli_flags_are_made_from_the_record():
     assert from_arguments(args).given() == {"threshold": 0.3, "test_time_mirror": False, "texture": True, "pit_sealing": 2, "up": "z"}
     assert from_arguments(parser.parse_args(["--quality", "fast"])).given() == {"test_time_mirror": False}
     assert from_arguments(parser.parse_args([])) == MeshOptions()
-    for argv, message in ((["--hole-closing", "9"], "--hole-closing: expected an integer in [0, 8] (voxels), got 9"),
+    for argv, message in ((["--pit-sealing", "9"], "--pit-sealing: expected an integer in [0, 8] (voxels), got 9"),
                           (["--primitive-snap", "1"], "--primitive-snap: expected a number in [0, 1), got 1"),
                           (["--threshold", "nan"], "--threshold: expected a number in (0, 1), got nan")):
         with pytest.raises(OptionError) as exc:

@@ -315,15 +315,15 @@ def test_cli_preview_shows_the_mesh(trained, photos, tmp_path, capsys):
 
 
 def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys, trained):
-    assert rec.run(photos["rgba"]).hole_closing == rec.config.geometry.hole_closing == 0
-    assert rec.run(photos["rgba"], hole_closing=3).hole_closing == 3
-    for bad in (9, -1, 1.5, True):
+    assert rec.run(photos["rgba"]).options.hole_closing == rec.config.geometry.hole_closing == 0
+    assert rec.run(photos["rgba"], hole_closing=3).options.hole_closing == 3
+    for bad in (99, -1, 1.5, True):
         with pytest.raises(ValueError, match="hole_closing"):
             rec.run(photos["rgba"], hole_closing=bad)
     code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--hole-closing", 2)
     assert code == 0, err
     with pytest.raises(SystemExit) as exc:
-        _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--hole-closing", 9)
+        _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--hole-closing", 99)
     assert exc.value.code == 2 and "--hole-closing" in capsys.readouterr().err
 
 
