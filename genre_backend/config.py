@@ -191,7 +191,7 @@ class GeometryConfig:
     # morphological closing of the object before its inside is filled); openings wider than that
     # (a torus's hole, a cup's mouth) stay.  0: nothing is sealed.  Weights stored without the key: 0.
     hole_closing: int = _setting(
-        0, kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", metavar="K", label="Seal Holes",
+        0, kind="int", lo=0, hi=12, unit="voxels", metavar="K", label="Seal Holes",
         help="seal holes in the mesh up to about twice this many voxels across (0: none; more also fills narrow gaps "
              "between parts)", chosen="scripts/hole_closing.py on seen-test views")
     # The one-view visual hull (geometry.voxels.silhouette_ramp): the refiner's output is capped by
