@@ -14,11 +14,14 @@ equal), so it imports nothing from the package and nothing outside the standard 
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+import os
 import numbers
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 PROTOCOL_VERSION = 1
 OPTION_KINDS = ("float", "int", "bool", "choice")
@@ -128,3 +131,246 @@ class Option:
                    lo=entry.get("min"), hi=entry.get("max"), lo_open=entry.get("min_open") is True,
                    hi_open=entry.get("max_open") is True, choices=tuple(choices or ()), default=entry.get("default"),
                    weights=entry.get("weights") if isinstance(entry.get("weights"), str) else None, name=entry["name"])
+
+
+def _omitted() -> Any:
+    """A field left off the line when None."""
+    return field(default=None, metadata={"omit": True})
+
+
+# ---- requests (client → server) ----------------------------------------------------------------------------------------
+MAX_MESSAGE = 2000  # characters of an error message (never a client's 10 MB value echoed back)
+
+
+class RequestError(ValueError):
+    """A request that cannot be accepted; becomes an ``error`` event with ``code``."""
+
+    def __init__(self, code: str, message: str, req_id: Any = None):
+        super().__init__(message)
+        self.code, self.req_id = code, req_id
+
+
+def cap(text: str, limit: int = MAX_MESSAGE) -> str:
+    """``text`` cut to ``limit`` characters, saying how long it was."""
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
+
+
+def show_json(value: Any, limit: int = 300) -> str:
+    """A client's value quoted in a message: its JSON, cut to ``limit`` characters (any value, however deep)."""
+    try:
+        text = json.dumps(value)
+    except (ValueError, RecursionError):  # nesting near the recursion limit; an integer past the digit limit
+        text = f"<a JSON {type(value).__name__}>"
+    return cap(text, limit)
+
+
+def path_problem(value: str) -> str | None:
+    """Why no file can have the name ``value`` (None if one can): a NUL, or a lone surrogate that is no escaped byte."""
+    at = value.find("\x00")
+    if at >= 0:
+        return f"contains a NUL character (at character {at:,})"
+    try:
+        os.fsencode(value)
+    except UnicodeEncodeError as exc:
+        return (f"contains the lone surrogate {value[exc.start]!r} (at character {exc.start:,}); a name that is not UTF-8 "
+                f"is sent with one \\udc80-\\udcff escape per byte")
+    return None
+
+
+def request_id(msg: dict, required: bool) -> Any:
+    """A request's ``id`` (a string or a finite number; None when absent and not ``required``); :class:`RequestError`."""
+    if "id" not in msg:
+        if required:
+            raise RequestError("missing_field", "missing field 'id'")
+        return None
+    rid = msg["id"]
+    if isinstance(rid, bool) or not isinstance(rid, (str, int, float)) or (isinstance(rid, float) and not math.isfinite(rid)):
+        raise RequestError("bad_field", "field 'id' must be a string or a number")
+    return rid
+
+
+def path_field(msg: dict, name: str, rid: Any, required: bool, where: str = "field") -> str | None:
+    """The path ``msg[name]`` (None when absent or null and not ``required``), checked; :class:`RequestError`."""
+    if name not in msg or msg[name] is None:
+        if required:
+            raise RequestError("missing_field", f"missing {where} '{name}'", rid)
+        return None
+    value = msg[name]
+    if not isinstance(value, str) or not value:
+        raise RequestError("bad_field", f"{where} '{name}' must be a non-empty string (a path)", rid)
+    problem = path_problem(value)
+    if problem:
+        raise RequestError("bad_field", f"{where} '{name}' is not a usable path: it {problem}", rid)
+    return value
+
+
+@dataclass
+class Ping:
+    """Answered by ``pong``."""
+
+    type: ClassVar[str] = "ping"
+    id: Any = None
+
+
+@dataclass
+class VersionRequest:
+    """Answered by ``version``."""
+
+    type: ClassVar[str] = "version"
+    id: Any = None
+
+
+@dataclass
+class Reconstruct:
+    """A mesh of ``image`` written to ``output``; ``options``: the mesh options by name (``docs/protocol.md``)."""
+
+    type: ClassVar[str] = "reconstruct"
+    id: Any
+    image: str
+    output: str
+    mask: str | None = _omitted()
+    box: list | None = _omitted()
+    strokes: str | None = _omitted()
+    guidance_frame: str | None = _omitted()
+    options: dict | None = _omitted()
+
+
+@dataclass
+class Cancel:
+    """Cancel the job ``id``."""
+
+    type: ClassVar[str] = "cancel"
+    id: Any
+
+
+@dataclass
+class Shutdown:
+    """Cancel everything, say ``bye`` and exit."""
+
+    type: ClassVar[str] = "shutdown"
+    id: Any = None
+
+
+REQUESTS: dict[str, type] = {c.type: c for c in (Ping, VersionRequest, Reconstruct, Cancel, Shutdown)}
+
+
+# ---- events (server → client) ------------------------------------------------------------------------------------------
+@dataclass
+class Ready:
+    """The first line: the server, its weights and the mesh options' schema (``options``: :meth:`Option.describe`
+    entries with their ``default``; ``qualities``: the named sets)."""
+
+    type: ClassVar[str] = "ready"
+    protocol: int = PROTOCOL_VERSION
+    version: str = ""
+    weights: str = ""
+    preset: str = ""
+    device: str = ""
+    threshold: float | None = None
+    options: list = field(default_factory=list)
+    qualities: list = field(default_factory=list)
+
+
+@dataclass
+class Version(Ready):
+    """The answer to ``version``: ``ready``'s fields and the request's ``id``."""
+
+    type: ClassVar[str] = "version"
+    id: Any = None
+
+
+@dataclass
+class Pong:
+    type: ClassVar[str] = "pong"
+    id: Any = None
+
+
+@dataclass
+class Progress:
+    """A stage of job ``id`` starts; ``fraction`` of the whole job (never decreasing)."""
+
+    type: ClassVar[str] = "progress"
+    id: Any = None
+    stage: str = ""
+    fraction: float = 0.0
+
+
+@dataclass
+class Result:
+    """Job ``id``'s mesh.  ``settings``: the options following the weights as used, one field each on the line;
+    ``options``: the whole record as used; ``camera``: the view the mesh is posed for (``docs/protocol.md``)."""
+
+    type: ClassVar[str] = "result"
+    id: Any = None
+    mesh: str = ""
+    format: str = ""
+    up: str = "y"
+    vertices: int = 0
+    faces: int = 0
+    parts: int = 0
+    parts_dropped: int = 0
+    watertight: bool = False
+    files: list = field(default_factory=list)
+    mask_source: str | None = None
+    mask_warning: str | None = None
+    primitive: str | None = None
+    timings: dict = field(default_factory=dict)
+    camera: dict | None = None
+    options: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict, metadata={"flat": True})
+
+
+@dataclass
+class Error:
+    """``code`` and a one-line ``message``; ``id`` null when the request had none or could not be read."""
+
+    type: ClassVar[str] = "error"
+    id: Any = None
+    code: str = "error"
+    message: str = ""
+
+
+@dataclass
+class Cancelled:
+    type: ClassVar[str] = "cancelled"
+    id: Any = None
+
+
+@dataclass
+class Bye:
+    """The last line; ``reason``: the signal that stopped the server (on the line only then)."""
+
+    type: ClassVar[str] = "bye"
+    id: Any = None
+    reason: str | None = _omitted()
+
+
+EVENTS: dict[str, type] = {c.type: c for c in (Ready, Version, Pong, Progress, Result, Error, Cancelled, Bye)}
+
+
+def message(obj: Any) -> dict[str, Any]:
+    """A request or event as its JSON object: ``type`` first; a ``flat`` field's keys on the object itself; an
+    omitted-when-absent field left out when None."""
+    out: dict[str, Any] = {"type": obj.type}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if f.metadata.get("flat"):
+            out.update(value)
+        elif not (f.metadata.get("omit") and value is None):
+            out[f.name] = value
+    return out
+
+
+def read_event(obj: Any) -> Any:
+    """The event a parsed line holds (its dataclass from :data:`EVENTS`, a field missing from the line at its default,
+    a ``flat`` field gathering the keys no other field names); None for a line that is no known event."""
+    cls = EVENTS.get(obj.get("type")) if isinstance(obj, dict) and isinstance(obj.get("type"), str) else None
+    if cls is None:
+        return None
+    fields = dataclasses.fields(cls)
+    named = {f.name for f in fields}
+    values = {f.name: obj[f.name] for f in fields if f.name in obj and not f.metadata.get("flat")}
+    for f in fields:
+        if f.metadata.get("flat"):
+            values[f.name] = {k: v for k, v in obj.items() if k not in named and k != "type"}
+    return cls(**values)

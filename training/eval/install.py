@@ -36,6 +36,7 @@ from pathlib import Path
 from genre_backend.config import SETTINGS
 from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, PROTOCOL_WEIGHTS_NAME, WEIGHTS_NAMES, named_weights
 from genre_backend.nets.model import WeightsError, load_model, save_model
+from genre_backend.arguments import add_out, add_weights
 
 __all__ = ["install", "main"]
 
@@ -133,14 +134,14 @@ def _setting_flags(p: argparse.ArgumentParser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.eval.install", description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", required=True, type=Path)
+    add_weights(p, required=True, type=Path, help="the trained weights file to install")
     level = p.add_mutually_exclusive_group(required=True)
     level.add_argument("--thresholds", type=Path, help="thresholds.json of 'genre eval' on seen-test views")
     level.add_argument("--threshold", type=float, help="the level itself (the product model: that of the weights it started from)")
     p.add_argument("--name", choices=list(WEIGHTS_NAMES), default=PROTOCOL_WEIGHTS_NAME,
                    help="which shipped weights these become: protocol (default: the research weights, seen classes only) "
                         "or default (the product model, trained on everything)")
-    p.add_argument("--out", type=Path, default=None, help="write here instead of genre_backend/weights/NAME.safetensors")
+    add_out(p, type=Path, help="write here instead of genre_backend/weights/NAME.safetensors")
     _setting_flags(p)
     p.add_argument("--sph-hit-probability", type=float, default=None, metavar="P",
                    help="store geometry.sph_hit_probability = P (the hit head's decision level, chosen by "
