@@ -8,7 +8,8 @@ Blender's main thread, and the tests drive them directly.
   :func:`weights_argument` turns the Model choice (the shipped ``default`` or
   ``protocol`` weights, or a custom file) into its ``--weights`` value.
 * :class:`BackendClient` owns the subprocess.  A reader thread parses its
-  stdout (one JSON object per line, see ``docs/protocol.md``) into a queue;
+  stdout (one JSON object per line, see ``docs/protocol.md``) into the
+  event dataclasses of :mod:`.protocol` (a copy of the backend's), queued;
   a second thread keeps the last lines of stderr for error messages.  The
   main thread only ever calls the non-blocking :meth:`BackendClient.poll`.
 * :class:`Request` is one request (``version`` or ``reconstruct``) followed

@@ -1,12 +1,15 @@
 """The mesh options: one frozen record, and the steps after the networks that they steer.
 
-:class:`MeshOptions` is the one place a mesh option is written down.  Each
-field carries an :class:`Option` in its metadata: its kind (float, int, bool
-or a choice), its range, where its default comes from (a field of the weights'
-``GeometryConfig``, else a plain default), a label and one line of help.
-From it come
+:class:`MeshOptions` holds every mesh option.  Its fields are made from the
+fields that carry an :class:`~genre_backend.protocol.Option` in their
+metadata: first those of the weights' ``GeometryConfig``
+(``genre_backend/config.py``: the settings the weights store and choose,
+``threshold`` being ``default_threshold``), then :class:`_OwnOptions`' (the
+options with a plain default).  The metadata says the option's kind (float,
+int, bool or a choice), its range, where its default comes from, a label and
+one line of help.  From it come
 
-* the checks (:meth:`Option.check`: one message style, ``WHERE: expected
+* the checks (:meth:`Option.check`, the one check: one message style, ``WHERE: expected
   WHAT, got VALUE``; ``WHERE`` is ``--flag`` for the CLI, ``option 'name'``
   for ``genre serve`` and the bare name in Python);
 * the merge of overrides onto the weights' defaults (:meth:`MeshOptions.over`,
@@ -23,8 +26,9 @@ From it come
   sealing; :meth:`MeshOptions.mesh`: hole closing, marching cubes, clean-up,
   the sheets onto the surface; :meth:`MeshOptions.snap_mesh`: a fitted regular shape).
 
-A new option is one field here (plus its tests): the CLI flag, the server's
-key, the schema, the add-on's row and the fuzz test's values follow from it.
+A new option is one field (``GeometryConfig``'s for a setting the weights store, :class:`_OwnOptions`' otherwise)
+plus its tests and its use: the CLI flag, the server's key and result, the schema, the add-on's row, install's
+flag, the fuzz test's values and ``docs/protocol.md``'s table (:func:`table`) follow from it.
 Mask inputs (``mask``, a box, strokes) and output paths are not mesh options
 and stay out of the record.
 """
