@@ -289,7 +289,8 @@ class Server:
     def _run(self, job: Job) -> None:
         from ..config import SETTINGS
         from ..inference.options import OPTIONS
-        from ..inference.reconstruct import STAGE_START, Cancelled, error_code
+        from ..inference.reconstruct import STAGE_START, error_code
+        from ..inference.reconstruct import Cancelled as JobCancelled  # (the exception; protocol.Cancelled is the event)
         from ..output.mesh_export import check_outputs
 
         if job.cancel.is_set():
@@ -311,12 +312,12 @@ class Server:
                 should_cancel=job.cancel.is_set,
             )
             if job.cancel.is_set():
-                raise Cancelled("cancelled before stage write")
+                raise JobCancelled("cancelled before stage write")
             self.emit(Progress(job.id, "write", STAGE_START["write"]))
             path, fmt = result.save_mesh(job.output, opts.format, texture=bool(opts.texture), up=opts.up)
             if job.save_intermediates:
                 result.save_intermediates(job.save_intermediates)
-        except Cancelled:
+        except JobCancelled:
             log.info("job %s cancelled", _cap(_key(job.id), 300))
             self._end(job, Cancelled(job.id))
             return
