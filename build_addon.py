@@ -46,6 +46,8 @@ SHIPPED_WEIGHTS = ("default.safetensors", "default.json", "MODEL_CARD.md", "TRAI
 BUNDLE = "backend"  # the add-on's folder with the wheel and the mask net's requirement
 MODEL_REQUIREMENTS = ROOT / "scripts" / "model-requirements.txt"
 SCHEMA = SOURCE / "options_schema.json"  # the Advanced rows before the backend has started (blender_addon/schema.py)
+# genre serve's messages, dependency-free: the add-on keeps an exact copy (the build refuses a stale one)
+PROTOCOL, PROTOCOL_COPY = ROOT / "genre_backend" / "protocol.py", SOURCE / "protocol.py"
 ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # every file's time in the wheel: the same tree gives the same bytes
 
 
@@ -223,6 +225,8 @@ def options_schema() -> str:
 def check_schema() -> None:
     if not SCHEMA.is_file() or SCHEMA.read_text(encoding="utf-8") != options_schema():
         raise BuildError(f"{SCHEMA.relative_to(ROOT)} is not the backend's schema: run python build_addon.py --schema")
+    if not PROTOCOL_COPY.is_file() or PROTOCOL_COPY.read_bytes() != PROTOCOL.read_bytes():
+        raise BuildError(f"{PROTOCOL_COPY.relative_to(ROOT)} is not {PROTOCOL.relative_to(ROOT)}: run python build_addon.py --schema")
 
 
 def build(out_dir: Path = ROOT / "dist") -> dict[str, Path]:
@@ -236,10 +240,12 @@ def build(out_dir: Path = ROOT / "dist") -> dict[str, Path]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(ROOT / "dist"), help="output folder (default: dist/)")
-    parser.add_argument("--schema", action="store_true", help=f"write {SCHEMA.relative_to(ROOT)} from the backend, then build")
+    parser.add_argument("--schema", action="store_true",
+                        help=f"write {SCHEMA.relative_to(ROOT)} and {PROTOCOL_COPY.relative_to(ROOT)} from the backend, then build")
     args = parser.parse_args(argv)
     if args.schema:
         SCHEMA.write_text(options_schema(), encoding="utf-8")
+        shutil.copy2(PROTOCOL, PROTOCOL_COPY)
     try:
         built = build(Path(args.out))
     except BuildError as exc:

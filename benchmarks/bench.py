@@ -42,6 +42,7 @@ import torch
 from genre_backend.geometry.analytic import sphere_depth
 from genre_backend.config import PRESETS, get_preset
 from genre_backend.validation import check_threshold
+from genre_backend.arguments import add_device, add_threads, add_weights
 
 __all__ = ["main", "geometry_benchmark", "inference_benchmark"]
 
@@ -135,7 +136,7 @@ def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float)
         note="ray coverage + the depth's distance grid of the hole's pixels")
     add(f"fuse the visible surface {g.voxel_size}³ (no hole)", lambda: fuse_visible_surface(tube, depth[0], cam, dg, g.default_threshold),
         note="ray coverage only")
-    # the pits in the visible face (geometry.pit_sealing): the front cap missing over a narrow disc
+    # the pits in the visible face (Seal Pits): the front cap missing over a narrow disc
     well = (c[:, None, None] ** 2 + c[None, :, None] ** 2 < 0.025 ** 2) & (c[None, None, :] > 0)
     pitted, obj = torch.where(well, torch.zeros_like(tube), tube), depth[0] > 0
     add(f"seal pits {g.voxel_size}³ (a pit)", lambda: seal_pits(pitted, obj, cam, dg, g.default_threshold, 2),
@@ -588,19 +589,19 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     geo = sub.add_parser("geometry", help="time the geometry core at the default and paper resolutions")
     geo.add_argument("--preset", choices=[*PRESETS, "all"], default="all")
     geo.add_argument("--repeats", type=int, default=5, help="timed runs per op (median reported)")
-    geo.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    add_threads(geo)
     inf = sub.add_parser("inference", help="time the reconstruction pipeline per stage (random weights of each preset)")
     inf.add_argument("--preset", choices=[*PRESETS, "all"], default="all")
-    inf.add_argument("--device", choices=["cpu", "cuda", "all"], default="all", help="all: the CPU, and CUDA when present")
+    add_device(inf, choices=["cpu", "cuda", "all"], default="all", help="all: the CPU, and CUDA when present")
     inf.add_argument("--repeats", type=int, default=5, help="timed runs per preset after one warm-up (median reported)")
     inf.add_argument("--threshold", type=float, default=None, help="isosurface level (default: the preset's default_threshold)")
-    inf.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    add_threads(inf)
     inf.add_argument("--test-time-mirror", action="store_true",
                      help="also time each preset with test-time mirroring (the nets run on the mirror image too)")
     inf.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
     user = sub.add_parser("reconstruct", help="time `genre reconstruct` of a photo with the shipped weights and their own options, warm and cold")
     user.add_argument("--image", default=str(_REPO / "examples" / "sofa.png"), help="the photo (default: examples/sofa.png)")
-    user.add_argument("--weights", default="default", help="shipped weights' name or a file (default: default)")
+    add_weights(user, default="default", help="shipped weights' name or a file (default: default)")
     user.add_argument("--repeats", type=int, default=5, help="warm runs after one warm-up (median reported)")
     user.add_argument("--cold-repeats", type=int, default=3, help="fresh processes (median reported)")
     user.add_argument("--against", action="append", default=[], metavar="LABEL=DIR",
@@ -609,10 +610,10 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     user.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
     worker = sub.add_parser("_inference-worker")  # internal: one preset in a fresh process
     worker.add_argument("--preset", required=True)
-    worker.add_argument("--device", required=True)
+    add_device(worker, required=True)
     worker.add_argument("--repeats", type=int, required=True)
     worker.add_argument("--threshold", type=float, default=None)
-    worker.add_argument("--threads", type=int, default=None)
+    add_threads(worker)
     worker.add_argument("--test-time-mirror", action="store_true")
     return parser
 

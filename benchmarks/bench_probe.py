@@ -72,10 +72,11 @@ def warm(image: str, weights: str) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "mesh.obj"
         _, result = one(out)  # the first run warms up caches and the allocator
+        opts = getattr(result, "options", result)  # (a checkout older than the options record: the result's own fields)
         print(json.dumps({
             "mode": "warm", "threads": torch.get_num_threads(), "import_s": t1 - t0, "weights_s": t2 - t1,
             "vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "mask_source": result.mask_source,
-            "test_time_mirror": bool(getattr(result, "test_time_mirror", False)), "threshold": float(result.threshold),
+            "test_time_mirror": bool(getattr(opts, "test_time_mirror", False)), "threshold": float(opts.threshold),
         }), flush=True)
         for line in sys.stdin:
             if line.strip() != "run":

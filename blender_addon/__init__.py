@@ -24,10 +24,10 @@ import atexit
 if "ops" in locals():  # re-running register() after a script reload
     import importlib
 
-    for _name in ("annotations", "backend", "installer", "schema", "geometry", "jobs", "props", "ops", "ui"):
+    for _name in ("protocol", "annotations", "backend", "installer", "schema", "geometry", "jobs", "props", "ops", "ui"):
         importlib.reload(locals()[_name])
 
-from . import annotations, backend, geometry, installer, jobs, ops, props, schema, ui  # noqa: E402
+from . import annotations, backend, geometry, installer, jobs, ops, props, protocol, schema, ui  # noqa: E402, F401
 
 _MODULES = (props, ops, ui)
 

@@ -8,7 +8,8 @@ Blender's main thread, and the tests drive them directly.
   :func:`weights_argument` turns the Model choice (the shipped ``default`` or
   ``protocol`` weights, or a custom file) into its ``--weights`` value.
 * :class:`BackendClient` owns the subprocess.  A reader thread parses its
-  stdout (one JSON object per line, see ``docs/protocol.md``) into a queue;
+  stdout (one JSON object per line, see ``docs/protocol.md``) into the
+  event dataclasses of :mod:`.protocol` (a copy of the backend's), queued;
   a second thread keeps the last lines of stderr for error messages.  The
   main thread only ever calls the non-blocking :meth:`BackendClient.poll`.
 * :class:`Request` is one request (``version`` or ``reconstruct``) followed
@@ -36,6 +37,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
+
+from .protocol import REQUESTS, Cancel, Error, Progress, Ready, message, read_event
 
 __all__ = [
     "BackendError",
@@ -157,7 +160,7 @@ class BackendClient:
 
     def __init__(self, argv: list[str], *, env: dict[str, str] | None = None, cwd: str | None = None):
         self.argv = list(argv)
-        self.ready: dict[str, Any] | None = None  # the server's ready event, once seen
+        self.ready: Ready | None = None  # the server's ready event, once seen
         self.started_at = 0.0
         self._env = env
         self._cwd = cwd
@@ -278,8 +281,8 @@ class BackendClient:
             except (BrokenPipeError, ValueError, OSError):
                 raise BackendError(self.death_reason()) from None
 
-    def poll(self) -> list[dict[str, Any]]:
-        """Every event the reader thread has parsed so far (never waits)."""
+    def poll(self) -> list[Any]:
+        """Every event the reader thread has parsed so far (never waits): :mod:`.protocol` events."""
         out = []
         while True:
             try:
@@ -289,7 +292,7 @@ class BackendClient:
             if item is _EOF:
                 self._closed = True
                 continue
-            if item.get("type") == "ready" and self.ready is None:
+            if isinstance(item, Ready) and item.type == "ready" and self.ready is None:
                 self.ready = item
             out.append(item)
 
@@ -325,11 +328,13 @@ class BackendClient:
                 if not line:
                     continue
                 try:
-                    event = json.loads(line)
+                    event = read_event(json.loads(line))
                 except ValueError:
                     self._stderr.append(f"(stdout, not JSON) {line[:200]}")
                     continue
-                if isinstance(event, dict) and isinstance(event.get("type"), str):
+                except TypeError:  # a known type with a field it does not have
+                    event = None
+                if event is not None:
                     self._events.put(event)
                 else:
                     self._stderr.append(f"(stdout, not an event) {line[:200]}")
@@ -379,8 +384,8 @@ class Request:
     state: str = "new"
     stage: str = "starting"
     fraction: float = 0.0
-    result: dict[str, Any] | None = None
-    ready: dict[str, Any] | None = None  # the backend's ready event (its option schema, docs/protocol.md), once seen
+    result: Any = None  # the answering event (protocol.Result or protocol.Version)
+    ready: Ready | None = None  # the backend's ready event (its option schema, docs/protocol.md), once seen
     error: str = ""
     started_at: float = 0.0
     finished_at: float = 0.0
@@ -443,8 +448,7 @@ class Request:
             if client.ready is not None:
                 if self._cancel_requested:
                     return self._finish(now, "cancelled")
-                message = {"type": self.kind, "id": self.id, **self.payload}
-                client.send(message)
+                client.send(message(REQUESTS[self.kind](id=self.id, **self.payload)))
                 self._sent_at = now
                 self.state = "running"
                 self.stage = "queued"
@@ -456,7 +460,7 @@ class Request:
                 self._fail(now, f"the backend did not become ready within {self.startup_timeout:.0f} s", discard=True, kill=True)
             return
         if self._cancel_requested and self._cancel_sent_at is None:
-            client.send({"type": "cancel", "id": self.id})
+            client.send(message(Cancel(self.id)))
             self._cancel_sent_at = now
             self.state = "cancelling"
             self.stage = "cancelling"
@@ -476,33 +480,37 @@ class Request:
             self._fail(now, f"the {what} timed out after {self.timeout:g} s (stage: {STAGE_LABELS.get(self.stage, self.stage)})",
                        discard=True, kill=True)
 
-    def _on_event(self, now: float, event: dict[str, Any]) -> None:
-        etype = event.get("type")
-        if etype == "error" and event.get("id") is None:
+    def _on_event(self, now: float, event: Any) -> None:
+        """Follow one :mod:`.protocol` event (a parsed line's dict is read as one first)."""
+        if isinstance(event, dict):
+            event = read_event(event)
+        if event is None:
+            return
+        if isinstance(event, Error) and event.id is None:
             # Before ready: the server cannot start (bad weights, unusable device) and exits.
             # After: a line of ours it could not read.  Either way this request cannot succeed.
             where = "backend could not start" if self._sent_at is None else "backend error"
-            return self._fail(now, f"{where}: {event.get('message') or 'unknown error'} ({event.get('code', 'error')})",
+            return self._fail(now, f"{where}: {event.message or 'unknown error'} ({event.code or 'error'})",
                               discard=self._sent_at is None)
-        if event.get("id") != self.id:
+        if getattr(event, "id", None) != self.id:
             return  # ready, or the answer to an earlier, abandoned request
-        if etype == "progress":
+        if isinstance(event, Progress):
             if self._cancel_sent_at is None:
-                self.stage = str(event.get("stage", self.stage))
+                self.stage = str(event.stage or self.stage)
                 try:
-                    self.fraction = min(1.0, max(self.fraction, float(event.get("fraction", 0.0))))
+                    self.fraction = min(1.0, max(self.fraction, float(event.fraction)))
                 except (TypeError, ValueError):
                     pass
-        elif etype == "error":
+        elif isinstance(event, Error):
             if self._cancel_sent_at is not None:
                 return self._finish(now, "cancelled")
-            self._fail(now, f"{event.get('message') or 'unknown error'} ({event.get('code', 'error')})")
-        elif etype == "cancelled":
+            self._fail(now, f"{event.message or 'unknown error'} ({event.code or 'error'})")
+        elif event.type == "cancelled":
             self._finish(now, "cancelled")
-        elif self._cancel_sent_at is not None and etype in ("result", "version"):
+        elif self._cancel_sent_at is not None and event.type in ("result", "version"):
             self.result = event  # finished before it could stop; the caller cleans up the file
             self._finish(now, "cancelled")
-        elif etype == self._answer_type():
+        elif event.type == self._answer_type():
             self.result = event
             self.fraction = 1.0
             self._finish(now, "done")

@@ -21,6 +21,7 @@ from mathutils import Matrix, Vector
 from .annotations import find_annotation, guidance_from_annotation
 from .backend import STAGE_LABELS, BackendError, BackendManager, Request, private_temp_root
 from .schema import QUALITIES
+from .protocol import Result
 from .geometry import VIEW_TO_BLENDER_FRONT, MeshFileError, camera_setup, read_obj, to_blender_frame, upright_pixels
 
 __all__ = ["UserError", "JobSpec", "JobLimits", "Job", "prepare_job", "work_root", "COLLECTION_NAME", "BackendError"]
@@ -321,19 +322,19 @@ class Job:
     @property
     def mask_warning(self) -> str:
         """The result's ``mask_warning`` (the backend found the mask doubtful), or ''."""
-        warning = (self.request.result or {}).get("mask_warning")
+        warning = getattr(self.request.result, "mask_warning", None)
         return warning if isinstance(warning, str) else ""
 
     def result_line(self) -> str:
         """'<name>: 1,234 vertices, 2,460 faces in 4.2 s' for the panel."""
-        res = self.request.result or {}
+        res = self.request.result or Result()
         obj = self.objects[0] if self.objects else None
-        faces = res.get("faces", 0)
-        line = f"{self.spec.name}: {res.get('vertices', 0):,} vertices, {faces:,} faces"
-        if isinstance(res.get("mask_source"), str):
-            line += f", mask: {res['mask_source']}"
-        if isinstance(res.get("primitive"), str):
-            line += f", a fitted {res['primitive']}"
+        faces = res.faces
+        line = f"{self.spec.name}: {res.vertices:,} vertices, {faces:,} faces"
+        if isinstance(res.mask_source, str):
+            line += f", mask: {res.mask_source}"
+        if isinstance(res.primitive, str):
+            line += f", a fitted {res.primitive}"
         if obj is not None and self.spec.target_faces and faces > self.spec.target_faces:
             line += f" (decimated to ~{self.spec.target_faces:,})"
         return f"{line} in {self.request.elapsed:.1f} s"
@@ -395,8 +396,8 @@ def _collection(scene, made: list):
     return coll
 
 
-def _add_result(scene, spec: JobSpec, result: dict, cursor_location, made: list):
-    mesh_path = result.get("mesh") or spec.output_path
+def _add_result(scene, spec: JobSpec, result: Result, cursor_location, made: list):
+    mesh_path = result.mesh or spec.output_path
     data = read_obj(mesh_path)
     coll = _collection(scene, made)
 
@@ -426,14 +427,14 @@ def _add_result(scene, spec: JobSpec, result: dict, cursor_location, made: list)
         mod.ratio = spec.target_faces / len(mesh.polygons)
 
     cam_obj = None
-    if spec.add_camera and isinstance(result.get("camera"), dict):
-        cam_obj = _add_camera(scene, spec, result["camera"], obj, coll, made)
+    if spec.add_camera and isinstance(result.camera, dict):
+        cam_obj = _add_camera(scene, spec, result.camera, obj, coll, made)
     return obj, cam_obj
 
 
-def _texture_file(result: dict, mesh_path: str) -> str:
+def _texture_file(result: Result, mesh_path: str) -> str:
     """The texture image the backend wrote beside an OBJ (listed in the result's ``files``)."""
-    for path in result.get("files") or ():
+    for path in result.files or ():
         if isinstance(path, str) and path.lower().endswith(".png"):
             return path
     return os.path.splitext(mesh_path)[0] + "_texture.png"

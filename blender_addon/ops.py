@@ -90,7 +90,7 @@ def advance(job: Job, scene, status, cursor_location, now: float | None = None):
             try:
                 job.apply(scene, cursor_location)
                 outcome = ("INFO", job.result_line())
-                follow_result(getattr(scene, "genre", None), job.request.result or {})
+                follow_result(getattr(scene, "genre", None), job.request.result)
             except UserError as exc:
                 outcome = ("ERROR", f"GenRe: {exc}")
         elif job.state == "cancelled":
@@ -169,14 +169,15 @@ def _fill_scenes(*_args):
         fill_from_cache(getattr(scene, "genre", None))
 
 
-def follow_result(settings, result: dict) -> None:
-    """An unticked row shows the value the backend used (the result's echo of the option), so that ticking it starts
-    from the shipped mesh rather than from an arbitrary value."""
+def follow_result(settings, result) -> None:
+    """An unticked row shows the value the backend used (the result's echo of the option, ``protocol.Result``'s
+    ``settings``), so that ticking it starts from the shipped mesh rather than from an arbitrary value."""
+    used = getattr(result, "settings", None) or {}
     if settings is None:
         return
     for row in settings.options:
-        if not row.override and row.name in result:
-            _set_value(row, result[row.name])
+        if not row.override and row.name in used:
+            _set_value(row, used[row.name])
 
 
 def finish_job(job: Job, status, outcome) -> None:
@@ -230,9 +231,10 @@ def advance_check(req: Request, status, now: float | None = None, scene=None):
     if not req.finished:
         return None
     if req.state == "done":
-        ev = req.result or {}
-        outcome = ("INFO", f"GenRe backend {ev.get('version', '?')} (protocol {ev.get('protocol', '?')}), "
-                           f"preset {ev.get('preset', '?')}, threshold {ev.get('threshold', '?')}, device {ev.get('device', '?')}, weights {ev.get('weights', '?')}")
+        ev = req.result
+        info = {k: getattr(ev, k, None) or "?" for k in ("version", "protocol", "preset", "threshold", "device", "weights")}
+        outcome = ("INFO", f"GenRe backend {info['version']} (protocol {info['protocol']}), preset {info['preset']}, "
+                           f"threshold {info['threshold']}, device {info['device']}, weights {info['weights']}")
     elif req.state == "cancelled":
         outcome = ("WARNING", "backend check cancelled")
     else:

@@ -13,9 +13,10 @@ change here.
 from __future__ import annotations
 
 import json
-import math
 import os
 from typing import Any
+
+from .protocol import OPTION_KINDS, Option
 
 __all__ = ["ADDON_OWNED", "QUALITIES", "rows", "check_value", "shown", "VALUE_KINDS", "cached"]
 
@@ -31,44 +32,31 @@ QUALITIES = (
     ("FAST", "Fast", "One pass through the networks (no mirror average): about half the time", "fast"),
     ("BEST", "Best", "The model's own settings, chosen on evaluation views", "best"),
 )
-VALUE_KINDS = ("float", "int", "bool", "choice")
+VALUE_KINDS = OPTION_KINDS
 
 
-def rows(event: dict[str, Any] | None) -> list[dict[str, Any]]:
-    """The schema entries of a ``ready``/``version`` event that get a row: well-formed, of a known kind, not the add-on's."""
-    entries = (event or {}).get("options")
+def rows(event: Any) -> list[dict[str, Any]]:
+    """The schema entries of a ``ready``/``version`` event (a :mod:`.protocol` event, or its dict) that get a row:
+    well-formed (:meth:`.protocol.Option.from_entry`), not the add-on's."""
+    entries = event.get("options") if isinstance(event, dict) else getattr(event, "options", None)
     if not isinstance(entries, list):
         return []
-    out = []
-    for e in entries:
-        if not (isinstance(e, dict) and isinstance(e.get("name"), str) and e.get("type") in VALUE_KINDS):
-            continue
-        if e["name"] in ADDON_OWNED:
-            continue
-        if e["type"] in ("float", "int") and not all(isinstance(e.get(k), (int, float)) and not isinstance(e.get(k), bool)
-                                                     for k in ("min", "max")):
-            continue
-        if e["type"] == "choice" and not (isinstance(e.get("choices"), list) and e["choices"]):
-            continue
-        out.append(e)
-    return out
+    return [e for e in entries if Option.from_entry(e) is not None and e["name"] not in ADDON_OWNED]
 
 
 def check_value(entry: dict[str, Any], value: Any) -> str | None:
-    """Why ``value`` is outside the option's kind or range (one line, naming the row's label), else None."""
-    kind, label = entry.get("type"), entry.get("label") or entry.get("name")
-    if kind == "bool":
-        return None if isinstance(value, bool) else f"{label}: expected on or off"
-    if kind == "choice":
-        return None if value in (entry.get("choices") or ()) else f"{label}: expected one of {', '.join(entry.get('choices') or ())}"
-    lo, hi = entry["min"], entry["max"]
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    ok = ok and (lo < value if entry.get("min_open") else lo <= value) and (value < hi if entry.get("max_open") else value <= hi)
-    if ok:
+    """Why ``value`` is outside the option's kind or range (one line, naming the row's label), else None: the
+    backend's own check (:meth:`.protocol.Option.accepts`), worded for the panel."""
+    option = Option.from_entry(entry)
+    if option is None or option.accepts(value):
         return None
-    span = f"{'(' if entry.get('min_open') else '['}{lo:g}, {hi:g}{')' if entry.get('max_open') else ']'}"
-    return f"{label}: expected a{'n integer' if kind == 'int' else ' number'} in {span}, got {value:g}" if isinstance(value, (int, float)) \
-        else f"{label}: expected a number in {span}"
+    if option.kind == "bool":
+        return f"{option.label}: expected on or off"
+    if option.kind == "choice":
+        return f"{option.label}: expected one of {', '.join(option.choices)}"
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    what = "an integer" if option.kind == "int" else "a number"
+    return f"{option.label}: expected {what} in {option.span()}" + (f", got {value:g}" if number else "")
 
 
 def shown(entry: dict[str, Any], value: Any) -> str:

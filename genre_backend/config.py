@@ -23,11 +23,14 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from .validation import check_hole_closing, check_threshold
+from .protocol import Option, OptionError
+from .validation import MAX_HOLE_CLOSING, check_threshold
 
 __all__ = [
     "CameraConfig",
     "GeometryConfig",
+    "SETTINGS",
+    "check_setting",
     "NetworkConfig",
     "INPAINT_HEADS",
     "GenreConfig",
@@ -124,6 +127,20 @@ class CameraConfig:
 TARGETS = ("shell", "distance")  # the refiner's representations (GeometryConfig.target)
 
 
+def _setting(default: Any, **spec) -> Any:
+    """A field that is also a mesh option: its default and its :class:`~genre_backend.protocol.Option`."""
+    return field(default=default, metadata={"option": Option(**spec)})
+
+
+def check_setting(spec: Option, value: Any, target: str, where: str) -> Any:
+    """``value`` of the setting ``spec`` checked (:meth:`Option.check`), and refused when it is on but ``target`` is
+    not the distance target that a ``distance_only`` setting needs; :class:`~genre_backend.protocol.OptionError`."""
+    value = spec.check(value, where)
+    if spec.distance_only and value and target != "distance":
+        raise OptionError(f"{where}: these weights predict the {target!r} target; only distance grids take it", spec.name)
+    return value
+
+
 @dataclass(frozen=True)
 class GeometryConfig:
     """Resolutions and tolerances of the deterministic geometry between the nets."""
@@ -163,25 +180,39 @@ class GeometryConfig:
     # (a wing, a sheet) keeps a thickness of twice this instead of collapsing into two coincident
     # sheets with opposite normals (its cost: docs/lab/reconstruct-settings.md, "The network levels").
     surface_margin: float = 0.25
+    # The isosurface level a mesh is cut at: chosen on seen-test views by ``genre eval`` and stored by
+    # training/eval/install.py (--thresholds); the mesh option ``threshold``.
+    default_threshold: float = _setting(
+        0.5, name="threshold", kind="float", lo=0.0, hi=1.0, lo_open=True, hi_open=True, metavar="T", label="Threshold",
+        help="isosurface level of the voxel grid: lower gives a fuller shape")
     # The distance target's holes (geometry.mesh_voxels.fill_enclosed): a blurry prediction leaves
     # gaps in the tube around the surface, through which the tube's inner sheet joins the outer one
     # (a hole into the object).  Gaps up to about twice this many voxels across are sealed (a
     # morphological closing of the object before its inside is filled); openings wider than that
     # (a torus's hole, a cup's mouth) stay.  0: nothing is sealed.  Weights stored without the key: 0.
-    hole_closing: int = 0
+    hole_closing: int = _setting(
+        0, kind="int", lo=0, hi=12, unit="voxels", metavar="K", label="Seal Holes",
+        help="seal holes in the mesh up to about twice this many voxels across (0: none; more also fills narrow gaps "
+             "between parts)", chosen="scripts/hole_closing.py on seen-test views")
     # The one-view visual hull (geometry.voxels.silhouette_ramp): the refiner's output is capped by
     # a ramp that falls from 1 to 0 across the object's outline (one voxel wide, 0.5 on the outline)
     # before the mesh is made, in reconstruction and in evaluation (every learned row alike; never
     # in training).  The refiner's blur spills past the outline the photo shows (measured:
     # docs/lab/reconstruct-settings.md, "Trimmed to the outline").  Weights stored without the key: off.
-    silhouette_carve: bool = False
+    silhouette_carve: bool = _setting(
+        False, kind="bool", label="Trim to Outline",
+        help="cut away what would stick out past the object's outline (the mask) before the mesh is made",
+        chosen="chosen on seen-test views (results/decisions.md)")
     # Holes in the face the camera sees (geometry.visible_front.fuse_visible_surface): the object's pixels
     # whose ray meets nothing above the level get the masked depth map's own surface (its distance
     # target, max with the refiner's) before the mesh is made, in reconstruction and in evaluation
     # (every row with a depth map alike). Chosen per weights on seen-test views by
     # scripts/visible_fusion.py (docs/lab/reconstruct-settings.md, "Holes in the side the photo shows").
     # Weights stored without the key: off.
-    visible_fusion: bool = False
+    visible_fusion: bool = _setting(
+        False, kind="bool", distance_only=True, label="Fill Visible Holes",
+        help="fill the holes the model leaves in the side the photo shows with the estimated depth's surface",
+        chosen="scripts/visible_fusion.py on seen-test views")
     # Pits in the face the camera sees (geometry.visible_front.seal_pits): a blurry front wall whose
     # crossing falls through onto the inside of the back leaves a narrow, deep well, dark in a render
     # (real photos: the apple's and the orange's fronts).  The basins of the grid's own visible front
@@ -190,20 +221,30 @@ class GeometryConfig:
     # alike, after any fusion).  0: off.  Chosen by the rule in results/decisions.md
     # (scripts/visible_fusion.py --pit-sealing; docs/lab/reconstruct-settings.md, "Pits in the side the
     # photo shows").  Weights stored without the key: 0 (off).
-    pit_sealing: int = 0
+    pit_sealing: int = _setting(
+        0, kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", distance_only=True, metavar="K", label="Seal Pits",
+        help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
+             "surface around them (0: none)", chosen="scripts/visible_fusion.py --pit-sealing (results/decisions.md)")
     # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
     # ellipsoid fitted to the mask's outline, the mesh and the depth when its disagreement (1 - the IoU of
     # its silhouette with the mask, or twice the mesh's mean distance to it over its diagonal, whichever
     # is larger) is at most this; in reconstruction and in evaluation (every row with a depth map alike).
     # 0: off.  Chosen on training-split views by scripts/primitive_snap.py; stored only by the rule in
     # results/decisions.md.  Weights stored without the key: 0 (off).
-    primitive_snap: float = 0.0
+    primitive_snap: float = _setting(
+        0.0, kind="float", lo=0.0, hi=1.0, hi_open=True, metavar="TOL", label="Snap Shapes",
+        help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette matches the mask "
+             "and it stays on the mesh within this tolerance (0: never)",
+        chosen="scripts/primitive_snap.py on training-split views (results/decisions.md)")
     # Test-time mirroring (nets.model.mirror_averaged): the view is also run reflected left to right (the
     # scene mirrored in the view frame's x = 0 plane, a view the nets were trained on with --mirror), the
     # refiner's output reflected back and the two probabilities averaged before the mesh is made; in
     # reconstruction and in evaluation (every learned row alike).  Twice the nets' time.  Turned on only by
     # the rule in results/decisions.md.  Weights stored without the key: off.
-    test_time_mirror: bool = False
+    test_time_mirror: bool = _setting(
+        False, kind="bool", label="Mirror Average",
+        help="also run the photo's mirror image and average the two (about twice the networks' time)",
+        chosen="results/decisions.md")
     # The seen side kept: the full spherical map takes the partial map's own value wherever the partial map
     # sees the surface, the inpainting net's elsewhere (nets.model.GenRe.forward).  The net predicts every
     # pixel afresh; on the seen side its map is ~1.7x further from the truth than its own input
@@ -217,7 +258,6 @@ class GeometryConfig:
     threshold_min: float = 0.30
     threshold_max: float = 0.90
     threshold_step: float = 0.05
-    default_threshold: float = 0.5
     chamfer_points: int = 1024
     # Framing of photos (genre_backend.photo.preprocess): the square crop around the object
     # is sized so that the mask's longest side spans this fraction of the image.
@@ -239,26 +279,13 @@ class GeometryConfig:
             raise ValueError(f"geometry.target: expected one of {TARGETS}, got {self.target!r}")
         if not (math.isfinite(self.distance_band) and 0.5 <= self.distance_band <= 8.0):
             raise ValueError(f"geometry.distance_band: expected voxels in [0.5, 8], got {self.distance_band!r}")
-        check_hole_closing("geometry.hole_closing", self.hole_closing)
-        if not isinstance(self.silhouette_carve, bool):
-            raise ValueError(f"geometry.silhouette_carve: expected true or false, got {self.silhouette_carve!r}")
-        if not isinstance(self.visible_fusion, bool):
-            raise ValueError(f"geometry.visible_fusion: expected true or false, got {self.visible_fusion!r}")
-        if self.visible_fusion and self.target != "distance":
-            raise ValueError("geometry.visible_fusion: the visible surface is fused only into the distance target")
-        check_hole_closing("geometry.pit_sealing", self.pit_sealing)
-        if self.pit_sealing and self.target != "distance":
-            raise ValueError("geometry.pit_sealing: pits are sealed only in the distance target")
-        if isinstance(self.primitive_snap, bool) or not isinstance(self.primitive_snap, (int, float)) \
-                or not (math.isfinite(self.primitive_snap) and 0.0 <= self.primitive_snap < 1.0):
-            raise ValueError(f"geometry.primitive_snap: expected a share in [0, 1), got {self.primitive_snap!r}")
-        if not isinstance(self.test_time_mirror, bool):
-            raise ValueError(f"geometry.test_time_mirror: expected true or false, got {self.test_time_mirror!r}")
+        for spec in SETTINGS:
+            check_setting(spec, getattr(self, spec.weights), self.target, f"geometry.{spec.weights}")
         if not isinstance(self.sph_keep_seen, bool):
             raise ValueError(f"geometry.sph_keep_seen: expected true or false, got {self.sph_keep_seen!r}")
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")
-        for name in ("default_threshold", "threshold_min", "threshold_max"):
+        for name in ("threshold_min", "threshold_max"):
             check_threshold(f"geometry.{name}", getattr(self, name))
         if not (self.threshold_min <= self.threshold_max and self.threshold_step > 0):
             raise ValueError(f"geometry: threshold sweep {self.threshold_min}..{self.threshold_max} step {self.threshold_step} is empty")
@@ -279,6 +306,11 @@ class GeometryConfig:
         n = int(round((self.threshold_max - self.threshold_min) / self.threshold_step))
         return [round(self.threshold_min + i * self.threshold_step, 6) for i in range(n + 1)]
 
+
+# the fields of GeometryConfig that are also mesh options, in their order (name: the option's, weights: the field's)
+SETTINGS: tuple[Option, ...] = tuple(
+    dataclasses.replace(f.metadata["option"], name=f.metadata["option"].name or f.name, weights=f.name)
+    for f in dataclasses.fields(GeometryConfig) if "option" in f.metadata)
 
 INPAINT_HEADS = ("value", "hit")
 

@@ -99,8 +99,8 @@ MAX_HOLE_CLOSING = 8
 def check_hole_closing(name: str, value) -> int:
     """A hole-closing size in voxels: an integer in [0, MAX_HOLE_CLOSING], returned as int (bools refused).
 
-    The one check of ``geometry.hole_closing`` and ``geometry.pit_sealing`` (the same kind of width) and of
-    every option that overrides them.
+    The check of such a width given to a geometry function (a mesh option's range is its field's:
+    ``genre_backend/config.py``, ``GeometryConfig``).
     """
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 0 <= value <= MAX_HOLE_CLOSING:
         raise ValueError(f"{name}: expected voxels, an integer in [0, {MAX_HOLE_CLOSING}], got {_short_repr(value)}")

@@ -7,7 +7,7 @@ hole into the object (one hole: a pit; two: a tunnel).  ``hole_closing = k``
 seals gaps up to about 2·k voxels across before the inside is filled
 (:func:`genre_backend.geometry.mesh_voxels.fill_enclosed`).  For each view
 this script runs the weights once (their narrow pits sealed first when they
-say ``pit_sealing``, as ``genre reconstruct`` does) and scores the mesh at the weights' level
+say so, as ``genre reconstruct`` does) and scores the mesh at the weights' level
 for every k: CD (1,024 points, ``genre eval``'s metric), the share of closed
 meshes (every part genus 0: :func:`training.eval.runner.is_closed`: no
 tunnel; a single pit keeps genus 0 and is not counted).
@@ -35,8 +35,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.geometry.visible_front import seal_pits  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
+from genre_backend.inference.net_outputs import View  # noqa: E402
+from genre_backend.inference.options import MeshOptions  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
 from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
 from training.eval.runner import Truth, score_grid  # noqa: E402
@@ -69,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     geometry = model.config.geometry
     level = geometry.default_threshold if args.level is None else args.level
     truth = Truth()
+    # the weights' narrow pits sealed, as reconstruction and genre eval do (the record's step; neither carve nor fusion)
+    pits_only = MeshOptions(threshold=level, silhouette_carve=False, visible_fusion=False).resolved(geometry)
     # per group, per k: lists of cd, closed
     figures: dict[str, dict[int, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     with torch.no_grad():
@@ -77,8 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             gt, _ = truth.posed(view)
             target = CloudScorer(gt[:POINTS_SMALL], gt)
             prob = torch.sigmoid(model(s["rgb"][None], mask=s["mask"][None], mirror=model.config.geometry.test_time_mirror)["logits"])[0, 0]
-            if geometry.pit_sealing:  # before the hole sealing, as reconstruction and genre eval do
-                prob = seal_pits(prob, s["mask"].bool(), model.config.camera, geometry, level, geometry.pit_sealing)
+            prob = pits_only.shape_grid(prob, View(s["mask"], None, model.config.camera), geometry)  # before the hole sealing
             groups = list(group_of_shape(entries.get(view.shape_dir.name, {"class": view.cls})))
             if SEEN_TEST in view.groups:
                 groups.append("seen-test (chooses k)")

@@ -83,7 +83,8 @@ def _score(item) -> dict:
     import torch
 
     from genre_backend.geometry.mesh_voxels import grid_to_surface
-    from genre_backend.geometry.visible_front import seal_pits
+    from genre_backend.inference.net_outputs import View
+    from genre_backend.inference.options import MeshOptions
     from genre_backend.geometry.metrics import CloudScorer, sample_surface
     from genre_backend.geometry.primitives import POINTS, fit_primitive, visible_points
     from training.data.dataset import ViewDataset, ViewRef
@@ -100,8 +101,8 @@ def _score(item) -> dict:
     gt, _ = truth.posed(view)
     target = CloudScorer(gt[:POINTS_SMALL], gt)
     prob = torch.sigmoid(out["logits"])[0, 0]
-    if g.pit_sealing:  # the weights' pits sealed first, as genre eval does before it fits
-        prob = seal_pits(prob, s["mask"].bool(), model.config.camera, g, g.default_threshold, g.pit_sealing)
+    # the weights' pits sealed first, as genre eval does before it fits (the record's step; neither carve nor fusion)
+    prob = MeshOptions(silhouette_carve=False, visible_fusion=False).resolved(g).shape_grid(prob, View(s["mask"], None, model.config.camera), g)
     v, f = grid_to_surface(prob, g.default_threshold, g)
     rec = {"key": view.key, "folder": folder, "shape": view.shape_dir.name, "view": view.view}
     rec["cd_mesh"] = mesh_metrics(v, f, target)["cd1k"]

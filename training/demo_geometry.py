@@ -32,6 +32,7 @@ from genre_backend.geometry.mesh_voxels import voxels_to_mesh
 from genre_backend.geometry.metrics import mesh_chamfer
 from genre_backend.geometry.spherical import depth_to_sph, mesh_to_sph, sph_to_voxels
 from genre_backend.geometry.voxels import points_to_voxels
+from genre_backend.arguments import add_out
 
 
 def suzanne_mesh() -> tuple[np.ndarray, np.ndarray]:
@@ -160,7 +161,7 @@ def _preview(path: Path, view, partial, full, pred, gt, result) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m training.demo_geometry", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("out/demo"))
+    add_out(parser, type=Path, default=Path("out/demo"))
     parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
     parser.add_argument("--azimuth", type=float, default=30.0)
     parser.add_argument("--elevation", type=float, default=20.0)

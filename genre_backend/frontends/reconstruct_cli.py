@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..arguments import DEVICES, add_device, add_weights
 from ..process import say
 
 __all__ = ["main", "output_paths"]
@@ -123,10 +124,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                         help="write PNGs of depth, mask, spherical maps and voxels here, and mask_in_photo.png: the mask at the photo's size, to correct and give back with --mask")
     parser.add_argument("--preview", action="store_true",
                         help="also write MESH_preview.png beside each mesh: small panels of the photo, mask, depth and spherical maps above three large Blender views of the mesh (photo viewpoint, right side, back), in the photo's colour with --texture")
-    parser.add_argument("--weights", metavar="W",
-                        help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
-                             "model, seen classes only), or a .safetensors file")
-    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    add_weights(parser)
+    add_device(parser, choices=list(DEVICES))
     return parser
 
 

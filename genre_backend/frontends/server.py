@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
-import os
 import queue
 import sys
 import threading
@@ -28,12 +26,14 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from .. import __version__
+from ..arguments import DEVICES, add_device, add_weights
+from ..protocol import (PROTOCOL_VERSION, REQUESTS, Bye, Cancelled, Error, Pong, Progress, Ready, RequestError, Result,
+                        Version, cap, message, path_field, request_id, show_json)
 from ..process import Stop, install_stop_handlers, stops_quiet, take_stops, uninstall_stop_handlers
 from .serve_stop import stopped_lines
 
 __all__ = ["PROTOCOL_VERSION", "Server", "main"]
 
-PROTOCOL_VERSION = 1
 # the option keys of a request: every mesh option of the record (genre_backend/inference/options.py), the named set
 # `quality`, and the intermediates folder (a path, like `mask`, not a mesh option)
 _PATH_OPTIONS = ("save_intermediates",)
@@ -47,14 +47,6 @@ def _option_keys() -> tuple[str, ...]:
 
 _OPTION_KEYS = _option_keys()
 log = logging.getLogger("genre.serve")
-
-
-class RequestError(ValueError):
-    """A request that cannot be accepted; becomes an ``error`` event."""
-
-    def __init__(self, code: str, message: str, req_id: Any = None):
-        super().__init__(message)
-        self.code, self.req_id = code, req_id
 
 
 @dataclass
@@ -77,38 +69,12 @@ def _key(req_id: Any) -> str:
     return json.dumps(req_id)
 
 
-MAX_MESSAGE = 2000  # characters of an error message (never a client's 10 MB value echoed back)
-
-
-def _cap(text: str, limit: int = MAX_MESSAGE) -> str:
-    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
-
-
 def _one_line(exc: BaseException) -> str:
     lines = str(exc).strip().splitlines()
-    return _cap(lines[0] if lines else exc.__class__.__name__)
+    return cap(lines[0] if lines else exc.__class__.__name__)
 
 
-def _show(value: Any, limit: int = 300) -> str:
-    """A client's value quoted in a message: its JSON, cut to ``limit`` characters (any value, however deep)."""
-    try:
-        text = json.dumps(value)
-    except (ValueError, RecursionError):  # nesting near the recursion limit; an integer past the digit limit
-        text = f"<a JSON {type(value).__name__}>"
-    return _cap(text, limit)
-
-
-def _path_problem(value: str) -> str | None:
-    """Why no file can have the name ``value`` (None if one can): a NUL, or a lone surrogate that is no escaped byte."""
-    at = value.find("\x00")
-    if at >= 0:
-        return f"contains a NUL character (at character {at:,})"
-    try:
-        os.fsencode(value)
-    except UnicodeEncodeError as exc:
-        return (f"contains the lone surrogate {value[exc.start]!r} (at character {exc.start:,}); a name that is not UTF-8 "
-                f"is sent with one \\udc80-\\udcff escape per byte")
-    return None
+_cap, _show = cap, show_json
 
 
 class Server:
@@ -128,10 +94,11 @@ class Server:
         self.worker = threading.Thread(target=self._work, name="genre-serve-worker", daemon=True)
 
     # ---- output -------------------------------------------------------------------------
-    def emit(self, event: dict) -> None:
+    def emit(self, event) -> None:
+        """Write ``event`` (a :mod:`~genre_backend.protocol` event) as one line."""
         # ASCII-only JSON: a lone surrogate (a non-UTF-8 file name, or "\ud800" sent by a client)
         # goes out as its \u escape, never as text the UTF-8 stream cannot encode.
-        line = json.dumps(event, ensure_ascii=True, allow_nan=False)
+        line = json.dumps(message(event), ensure_ascii=True, allow_nan=False)
         with self.lock:
             if self.broken.is_set():
                 return
@@ -143,7 +110,7 @@ class Server:
 
     def error(self, req_id: Any, code: str, message: str) -> None:
         log.info("error %s %s: %s", _cap(json.dumps(req_id), 300), code, _cap(message, 300))
-        self.emit({"type": "error", "id": req_id, "code": code, "message": _cap(message)})
+        self.emit(Error(req_id, code, _cap(message)))
 
     def info(self) -> dict:
         from ..inference.options import schema
@@ -159,34 +126,9 @@ class Server:
         }
 
     # ---- requests -----------------------------------------------------------------------
-    @staticmethod
-    def _id(msg: dict, required: bool) -> Any:
-        if "id" not in msg:
-            if required:
-                raise RequestError("missing_field", "missing field 'id'")
-            return None
-        rid = msg["id"]
-        if isinstance(rid, bool) or not isinstance(rid, (str, int, float)) or (isinstance(rid, float) and not math.isfinite(rid)):
-            raise RequestError("bad_field", "field 'id' must be a string or a number")
-        return rid
-
-    @staticmethod
-    def _str(msg: dict, name: str, rid: Any, required: bool, where: str = "field") -> str | None:
-        if name not in msg or msg[name] is None:
-            if required:
-                raise RequestError("missing_field", f"missing {where} '{name}'", rid)
-            return None
-        value = msg[name]
-        if not isinstance(value, str) or not value:
-            raise RequestError("bad_field", f"{where} '{name}' must be a non-empty string (a path)", rid)
-        problem = _path_problem(value)
-        if problem:
-            raise RequestError("bad_field", f"{where} '{name}' is not a usable path: it {problem}", rid)
-        return value
-
     def _guidance(self, msg: dict, rid: Any, mask: str | None) -> tuple[tuple[float, float, float, float] | None, str | None]:
         """The request's ``box`` ([x0, y0, x1, y1], the photo's pixels) and ``strokes`` (a path), checked; (None, None) when absent."""
-        strokes = self._str(msg, "strokes", rid, False)
+        strokes = path_field(msg, "strokes", rid, False)
         box = msg.get("box")
         if box is not None:
             from ..validation import check_box
@@ -216,10 +158,10 @@ class Server:
         return frame
 
     def _parse_job(self, msg: dict) -> Job:
-        rid = self._id(msg, required=True)
-        image = self._str(msg, "image", rid, True)
-        output = self._str(msg, "output", rid, True)
-        mask = self._str(msg, "mask", rid, False)
+        rid = request_id(msg, required=True)
+        image = path_field(msg, "image", rid, True)
+        output = path_field(msg, "output", rid, True)
+        mask = path_field(msg, "mask", rid, False)
         box, strokes = self._guidance(msg, rid, mask)
         options = msg.get("options")
         if options is None:  # (absent or null)
@@ -241,7 +183,7 @@ class Server:
         written = resolve_format(output, fmt)
         if record.up == "z" and written != "ply":
             raise RequestError("bad_field", f"option 'up' 'z' is for ply only; {written} is always written +y up, as its importers expect", rid)
-        inter = self._str(options, "save_intermediates", rid, False, "option")
+        inter = path_field(options, "save_intermediates", rid, False, "option")
         return Job(rid, image, output, mask, record, inter, box=box, strokes=strokes,
                    guidance_frame=self._guidance_frame(msg, rid))
 
@@ -257,14 +199,14 @@ class Server:
             return True
         rid = None
         try:
-            rid = self._id(msg, required=False)
+            rid = request_id(msg, required=False)
             if "type" not in msg:
                 raise RequestError("missing_field", "missing field 'type'", rid)
             kind = msg["type"]
             if kind == "ping":
-                self.emit({"type": "pong", "id": rid})
+                self.emit(Pong(rid))
             elif kind == "version":
-                self.emit({"type": "version", "id": rid, **self.info()})
+                self.emit(Version(id=rid, **self.info()))
             elif kind == "reconstruct":
                 job = self._parse_job(msg)
                 with self.pending_lock:
@@ -274,13 +216,13 @@ class Server:
                 log.info("queued job %s: %s", _cap(_key(job.id), 300), _cap(job.image, 300))
                 self.jobs.put(job)
             elif kind == "cancel":
-                target = self._id(msg, required=True)
+                target = request_id(msg, required=True)
                 self.cancel(target)
             elif kind == "shutdown":
                 self.shutdown(rid, cancel=True)
                 return False
             else:
-                raise RequestError("unknown_type", f"unknown request type {_show(kind)}; known: ping, version, reconstruct, cancel, shutdown", rid)
+                raise RequestError("unknown_type", f"unknown request type {_show(kind)}; known: {', '.join(REQUESTS)}", rid)
         except RequestError as exc:
             self.error(exc.req_id if exc.req_id is not None else rid, exc.code, str(exc))
         except Exception as exc:  # a bug, not the client's doing: said so, and the server keeps reading
@@ -302,7 +244,7 @@ class Server:
         if job is not self.running and not job.answered:
             job.answered = True
             self.pending.pop(_key(job.id), None)
-            self.emit({"type": "cancelled", "id": job.id})
+            self.emit(Cancelled(job.id))
 
     def shutdown(self, rid: Any, cancel: bool, reason: str | None = None) -> None:
         """Stop the worker (cancelling everything when ``cancel``), then say ``bye`` (with ``reason`` after a signal)."""
@@ -316,7 +258,7 @@ class Server:
         if not self.said_bye:
             self.said_bye = True
             stops_quiet()  # (a signal from here on is logged, never a second bye)
-            self.emit({"type": "bye", "id": rid} if reason is None else {"type": "bye", "id": rid, "reason": reason})
+            self.emit(Bye(rid, reason))
 
     # ---- the worker ---------------------------------------------------------------------
     def _work(self) -> None:
@@ -335,21 +277,24 @@ class Server:
                     self.running = None
                     self.pending.pop(_key(job.id), None)
 
-    def _end(self, job: Job, event: dict) -> None:
+    def _end(self, job: Job, event) -> None:
         """Free the job's id, then send its last event (so the client may reuse the id at once)."""
         with self.pending_lock:
             self.pending.pop(_key(job.id), None)
             self.running = None
-        if event["type"] == "error":
-            log.info("error %s %s: %s", _cap(_key(job.id), 300), event["code"], _cap(event["message"], 300))
+        if isinstance(event, Error):
+            log.info("error %s %s: %s", _cap(_key(job.id), 300), event.code, _cap(event.message, 300))
         self.emit(event)
 
     def _run(self, job: Job) -> None:
+        from ..config import SETTINGS
+        from ..inference.options import OPTIONS
+        from ..inference.reconstruct import STAGE_START, Hooks, MaskGuidance, error_code
+        from ..inference.reconstruct import Cancelled as JobCancelled  # (the exception; protocol.Cancelled is the event)
         from ..output.mesh_export import check_outputs
-        from ..inference.reconstruct import STAGE_START, Cancelled, Hooks, MaskGuidance, error_code
 
         if job.cancel.is_set():
-            self._end(job, {"type": "cancelled", "id": job.id})
+            self._end(job, Cancelled(job.id))
             return
         log.info("job %s: %s -> %s", _cap(_key(job.id), 300), _cap(job.image, 300), _cap(job.output, 300))
         try:
@@ -360,21 +305,21 @@ class Server:
                 job.image,
                 MaskGuidance(mask=job.mask, box=job.box, strokes=job.strokes, frame=job.guidance_frame),
                 opts,
-                Hooks(progress=lambda stage, fraction: self.emit({"type": "progress", "id": job.id, "stage": stage, "fraction": fraction}),
+                Hooks(progress=lambda stage, fraction: self.emit(Progress(job.id, stage, fraction)),
                       should_cancel=job.cancel.is_set),
             )
             if job.cancel.is_set():
-                raise Cancelled("cancelled before stage write")
-            self.emit({"type": "progress", "id": job.id, "stage": "write", "fraction": STAGE_START["write"]})
+                raise JobCancelled("cancelled before stage write")
+            self.emit(Progress(job.id, "write", STAGE_START["write"]))
             path, fmt = result.save_mesh(job.output, opts.format, texture=bool(opts.texture), up=opts.up)
             if job.save_intermediates:
                 result.save_intermediates(job.save_intermediates)
-        except Cancelled:
+        except JobCancelled:
             log.info("job %s cancelled", _cap(_key(job.id), 300))
-            self._end(job, {"type": "cancelled", "id": job.id})
+            self._end(job, Cancelled(job.id))
             return
         except RequestError as exc:
-            self._end(job, {"type": "error", "id": job.id, "code": exc.code, "message": _cap(str(exc))})
+            self._end(job, Error(job.id, exc.code, _cap(str(exc))))
             return
         except Exception as exc:  # every failure is reported; the server keeps serving
             code = error_code(exc)
@@ -383,36 +328,16 @@ class Server:
                 message = f"internal error: {exc.__class__.__name__}: {_one_line(exc)}"
             else:
                 message = _one_line(exc)
-            self._end(job, {"type": "error", "id": job.id, "code": code, "message": message})
+            self._end(job, Error(job.id, code, message))
             return
-        self._end(
-            job,
-            {
-                "type": "result",
-                "id": job.id,
-                "mesh": str(path),
-                "format": fmt,
-                "up": result.up,
-                "vertices": int(len(result.vertices)),
-                "faces": int(len(result.faces)),
-                "parts": result.clean.parts,
-                "parts_dropped": result.clean.parts_before - result.clean.parts,
-                "watertight": result.clean.watertight,
-                "files": [str(p) for p in result.files],
-                "mask_source": result.mask_source,
-                "mask_warning": result.mask_warning,
-                "threshold": result.threshold,
-                "hole_closing": result.hole_closing,
-                "silhouette_carve": result.silhouette_carve,
-                "visible_fusion": result.visible_fusion,
-                "pit_sealing": result.pit_sealing,
-                "primitive_snap": result.primitive_snap,
-                "primitive": result.primitive,
-                "test_time_mirror": result.test_time_mirror,
-                "timings": {k: round(v, 4) for k, v in result.timings.items()},
-                "camera": result.camera(),
-            }
-        )
+        self._end(job, Result(
+            id=job.id, mesh=str(path), format=fmt, up=result.up, vertices=int(len(result.vertices)), faces=int(len(result.faces)),
+            parts=result.clean.parts, parts_dropped=result.clean.parts_before - result.clean.parts,
+            watertight=result.clean.watertight, files=[str(p) for p in result.files], mask_source=result.mask_source,
+            mask_warning=result.mask_warning, primitive=result.primitive,
+            timings={k: round(v, 4) for k, v in result.timings.items()}, camera=result.camera(),
+            options={spec.name: getattr(result.options, spec.name) for spec in OPTIONS},  # the whole record as used
+            settings={spec.name: getattr(result.options, spec.name) for spec in SETTINGS}))  # the weights' settings as used
         log.info("job %s done: %d faces in %.2f s", _cap(_key(job.id), 300), len(result.faces), sum(result.timings.values()))
 
     # ---- the loop -----------------------------------------------------------------------
@@ -426,7 +351,7 @@ class Server:
         """
         try:
             take_stops()  # (from here a signal raises Stop: the jobs to cancel, a write to finish, then `bye`)
-            self.emit({"type": "ready", **self.info()})
+            self.emit(Ready(**self.info()))
             if self.broken.is_set():  # a stdout whose reader has gone (a closed pipe): nobody to answer
                 stops_quiet()
                 log.error("stdout is closed: nobody to answer; stopping")
@@ -472,10 +397,8 @@ def main(argv: list[str] | None = None, prog: str = "genre serve") -> int:
 
 def _main(argv: list[str] | None, prog: str, out: TextIO | None) -> int:
     parser = argparse.ArgumentParser(prog=prog, description="JSON-lines reconstruction server on stdin/stdout (protocol: docs/protocol.md).")
-    parser.add_argument("--weights", metavar="W",
-                        help="weights: a shipped name, 'default' (the product model, the default) or 'protocol' (the research "
-                             "model, seen classes only), or a .safetensors file")
-    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    add_weights(parser)
+    add_device(parser, choices=list(DEVICES))
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = parser.parse_args(argv)
     logging.basicConfig(stream=sys.stderr, level=args.log_level, format="genre serve: %(levelname)s %(message)s")
@@ -492,11 +415,11 @@ def _main(argv: list[str] | None, prog: str, out: TextIO | None) -> int:
     except (AttributeError, ValueError):
         pass
 
-    def fatal(code: str, message: str) -> int:
+    def fatal(code: str, text: str) -> int:
         stops_quiet()
-        log.error(message)
+        log.error(text)
         try:
-            out.write(json.dumps({"type": "error", "id": None, "code": code, "message": message}) + "\n")
+            out.write(json.dumps(message(Error(None, code, text))) + "\n")
             out.flush()
         except (OSError, ValueError):
             pass

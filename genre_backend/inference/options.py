@@ -1,12 +1,15 @@
 """The mesh options: one frozen record, and the steps after the networks that they steer.
 
-:class:`MeshOptions` is the one place a mesh option is written down.  Each
-field carries an :class:`Option` in its metadata: its kind (float, int, bool
-or a choice), its range, where its default comes from (a field of the weights'
-``GeometryConfig``, else a plain default), a label and one line of help.
-From it come
+:class:`MeshOptions` holds every mesh option.  Its fields are made from the
+fields that carry an :class:`~genre_backend.protocol.Option` in their
+metadata: first those of the weights' ``GeometryConfig``
+(``genre_backend/config.py``: the settings the weights store and choose,
+``threshold`` being ``default_threshold``), then :class:`_OwnOptions`' (the
+options with a plain default).  The metadata says the option's kind (float,
+int, bool or a choice), its range, where its default comes from, a label and
+one line of help.  From it come
 
-* the checks (:meth:`Option.check`: one message style, ``WHERE: expected
+* the checks (:meth:`Option.check`, the one check: one message style, ``WHERE: expected
   WHAT, got VALUE``; ``WHERE`` is ``--flag`` for the CLI, ``option 'name'``
   for ``genre serve`` and the bare name in Python);
 * the merge of overrides onto the weights' defaults (:meth:`MeshOptions.over`,
@@ -23,8 +26,9 @@ From it come
   sealing; :meth:`MeshOptions.mesh`: hole closing, marching cubes, clean-up,
   the sheets onto the surface; :meth:`MeshOptions.snap_mesh`: a fitted regular shape).
 
-A new option is one field here (plus its tests): the CLI flag, the server's
-key, the schema, the add-on's row and the fuzz test's values follow from it.
+A new option is one field (``GeometryConfig``'s for a setting the weights store, :class:`_OwnOptions`' otherwise)
+plus its tests and its use: the CLI flag, the server's key and result, the schema, the add-on's row, install's
+flag, the fuzz test's values and ``docs/protocol.md``'s table (:func:`table`) follow from it.
 Mask inputs (``mask``, a box, strokes) and output paths are not mesh options
 and stay out of the record.
 """
@@ -32,15 +36,15 @@ and stay out of the record.
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
-from ..validation import MAX_HOLE_CLOSING
+from ..config import SETTINGS, check_setting
+from ..protocol import Option, OptionError
+from ..protocol import shown as _shown
 from .net_outputs import View
 
 __all__ = [
@@ -58,125 +62,14 @@ __all__ = [
 ]
 
 
-class OptionError(ValueError):
-    """A mesh option's value outside its kind or range; ``str()`` is the one-line message."""
-
-    def __init__(self, message: str, name: str):
-        super().__init__(message)
-        self.name = name
-
-
-def _shown(value: Any, limit: int = 300) -> str:
-    try:
-        text = repr(value)
-    except ValueError:  # an integer past Python's 4,300-digit conversion limit
-        text = "<an int of more than 4,300 digits>"
-    return text if len(text) <= limit else f"{text[:limit]}… ({len(text):,} characters)"
-
-
-@dataclass(frozen=True)
-class Option:
-    """What one mesh option may hold and how it is shown.
-
-    ``kind``: ``"float"``, ``"int"``, ``"bool"`` or ``"choice"`` (one of ``choices``).  ``lo``/``hi``: the range of a
-    number, open at an end where ``lo_open``/``hi_open``.  ``weights``: the ``GeometryConfig`` field that gives the
-    default (the weights' own setting), else ``default`` is used.  ``distance_only``: a true or non-zero value needs
-    weights of the distance target.  ``label``: a short title; ``help``: one line.  ``flag``: the CLI spelling.
-    """
-
-    kind: str
-    label: str
-    help: str
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-    hi_open: bool = False
-    choices: tuple[str, ...] = ()
-    weights: str | None = None
-    default: Any = None
-    distance_only: bool = False
-    unit: str = ""
-    metavar: str = "X"
-    name: str = ""  # filled in from the field's name
-
-    @property
-    def flag(self) -> str:
-        return "--" + self.name.replace("_", "-")
-
-    def expected(self) -> str:
-        """What a value must be, as the error messages say it (``a number in (0, 1)``)."""
-        unit = f" ({self.unit})" if self.unit else ""
-        if self.kind in ("float", "int"):
-            span = f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
-            return f"{'a number' if self.kind == 'float' else 'an integer'} in {span}{unit}"
-        if self.kind == "bool":
-            return "true or false"
-        return "one of " + ", ".join(repr(c) for c in self.choices)
-
-    def check(self, value: Any, where: str | None = None, show: Callable[[Any], str] = _shown) -> Any:
-        """``value`` as the option holds it (an int made float for a float option); :class:`OptionError` otherwise.
-
-        ``where`` names the value in the message (default: the option's name); ``show`` quotes the value.
-        """
-        ok = True
-        if self.kind == "bool":
-            ok = isinstance(value, bool)
-        elif self.kind == "choice":
-            ok = isinstance(value, str) and value in self.choices
-        else:
-            kind = numbers.Real if self.kind == "float" else numbers.Integral
-            # compared as it is: float() of a 400-digit integer raises OverflowError
-            ok = (not isinstance(value, bool) and isinstance(value, kind) and not (isinstance(value, float) and not math.isfinite(value))
-                  and (self.lo < value if self.lo_open else self.lo <= value) and (value < self.hi if self.hi_open else value <= self.hi))
-            if ok:
-                value = float(value) if self.kind == "float" else int(value)
-        if not ok:
-            raise OptionError(f"{where or self.name}: expected {self.expected()}, got {show(value)}", self.name)
-        return value
-
-    def describe(self) -> dict[str, Any]:
-        """The option's entry in the ``ready`` schema (without its default)."""
-        return {"name": self.name, "type": self.kind, "min": self.lo, "max": self.hi, "min_open": self.lo_open,
-                "max_open": self.hi_open, "choices": list(self.choices) or None, "label": self.label, "help": self.help,
-                "weights": self.weights}
-
-
 def _option(**spec) -> Any:
     return field(default=None, metadata={"option": Option(**spec)})
 
 
 @dataclass(frozen=True)
-class MeshOptions:
-    """Every mesh option of one reconstruction; ``None``: the weights' own setting (or the option's default).
+class _OwnOptions:
+    """The options that do not follow the weights (their defaults are their own)."""
 
-    Constructing one checks every value given (:class:`OptionError`).  :meth:`resolved` fills the ``None`` fields from
-    the weights' ``GeometryConfig``; the steps (:meth:`shape_grid`, :meth:`mesh`, :meth:`snap_mesh`) take a resolved one.
-    """
-
-    threshold: float | None = _option(
-        kind="float", lo=0.0, hi=1.0, lo_open=True, hi_open=True, weights="default_threshold", metavar="T",
-        label="Threshold", help="isosurface level of the voxel grid: lower gives a fuller shape")
-    hole_closing: int | None = _option(
-        kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", weights="hole_closing", metavar="K", label="Seal Holes",
-        help="seal holes in the mesh up to about twice this many voxels across (0: none; more also fills narrow gaps "
-             "between parts)")
-    silhouette_carve: bool | None = _option(
-        kind="bool", weights="silhouette_carve", label="Trim to Outline",
-        help="cut away what would stick out past the object's outline (the mask) before the mesh is made")
-    visible_fusion: bool | None = _option(
-        kind="bool", weights="visible_fusion", distance_only=True, label="Fill Visible Holes",
-        help="fill the holes the model leaves in the side the photo shows with the estimated depth's surface")
-    pit_sealing: int | None = _option(
-        kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", weights="pit_sealing", distance_only=True, metavar="K", label="Seal Pits",
-        help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
-             "surface around them (0: none)")
-    primitive_snap: float | None = _option(
-        kind="float", lo=0.0, hi=1.0, hi_open=True, weights="primitive_snap", metavar="TOL", label="Snap Shapes",
-        help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette matches the mask "
-             "and it stays on the mesh within this tolerance (0: never)")
-    test_time_mirror: bool | None = _option(
-        kind="bool", weights="test_time_mirror", label="Mirror Average",
-        help="also run the photo's mirror image and average the two (about twice the networks' time)")
     all_parts: bool | None = _option(
         kind="bool", default=False, label="Keep All Parts",
         help="keep every separate piece of the mesh (off: pieces smaller than Smallest Part are dropped)")
@@ -194,6 +87,28 @@ class MeshOptions:
     up: str | None = _option(
         kind="choice", choices=("y", "z"), label="Up Axis",
         help="the file's up axis: z (default for ply: Blender's axes) or y (the view frame; always so for obj and glb)")
+
+
+_TYPES = {"float": "float | None", "int": "int | None", "bool": "bool | None", "choice": "str | None"}
+
+
+def _fields() -> list[tuple[str, str, Any]]:
+    """The record's fields: the weights' settings (``GeometryConfig``'s option fields), then the options of its own."""
+    out = [(spec.name, _TYPES[spec.kind], field(default=None, metadata={"option": spec})) for spec in SETTINGS]
+    for f in dataclasses.fields(_OwnOptions):
+        spec = dataclasses.replace(f.metadata["option"], name=f.name)
+        out.append((f.name, _TYPES[spec.kind], field(default=None, metadata={"option": spec})))
+    return out
+
+
+class _Record:
+    """Every mesh option of one reconstruction; ``None``: the weights' own setting (or the option's default).
+
+    Its fields are the option fields of the weights' ``GeometryConfig`` (``threshold`` is ``default_threshold``)
+    followed by :class:`_OwnOptions`'.  Constructing one checks every value given (:class:`OptionError`).
+    :meth:`resolved` fills the ``None`` fields from the weights' ``GeometryConfig``; the steps (:meth:`shape_grid`,
+    :meth:`mesh`, :meth:`snap_mesh`) take a resolved one.
+    """
 
     def __post_init__(self):
         for spec in OPTIONS:
@@ -227,10 +142,7 @@ class MeshOptions:
             value = getattr(self, spec.name)
             if value is None:
                 value = getattr(geometry, spec.weights) if spec.weights else spec.default
-            if spec.distance_only and value and geometry.target != "distance":
-                raise OptionError(f"{spec.name}: these weights predict the {geometry.target!r} target; only distance grids "
-                                  f"take it", spec.name)
-            filled[spec.name] = value
+            filled[spec.name] = value if value is None else check_setting(spec, value, geometry.target, spec.name)
         return MeshOptions(**filled)
 
     @property
@@ -243,7 +155,7 @@ class MeshOptions:
         """The probability grid (N, N, N) float32 on the CPU, steered by the resolved options before a mesh is made.
 
         In order: capped by the mask's outline ramp (``silhouette_carve``), the holes in the visible face filled from
-        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (``pit_sealing``); the
+        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*); the
         last two at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`.net_outputs.View`).
         """
         from ..geometry.visible_front import fuse_visible_surface, seal_pits
@@ -253,8 +165,9 @@ class MeshOptions:
             prob = torch.minimum(prob, silhouette_ramp(view.mask[None].cpu(), view.camera, prob.shape[-1])[0, 0])
         if self.visible_fusion:
             prob = fuse_visible_surface(prob, view.depth, view.camera, geometry, self.threshold)
-        if self.pit_sealing:
-            prob = seal_pits(prob, view.mask.cpu().bool(), view.camera, geometry, self.threshold, self.pit_sealing)
+        pits = self.pit_sealing
+        if pits:
+            prob = seal_pits(prob, view.mask.cpu().bool(), view.camera, geometry, self.threshold, pits)
         return prob
 
     def mesh(self, prob: torch.Tensor, geometry, clean: bool = True):
@@ -277,7 +190,9 @@ class MeshOptions:
         return v, f, None
 
 
-OPTIONS: tuple[Option, ...] = tuple(dataclasses.replace(f.metadata["option"], name=f.name) for f in dataclasses.fields(MeshOptions))
+MeshOptions = dataclasses.make_dataclass("MeshOptions", _fields(), bases=(_Record,), frozen=True,
+                                        namespace={"__doc__": _Record.__doc__, "__module__": __name__})
+OPTIONS: tuple[Option, ...] = tuple(f.metadata["option"] for f in dataclasses.fields(MeshOptions))
 BY_NAME: dict[str, Option] = {o.name: o for o in OPTIONS}
 
 # The named sets behind the add-on's Quality choice (and `quality` in a request, `--quality`): laid under the options
@@ -366,7 +281,7 @@ def add_arguments(parser) -> None:
 
 def from_arguments(args) -> MeshOptions:
     """The record of parsed :func:`add_arguments` flags (the quality's set under them); :class:`OptionError` names the
-    flag (``--hole-closing: expected an integer in [0, 8] (voxels), got 9``)."""
+    flag (``--pit-sealing: expected an integer in [0, 8] (voxels), got 9``)."""
     given = MeshOptions.from_mapping({spec.name: getattr(args, spec.name) for spec in OPTIONS}, where=lambda o: o.flag,
                                      show=lambda v: f"{v:g}" if isinstance(v, float) else _shown(v))
     return given.over(QUALITIES[args.quality or DEFAULT_QUALITY])
@@ -387,3 +302,38 @@ def parse_request_options(options: dict[str, Any], show: Callable[[Any], str], e
     given = MeshOptions.from_mapping({k: v for k, v in options.items() if k in BY_NAME}, where=lambda o: f"option '{o.name}'",
                                      show=show)
     return given.over(base)
+
+
+# ---- the options table of docs/protocol.md ---------------------------------------------------------------------------
+TABLE_BEGIN, TABLE_END = "<!-- options table: generated from MeshOptions -->", "<!-- end of the options table -->"
+
+
+def table() -> str:
+    """The record as ``docs/protocol.md``'s table of options: one row per option, in the record's order."""
+    rows = ["| option | value | default | what it does |", "| --- | --- | --- | --- |"]
+    for spec in OPTIONS:
+        default = f"the weights' `geometry.{spec.weights}`" if spec.weights else (
+            "from the output" if spec.default is None else f"`{str(spec.default).lower()}`")
+        if spec.distance_only:
+            default += "; other than 0 or false: weights of the `distance` target only"
+        rows.append(f"| `{spec.name}` | {spec.expected()} | {default} | {spec.label}: {spec.help} |")
+    return "\n".join(rows) + "\n"
+
+
+def write_table(path) -> bool:
+    """Put :func:`table` between the markers of ``path`` (``docs/protocol.md``); whether the file changed."""
+    from pathlib import Path
+
+    text = Path(path).read_text(encoding="utf-8")
+    head, _, rest = text.partition(TABLE_BEGIN + "\n")
+    _, _, tail = rest.partition(TABLE_END)
+    new = f"{head}{TABLE_BEGIN}\n{table()}{TABLE_END}{tail}"
+    if new != text:
+        Path(path).write_text(new, encoding="utf-8")
+    return new != text
+
+
+if __name__ == "__main__":  # python -m genre_backend.inference.options docs/protocol.md: the table written again
+    import sys
+
+    print("rewritten" if write_table(sys.argv[1]) else "up to date")

@@ -67,8 +67,7 @@ class Reconstruction:
     GrabCut's colours barely separate it, or it runs along the photo's edge; :func:`~genre_backend.photo.mask_doubt.salient_doubt`:
     the salient net's mask; or the net could not be loaded and GrabCut's mask was used), else None.
     ``options``: the mesh options as the mesh was made (:class:`.options.MeshOptions`, resolved against the weights:
-    no field ``None``); ``threshold``, ``hole_closing``, ``silhouette_carve``, ``visible_fusion``, ``pit_sealing``,
-    ``primitive_snap`` and ``test_time_mirror`` read them.  ``primitive``: the family of the fitted shape that replaced the
+    no field ``None``).  ``primitive``: the family of the fitted shape that replaced the
     mesh (``"box"``, ``"cylinder"``, ``"cone"``, ``"torus"``, ``"ellipsoid"``), else None.
     ``guidance``: the mask inputs it was run with (:class:`genre_backend.photo.guidance.MaskGuidance`).
     ``timings``: stage → seconds.  ``crop_box``: (x0, y0, x1, y1) in the
@@ -106,14 +105,6 @@ class Reconstruction:
     mask_warning: str | None = None
     primitive: str | None = None
     _texture: PhotoTexture | None = field(default=None, repr=False)
-
-    threshold = property(lambda self: self.options.threshold, doc="the isosurface level the mesh was made at")
-    hole_closing = property(lambda self: self.options.hole_closing, doc="the hole sealing (voxels) the mesh was made with")
-    silhouette_carve = property(lambda self: self.options.silhouette_carve, doc="whether the grid was carved to the outline")
-    visible_fusion = property(lambda self: self.options.visible_fusion, doc="whether the visible face's holes were filled")
-    pit_sealing = property(lambda self: self.options.pit_sealing, doc="the widest pit sealed (voxels; 0: none)")
-    primitive_snap = property(lambda self: self.options.primitive_snap, doc="the regular-shape tolerance (0: off)")
-    test_time_mirror = property(lambda self: self.options.test_time_mirror, doc="whether the mirror image was averaged in")
 
     @property
     def inputs(self) -> tuple[Path, ...]:

@@ -106,7 +106,7 @@ def preview_image(result, samples: int = 16, textured: bool = False) -> np.ndarr
         f"{result.image.name}",
         f"{len(result.vertices):,} vertices" if len(result.faces) else "empty mesh:",
         f"{len(result.faces):,} faces" if len(result.faces) else "lower --threshold",
-        f"threshold {result.threshold:.2f}",
+        f"threshold {result.options.threshold:.2f}",
         f"preset {result.config.preset}",
         f"reconstruction {total:.2f} s",
         "mesh views: one scale, framed",

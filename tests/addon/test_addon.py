@@ -10,7 +10,6 @@ project's own training code on a tiny rendered data set.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -25,11 +24,11 @@ RESULT_TAG = "ADDON-RESULT "
 
 
 def _load(name: str, path: Path):
-    """Import one bpy-free add-on module by file (the package's __init__ needs bpy)."""
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
+    """Import one bpy-free add-on module by file (its package's __init__ needs bpy): ``support.addon.load_addon_module``."""
+    from support.addon import load_addon_module
+
+    module = load_addon_module(path.stem)
     sys.modules[name] = module
-    spec.loader.exec_module(module)
     return module
 
 
@@ -295,7 +294,7 @@ def scenario_reconstruct(args: dict) -> dict:
     # Check backend brings the rows: one per option of the backend's record but the add-on's own
     assert sorted(bpy.ops.genre.check_backend()) == ["FINISHED"]
     early["rows"] = [(r.name, r.kind, r.label, bool(r.help), r.override, r.weights_value) for r in settings.options]
-    early["ready_options"] = ops.manager.client.ready["options"]
+    early["ready_options"] = ops.manager.client.ready.options
     values = {"threshold": 0.2, "hole_closing": 7, "pit_sealing": 5, "silhouette_carve": True, "primitive_snap": 0.3,
               "test_time_mirror": True, "visible_fusion": True, "all_parts": True}
     for row in settings.options:  # values that are not the weights': an unticked row must come back to the weights' own
@@ -313,7 +312,7 @@ def scenario_reconstruct(args: dict) -> dict:
     out["fields_after"] = {r.name: _row_value(r) for r in settings.options}
     out["payload"] = job.request.payload
     out["outcome"] = list(outcome)
-    out["result_event"] = job.request.result
+    out["result_event"] = addon.protocol.message(job.request.result)  # (the event as its line)
     out["stages"] = sorted({s[1] for s in states})
     out["progress_seen"] = sorted({s[2] for s in states})
     out["added"] = snap.added()
@@ -340,7 +339,7 @@ def scenario_reconstruct(args: dict) -> dict:
     _override(settings, "hole_closing", 2)
     job, outcome, _ = _drive(ops, settings, prefs, status, scene)
     out["overridden"] = {"outcome": list(outcome), "payload": job.request.payload["options"],
-                         "used": {k: job.request.result.get(k) for k in ("test_time_mirror", "hole_closing")}}
+                         "used": {k: job.request.result.settings.get(k) for k in ("test_time_mirror", "hole_closing")}}
     _override(settings, "hole_closing", 99)  # clamped to the schema's range
     out["clamped"] = settings.options["hole_closing"].int_value
     for row in settings.options:
@@ -363,7 +362,7 @@ def scenario_reconstruct(args: dict) -> dict:
         Image.new("L", im.size, 255).save(full)
     settings.mask_path = full
     job, outcome, _ = _drive(ops, settings, prefs, status, scene)
-    out["doubtful"] = {"outcome": list(outcome), "mask_warning": status.mask_warning, "event": job.request.result.get("mask_warning")}
+    out["doubtful"] = {"outcome": list(outcome), "mask_warning": status.mask_warning, "event": job.request.result.mask_warning}
     settings.mask_path = ""
     # a photo stored turned, with the EXIF tag that says so (as phones save them): Blender shows the stored
     # pixels, the backend reads it upright, and the matching camera gets the photo as the mesh was made from it
@@ -386,7 +385,7 @@ def scenario_reconstruct(args: dict) -> dict:
     px = np.empty(bg.size[0] * bg.size[1] * 4, np.float32)
     bg.pixels.foreach_get(px)
     want = np.asarray(upright, np.float32)[::-1] / 255.0  # Blender's rows: bottom first
-    out["exif"] = {"outcome": list(outcome), "camera_event": job.request.result["camera"], "background": bg.name,
+    out["exif"] = {"outcome": list(outcome), "camera_event": job.request.result.camera, "background": bg.name,
                    "size": list(bg.size), "packed": bool(bg.packed_file), "upright_size": list(upright.size),
                    "max_pixel_error": float(np.abs(px.reshape(want.shape) - want).max()),
                    "resolution": [scene.render.resolution_x, scene.render.resolution_y],
@@ -816,7 +815,7 @@ def test_rows_come_from_the_backends_schema():
     assert sch.check_value(by["threshold"], 0.5) is None and sch.check_value(by["primitive_snap"], 0.0) is None
     assert sch.check_value(by["threshold"], 1.0) == "Threshold: expected a number in (0, 1), got 1"
     assert sch.check_value(by["primitive_snap"], 1.0) == "Snap Shapes: expected a number in [0, 1), got 1"
-    assert sch.check_value(by["hole_closing"], 9) == "Seal Holes: expected an integer in [0, 8], got 9"
+    assert sch.check_value(by["pit_sealing"], 9) == "Seal Pits: expected an integer in [0, 8], got 9"
     assert sch.check_value(by["test_time_mirror"], 1) == "Mirror Average: expected on or off"
     assert [sch.shown(by["threshold"], 0.45), sch.shown(by["test_time_mirror"], True), sch.shown(by["pit_sealing"], None)] == [
         "0.45", "On", "?"]

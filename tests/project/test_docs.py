@@ -190,3 +190,13 @@ def test_the_checks_fail_on_what_is_gone():
     assert not module_exists("genre_backend.inference.nowhere") and module_exists("training.data.corpus.data_dir")
     assert list(broken_links("README.md", "[x](docs/nowhere.md) [y](docs/protocol.md#no-such-heading)")) == [
         "README.md: link to docs/nowhere.md: no such file", "README.md: link to docs/protocol.md#no-such-heading: no such heading"]
+
+
+def test_the_options_table_is_the_records():
+    """docs/protocol.md's table of options is generated from MeshOptions: a stale one fails here."""
+    from genre_backend.inference.options import TABLE_BEGIN, TABLE_END, table
+
+    text = (ROOT / "docs" / "protocol.md").read_text(encoding="utf-8")
+    assert TABLE_BEGIN in text and TABLE_END in text
+    shown = text.split(TABLE_BEGIN + "\n", 1)[1].split(TABLE_END, 1)[0]
+    assert shown == table(), "docs/protocol.md's options table is stale: python -m genre_backend.inference.options docs/protocol.md"

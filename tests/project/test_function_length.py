@@ -18,7 +18,7 @@ LIMIT = 80
 BACKEND_ALLOWED: dict[str, int] = {}  # (empty since issue 41: no function in either package is over the limit)
 MODULE_LIMIT = 500
 # genre_backend's modules over MODULE_LIMIT lines today: path → its line count now (only shrinking, as above).
-MODULES_ALLOWED: dict[str, int] = {"genre_backend/frontends/server.py": 536}
+MODULES_ALLOWED: dict[str, int] = {}  # (empty since issue 50)
 
 
 def long_functions(source: str, limit: int = LIMIT) -> dict[str, int]:

@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 BACKEND_LAYERS = {
     "genre_backend.config": 0, "genre_backend.validation": 0, "genre_backend.atomic": 0, "genre_backend.weights_file": 0,
-    "genre_backend.process": 0,
+    "genre_backend.process": 0, "genre_backend.protocol": 0, "genre_backend.arguments": 0,
     "genre_backend.frame": 1, "genre_backend.geometry": 2, "genre_backend.nets": 3,
     "genre_backend.photo": 4, "genre_backend.output": 5, "genre_backend.inference": 6, "genre_backend.frontends": 7,
     "genre_backend.cli": 8,
@@ -198,15 +198,9 @@ def test_a_reconstruct_run_imports_none_of_the_modules_it_does_not_use(tmp_path)
 
 
 def test_addon_stage_labels_cover_the_backend_stages():
-    import importlib.util
+    from support.addon import load_addon_module
 
-    spec = importlib.util.spec_from_file_location("genre_addon_backend_labels", REPO / "blender_addon" / "backend.py")
-    backend = importlib.util.module_from_spec(spec)  # the add-on's process manager, loaded without bpy
-    sys.modules[spec.name] = backend  # (its dataclasses look their module up there)
-    try:
-        spec.loader.exec_module(backend)
-    finally:
-        del sys.modules[spec.name]
+    backend = load_addon_module("backend")  # the add-on's process manager, loaded without bpy
     from genre_backend.inference.reconstruct import STAGES
 
     STAGE_LABELS = backend.STAGE_LABELS
@@ -226,3 +220,9 @@ def test_addon_keeps_no_copy_of_the_backends_options():
     assert "options" in declared and "quality" in declared
     assert declared & {o.name for o in OPTIONS} == set()
     assert declared & {"use_" + o.name for o in OPTIONS} == set()
+
+
+def test_the_addons_protocol_is_the_backends():
+    """blender_addon/protocol.py is an exact copy of genre_backend/protocol.py (python build_addon.py --schema)."""
+    copy, source = REPO / "blender_addon" / "protocol.py", REPO / "genre_backend" / "protocol.py"
+    assert copy.read_bytes() == source.read_bytes(), "blender_addon/protocol.py is stale: python build_addon.py --schema"

@@ -50,3 +50,17 @@ def make_photo(root: Path) -> Path:
         mask = np.load(root / "views" / "box" / "view_000.npz")["mask"] > 0
         Image.fromarray(np.dstack([rgb, mask.astype(np.uint8) * 255]), "RGBA").save(photo)
     return photo
+
+
+def load_addon_module(stem: str):
+    """A bpy-free module of blender_addon/ (``backend``, ``schema``, ``geometry``) imported by file, inside a stand-in
+    for its package (whose ``__init__`` needs bpy), so that its relative imports (``.protocol``) resolve."""
+    import importlib
+    import types
+
+    package = "genre_addon_bpy_free"
+    if package not in sys.modules:
+        stand_in = types.ModuleType(package)
+        stand_in.__path__ = [str(REPO / "blender_addon")]
+        sys.modules[package] = stand_in
+    return importlib.import_module(f"{package}.{stem}")

@@ -19,6 +19,7 @@ import sys
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
+from genre_backend.arguments import add_jobs, add_out
 
 __all__ = ["main", "format_stats", "format_credits"]
 
@@ -157,16 +158,16 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                    help="a folder of meshes, class = sub-folder name (repeatable)")
     p.add_argument("--folder-up", default="+z", help="up axis of --folder meshes (default +z)")
     p.add_argument("--folder-front", default="-y", help="front axis of --folder meshes (default -y)")
-    p.add_argument("--jobs", type=int, default=max(1, min(8, (os.cpu_count() or 1))),
+    add_jobs(p, default=max(1, min(8, (os.cpu_count() or 1))),
                    help="worker processes (default: CPUs, at most 8)")
 
     sub.add_parser("stats", parents=[common], help="counts per class, split, source, licence; skips; rules")
     p = sub.add_parser("credits", parents=[common], help="Markdown list of the shapes of a split with creator and licence")
     p.add_argument("--split", default="train", help="split or group (default: train)")
-    p.add_argument("--out", default=None, help="write here (default: standard output)")
+    add_out(p, help="write here (default: standard output)")
     p = sub.add_parser("flat-test", parents=[common], help="flat shapes lying on the ground, for genre eval's flat-from-above group "
                                          "(training/data/sources/thin.py; in no training set): OUT/manifest.json + meshes")
-    p.add_argument("--out", required=True, help="output folder")
+    add_out(p, required=True, help="output folder")
     p.add_argument("--per-kind", type=int, default=6, help="shapes of each flat kind (plate, card, book, leaf; default 6)")
     sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/cli.py)")
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")

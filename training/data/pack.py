@@ -47,6 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from genre_backend.arguments import add_out
 
 __all__ = ["PACK_FORMAT", "DEVICE_CARRY_MIB", "TREE_BUDGET_MIB", "PACK_BUDGET_MIB", "WHEELS_BUDGET_MIB", "TRAIN_SPLITS", "TEST_SPLITS", "Pack", "pack_bytes", "build_pack", "read_pack",
            "quantise", "dequantise", "main"]
@@ -250,7 +251,7 @@ def main(argv: list[str] | None = None, prog: str = "genre data pack") -> int:
     parser = argparse.ArgumentParser(prog=prog, description="Write a training pack (the training shapes' meshes, "
                                      "compressed) for a GPU burst (training/learn/burst.py).")
     parser.add_argument("--shapes", required=True, help="the corpus manifest ($GENRE_HOME/corpus/manifest.json)")
-    parser.add_argument("--out", required=True, help="the pack folder (e.g. .pack in the checkout, which git ignores)")
+    add_out(parser, required=True, help="the pack folder (e.g. .pack in the checkout, which git ignores)")
     parser.add_argument("--split", default="product-train", choices=TRAIN_SPLITS, help="the training split (default product-train)")
     parser.add_argument("--max-faces", type=int, default=2000, help="decimate meshes above this many triangles (default 2000)")
     parser.add_argument("--limit", type=int, default=None, help="only the first K shapes (tests, smoke runs)")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from genre_backend.config import PRESETS, get_preset
+from genre_backend.arguments import add_out, add_seed
 
 from .dataset import ViewDataset
 from .views import find_views, recorded_preset
@@ -66,11 +67,11 @@ def contact_sheet(views_root: Path, out_png: Path, preset: str | None = None, co
 def main(argv: list[str] | None = None, prog: str = "genre data show") -> int:
     parser = argparse.ArgumentParser(prog=prog, description="Write a contact sheet PNG of rendered samples and their targets.")
     parser.add_argument("--views", type=Path, required=True, help="folder written by 'genre data render' (+ targets)")
-    parser.add_argument("--out", type=Path, default=Path("contact_sheet.png"))
+    add_out(parser, type=Path, default=Path("contact_sheet.png"))
     parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
                         help="check against the preset recorded by 'genre data render' (default: the recorded one)")
     parser.add_argument("--count", type=int, default=6)
-    parser.add_argument("--seed", type=int, default=0)
+    add_seed(parser)
     args = parser.parse_args(argv)
     try:
         shown = contact_sheet(args.views, args.out, args.preset, args.count, args.seed)

@@ -21,6 +21,7 @@ import torch
 from genre_backend.atomic import atomic_write_text
 from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, resolve_weights, weights_extra
 from genre_backend.nets.model import WeightsError, load_model
+from genre_backend.arguments import add_device, add_jobs, add_out, add_weights
 
 from .protocol import GROUPS, ROWS, find_eval_views
 from .rows import Models
@@ -70,20 +71,20 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="Evaluate GenRe, its oracles and baselines over seen-test and unseen views (the paper's Table 1).")
     p.add_argument("--data", nargs="+", required=True, help="folders of rendered eval views with targets ('genre data render --split test|unseen' + 'genre data targets')")
     p.add_argument("--run", help="training run folder (weights RUN/joint|refine/best.safetensors, RUN/completion/…, RUN/onestep/…)")
-    p.add_argument("--weights", help="GenRe weights: a file, or 'protocol' (the shipped research weights, seen classes only: "
+    add_weights(p, help="GenRe weights: a file, or 'protocol' (the shipped research weights, seen classes only: "
                                      "Table 1's) (default: RUN/joint/best.safetensors, else RUN/refine/best.safetensors)")
     p.add_argument("--completion", help="3D Completion baseline weights (default RUN/completion/best.safetensors)")
     p.add_argument("--onestep", help="GenRe-1step weights (default RUN/onestep/best.safetensors)")
     p.add_argument("--train-views", nargs="*", default=[], help="training views (nearest-shape baseline and class dissimilarity)")
     p.add_argument("--train-shapes", help="file of training shape ids (default: every shape in --train-views)")
     p.add_argument("--manifest", help="manifest JSON for classes and splits (default $GENRE_HOME/corpus/manifest.json if present)")
-    p.add_argument("--out", help="results folder (default $GENRE_HOME/results/<run name>; results/ in the repository holds the committed ones)")
+    add_out(p, help="results folder (default $GENRE_HOME/results/<run name>; results/ in the repository holds the committed ones)")
     p.add_argument("--groups", default="test,unseen,unseen-pix3d", help="groups to evaluate: test (seen-test), unseen, unseen-pix3d (Table 1, the default); product-test (the product model's test split); flat-from-above (genre data flat-test's shapes)")
     p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
     p.add_argument("--thresholds-from", help="thresholds.json of a run on seen-test data (when this run has none)")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes scoring views side by side (one thread each; e.g. the number of cores)")
+    add_device(p)
+    add_jobs(p, help="worker processes scoring views side by side (one thread each; e.g. the number of cores)")
     p.add_argument("--gallery", type=int, default=3, help="shapes per group in the Blender gallery (0: none)")
     p.add_argument("--heatmap-class", default="table", help="class of the viewpoint heatmap (Figure 7)")
     p.add_argument("--heatmap-shapes", type=int, default=0, help="shapes rendered on the elevation × azimuth grid (0: no heatmap)")

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from genre_backend.atomic import atomic_write_text
+from genre_backend.arguments import add_out
 
 from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key
@@ -281,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--product", required=True, help="genre eval folder of the product weights")
     c.add_argument("--protocol", required=True, help="genre eval folder of the protocol weights (the same views)")
     c.add_argument("--manifest", required=True)
-    c.add_argument("--out", required=True, help="markdown file to write")
+    add_out(c, required=True, help="markdown file to write")
     c.add_argument("--threshold", type=float, help="score both models at this level (default: each run's thresholds.json)")
     c.add_argument("--title", default="", help="the table's heading (default: 'The product model against the protocol model')")
     c.add_argument("--product-row", default="GenRe",
@@ -291,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("--model", nargs=3, action="append", required=True, metavar=("LABEL", "TRAIN_EVAL", "TEST_EVAL"),
                    help="a model's label and its genre eval folders on product-train and product-test views (repeatable)")
     f.add_argument("--threshold", type=float, help="score at this level (default: each folder's thresholds.json)")
-    f.add_argument("--out", required=True, help="markdown file to write")
+    add_out(f, required=True, help="markdown file to write")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")

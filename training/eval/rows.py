@@ -24,7 +24,7 @@ fill the holes in the visible face from the depth map
 (``geometry.visible_fusion``), every voxel row with a depth map does so with
 its own (GenRe and GenRe-1step GenRe's depth net's, 3D Completion its own, the
 oracles the true depth), after the carving.  When they seal the pits in the visible
-front (``geometry.pit_sealing``), every learned voxel row does so (after any fusion; the truth is left as it is).  When they replace a mesh by a fitted
+front (*Seal Pits*), every learned voxel row does so (after any fusion; the truth is left as it is).  When they replace a mesh by a fitted
 regular shape (``geometry.primitive_snap``), every row with a depth map is fitted
 likewise, to its own depth map and its mesh at the weights' level.  When they average each view with its
 mirror image (``geometry.test_time_mirror``), every learned row does so with its own model

@@ -42,6 +42,7 @@ from genre_backend.validation import check_tensor
 from genre_backend.geometry.voxels import points_to_voxels
 from genre_backend.atomic import atomic_write_bytes
 from genre_backend.weights_file import WeightsError, load_state_strict, read_weights, save_weights, stored_config
+from genre_backend.arguments import add_out, add_weights
 
 from ..data.views import find_views, load_view_meta, surface_points_path, view_paths
 
@@ -256,8 +257,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     share = sub.add_parser("share-depth", help="write the baseline with the depth net of GenRe's weights")
     share.add_argument("--completion", required=True, help="3D Completion weights (RUN/completion/best.safetensors)")
-    share.add_argument("--weights", required=True, help="GenRe weights whose depth net the baseline takes")
-    share.add_argument("--out", required=True, help="the baseline file to write")
+    add_weights(share, required=True, help="GenRe weights whose depth net the baseline takes")
+    add_out(share, required=True, help="the baseline file to write")
     args = parser.parse_args(argv)
     try:
         print(share_depth_net(args.completion, args.weights, args.out))

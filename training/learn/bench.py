@@ -25,6 +25,7 @@ import torch.nn.functional as F
 
 from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model
+from genre_backend.arguments import add_threads, add_weights
 
 __all__ = ["WAYS", "STAGES", "StepTimer", "main"]
 
@@ -121,13 +122,13 @@ def _maker_seconds(pack: str, weights: str, batch: int, steps: int, voxels: bool
 
 def main(argv: list[str] | None = None, prog: str = "genre bench train") -> int:
     ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
-    ap.add_argument("--weights", default="default")
+    add_weights(ap, default="default")
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--steps", type=int, default=3, help="timed steps per round (default 3)")
     ap.add_argument("--rounds", type=int, default=3, help="rounds, each running every way once (default 3)")
     ap.add_argument("--stages", default=",".join(STAGES))
     ap.add_argument("--ways", default=",".join(WAYS))
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: every core)")
+    add_threads(ap, help="torch threads (default: every core)")
     ap.add_argument("--pack", default=None, help="also time the on-the-fly sample maker on this pack")
     ap.add_argument("--pack-shapes", type=int, default=40, help="shapes of the pack the maker times (default 40)")
     args = ap.parse_args(argv)

@@ -56,6 +56,7 @@ from genre_backend.geometry.triangle_distance import near_surface_distance
 from genre_backend.geometry.raster import mesh_depth
 from genre_backend.geometry.spherical import crop_sph, pad_sph, raycast_triangles
 from genre_backend.nets.model import GenRe, load_model, save_model
+from genre_backend.arguments import add_device, add_out, add_seed
 
 from ..data.pack import Pack, read_pack
 from .losses import sph_loss, voxel_loss
@@ -600,12 +601,12 @@ def main(argv: list[str] | None = None, prog: str = "genre train burst") -> int:
                                      "wall-clock budget, from a training pack (see training/learn/burst.py).")
     parser.add_argument("--pack", help="a training pack folder (genre data pack)")
     parser.add_argument("--init", help="weights to start from (e.g. genre_backend/weights/default.safetensors)")
-    parser.add_argument("--out", help="the folder for the shards, their index, log.csv and loss.png ($OUT/burst)")
+    add_out(parser, help="the folder for the shards, their index, log.csv and loss.png ($OUT/burst)")
     parser.add_argument("--recipe", default="wide", choices=sorted(BURST_RECIPES), help="the burst recipe (default wide)")
     parser.add_argument("--minutes", type=float, default=7.0, help="wall-clock budget, set-up included (default 7)")
     parser.add_argument("--batch-size", type=int, default=None, help="override the recipe's batch")
-    parser.add_argument("--device", default="auto", help="cuda, cpu or auto (default)")
-    parser.add_argument("--seed", type=int, default=0)
+    add_device(parser, default="auto", help="cuda, cpu or auto (default)")
+    add_seed(parser)
     parser.add_argument("--checkpoint-minutes", type=float, default=1.0)
     parser.add_argument("--log-every", type=int, default=20)
     parser.add_argument("--max-steps", type=int, default=None, help="stop after this many steps as well")

@@ -58,6 +58,7 @@ from genre_backend.config import GenreConfig
 from genre_backend.geometry.spherical import mirror_sph
 from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model, save_model
+from genre_backend.arguments import add_device, add_out, add_seed, add_threads
 
 from ..data.pack import read_pack
 from .burst import Speed, ViewMaker, _step_loss, apply_speed, run_command
@@ -327,16 +328,16 @@ def main(argv: list[str] | None = None, prog: str = "genre train session") -> in
     parser = argparse.ArgumentParser(prog=prog, description="Train the inpainting net (and the refiner) from a "
                                      "training pack, resuming, checkpointing every few minutes (training/learn/session.py).")
     parser.add_argument("--pack", default=str(home / "pack"), help="a training pack (genre data pack; default $GENRE_HOME/pack)")
-    parser.add_argument("--out", default=str(home / "runs" / "session"), help="default $GENRE_HOME/runs/session")
+    add_out(parser, default=str(home / "runs" / "session"), help="default $GENRE_HOME/runs/session")
     parser.add_argument("--nets", default="inpaint", choices=NETS, help="what trains (default inpaint)")
     parser.add_argument("--init", default="default", help="weights to start from when OUT/NETS holds no state")
     parser.add_argument("--recipe", default="session", choices=sorted(BURST_RECIPES))
     parser.add_argument("--hours", type=float, default=None, help="stop after this long (default: until stopped)")
     parser.add_argument("--max-steps", type=int, default=None)
     parser.add_argument("--batch-size", type=int, default=None)
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None)
+    add_device(parser, default="auto")
+    add_seed(parser)
+    add_threads(parser)
     parser.add_argument("--checkpoint-minutes", type=float, default=3.0)
     parser.add_argument("--log-every", type=int, default=25)
     parser.add_argument("--shapes", type=int, default=None)

@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from genre_backend.config import PRESETS, GenreConfig
+from genre_backend.arguments import add_out
 
 from .batches import StepBatches
 from .checkpoint import CheckpointMismatch
@@ -81,7 +82,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     parser.add_argument("--data", required=True, nargs="+",
                         help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets'); a folder "
                              "named twice is drawn twice as often (the mix of a run)")
-    parser.add_argument("--out", required=True, help="run folder; this stage writes OUT/STAGE/")
+    add_out(parser, required=True, help="run folder; this stage writes OUT/STAGE/")
     parser.add_argument("--init", help="weights to start from (e.g. OUT/depth/best.safetensors); default: fresh weights of --preset")
     parser.add_argument("--recipe", choices=sorted(RECIPES), default="paper",
                         help="named training recipe (training/learn/recipe.py); the options below override its values")

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from genre_backend.atomic import atomic_write_json
+from genre_backend.arguments import add_out, add_seed, add_threads
 
 from ..data.views import (FAILURES_GLOB, crash_log_path, read_render_attempts, read_render_settings, read_shapes,
                           render_failures_path, view_is_complete, write_render_attempts, write_render_settings)
@@ -82,10 +83,10 @@ def _build_parser(prog: str) -> argparse.ArgumentParser:
         description="Render RGB, planar depth, mask and camera JSON for every shape (Blender on the CPU).",
     )
     p.add_argument("--shapes", required=True, help="a manifest JSON ($GENRE_HOME/corpus/manifest.json) or a folder of meshes")
-    p.add_argument("--out", required=True, help="output folder (one sub-folder per shape)")
+    add_out(p, required=True, help="output folder (one sub-folder per shape)")
     p.add_argument("--views", type=_positive, default=20, help="random views per shape (default 20)")
     p.add_argument("--preset", choices=["default", "paper"], default="default", help="image size preset")
-    p.add_argument("--seed", type=int, default=0, help="seed of views, lighting and backgrounds")
+    add_seed(p, help="seed of views, lighting and backgrounds")
     p.add_argument("--engine", choices=ENGINES, default="cycles",
                    help="render engine (default cycles; recorded in the folder's render_settings.json). Depth, mask "
                         "and camera mean the same for all; eevee and workbench need EGL (libegl1)")
@@ -99,7 +100,7 @@ def _build_parser(prog: str) -> argparse.ArgumentParser:
                    help="only manifest shapes of these classes (e.g. primitive: more views of some shapes)")
     p.add_argument("--samples", type=_positive, default=RenderSettings.samples,
                    help="samples per pixel (Cycles, EEVEE); anti-aliasing samples for Workbench (1: none)")
-    p.add_argument("--threads", type=_positive, default=RenderSettings.threads, help="Cycles CPU threads")
+    add_threads(p, type=_positive, default=RenderSettings.threads, help="Cycles CPU threads")
     p.add_argument("--no-denoise", dest="denoise", action="store_false", help="turn off Cycles' fast OIDN denoiser")
     p.add_argument("--retry-failed", action="store_true", help="try again shapes recorded as failed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -115,7 +115,7 @@ def test_ping_and_version(server, trained):
         ('{"type": "reconstruct", "id": 11, "image": "a.png", "output": "b.obj", "options": {"thresh": 0.4}}', "bad_field", 11),
         ('{"type": "reconstruct", "id": 12, "image": "a.png", "output": "b.obj", "options": {"texture": "yes"}}', "bad_field", 12),
         ('{"type": "reconstruct", "id": 13, "image": "a.png", "output": "b.obj", "options": {"all_parts": 1}}', "bad_field", 13),
-        ('{"type": "reconstruct", "id": 14, "image": "a.png", "output": "b.obj", "options": {"hole_closing": 9}}', "bad_field", 14),
+        ('{"type": "reconstruct", "id": 14, "image": "a.png", "output": "b.obj", "options": {"pit_sealing": 9}}', "bad_field", 14),
         ('{"type": "reconstruct", "id": 15, "image": "a.png", "output": "b.obj", "options": {"hole_closing": 1.5}}', "bad_field", 15),
         ('{"type": "reconstruct", "id": 16, "image": "a.png", "output": "b.obj", "options": {"hole_closing": true}}', "bad_field", 16),
         ('{"type": "reconstruct", "id": 17, "image": "a.png", "output": "b.obj", "options": {"silhouette_carve": 1}}', "bad_field", 17),

@@ -30,7 +30,7 @@ def test_every_field_is_an_option_with_a_label_help_and_a_default_rule():
 
 @pytest.mark.parametrize("name,good,bad", [
     ("threshold", [1e-9, 0.5, 1 - 1e-9], [0, 1, 0.0, 1.0, -0.1, True, "0.5", math.nan, math.inf, 10 ** 400]),
-    ("hole_closing", [0, 8, 3], [-1, 9, 1.5, 2.0, True, "1"]),
+    ("hole_closing", [0, 12, 3], [-1, 13, 1.5, 2.0, True, "1"]),
     ("pit_sealing", [0, 8], [-1, 9, True, "2"]),
     ("primitive_snap", [0, 0.0, 0.5, 0.999], [1, 1.0, -1e-4, True, math.nan, "0.1"]),
     ("silhouette_carve", [True, False], [0, 1, "true", []]),
@@ -51,7 +51,8 @@ def test_each_option_is_checked_once_with_one_message_style(name, good, bad):
 def test_ranges_are_the_records_own():
     assert BY_NAME["primitive_snap"].expected() == "a number in [0, 1)"
     assert BY_NAME["threshold"].expected() == "a number in (0, 1)"
-    assert BY_NAME["hole_closing"].expected() == BY_NAME["pit_sealing"].expected() == "an integer in [0, 8] (voxels)"
+    assert BY_NAME["hole_closing"].expected() == "an integer in [0, 12] (voxels)"
+    assert BY_NAME["pit_sealing"].expected() == "an integer in [0, 8] (voxels)"
 
 
 def test_overrides_merge_onto_the_weights_defaults():
@@ -77,7 +78,7 @@ def test_the_schema_lists_every_option_with_the_weights_defaults():
     by = {e["name"]: e for e in sch["options"]}
     assert by["threshold"]["default"] == 0.45 and by["pit_sealing"]["default"] == 4 and by["test_time_mirror"]["default"] is True
     assert by["format"]["default"] is None and by["format"]["choices"] == ["obj", "ply", "glb"] and by["texture"]["default"] is False
-    assert by["hole_closing"] | {"default": None} == {"name": "hole_closing", "type": "int", "min": 0, "max": 8, "min_open": False,
+    assert by["hole_closing"] | {"default": None} == {"name": "hole_closing", "type": "int", "min": 0, "max": 12, "min_open": False,
                                                        "max_open": False, "choices": None, "default": None,
                                                        "label": BY_NAME["hole_closing"].label,
                                                        "help": BY_NAME["hole_closing"].help, "weights": "hole_closing"}
@@ -101,7 +102,7 @@ def test_the_cli_flags_are_made_from_the_record():
     assert from_arguments(args).given() == {"threshold": 0.3, "test_time_mirror": False, "texture": True, "pit_sealing": 2, "up": "z"}
     assert from_arguments(parser.parse_args(["--quality", "fast"])).given() == {"test_time_mirror": False}
     assert from_arguments(parser.parse_args([])) == MeshOptions()
-    for argv, message in ((["--hole-closing", "9"], "--hole-closing: expected an integer in [0, 8] (voxels), got 9"),
+    for argv, message in ((["--pit-sealing", "9"], "--pit-sealing: expected an integer in [0, 8] (voxels), got 9"),
                           (["--primitive-snap", "1"], "--primitive-snap: expected a number in [0, 1), got 1"),
                           (["--threshold", "nan"], "--threshold: expected a number in (0, 1), got nan")):
         with pytest.raises(OptionError) as exc:

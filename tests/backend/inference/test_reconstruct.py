@@ -317,15 +317,15 @@ def test_cli_preview_shows_the_mesh(trained, photos, tmp_path, capsys):
 
 
 def test_hole_closing_is_the_weights_unless_asked(rec, photos, tmp_path, capsys, trained):
-    assert rec.run(photos["rgba"]).hole_closing == rec.config.geometry.hole_closing == 0
-    assert rec.run(photos["rgba"], hole_closing=3).hole_closing == 3
-    for bad in (9, -1, 1.5, True):
+    assert rec.run(photos["rgba"]).options.hole_closing == rec.config.geometry.hole_closing == 0
+    assert rec.run(photos["rgba"], hole_closing=3).options.hole_closing == 3
+    for bad in (99, -1, 1.5, True):
         with pytest.raises(ValueError, match="hole_closing"):
             rec.run(photos["rgba"], hole_closing=bad)
     code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--hole-closing", 2)
     assert code == 0, err
     with pytest.raises(SystemExit) as exc:
-        _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--hole-closing", 9)
+        _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--hole-closing", 99)
     assert exc.value.code == 2 and "--hole-closing" in capsys.readouterr().err
 
 
@@ -344,7 +344,7 @@ def test_pit_sealing_fills_the_pits_of_the_grids_own_front(photos, tmp_path, cap
     assert rec.config.geometry.pit_sealing == 0  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)
     sealed = rec.run(photos["rgba"], threshold=0.3, pit_sealing=8)
-    assert (plain.pit_sealing, sealed.pit_sealing) == (0, 8)
+    assert (plain.options.pit_sealing, sealed.options.pit_sealing) == (0, 8)
     inter = sealed.intermediates
     assert torch.equal(inter["logits"], plain.intermediates["logits"])  # the nets are untouched
     expected = seal_pits(torch.sigmoid(inter["logits"]), inter["mask"], rec.config.camera, rec.config.geometry, 0.3, 8)
@@ -378,7 +378,7 @@ def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photo
     assert rec.config.geometry.visible_fusion is False  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)
     fused = rec.run(photos["rgba"], threshold=0.3, visible_fusion=True)
-    assert (plain.visible_fusion, fused.visible_fusion) == (False, True)
+    assert (plain.options.visible_fusion, fused.options.visible_fusion) == (False, True)
     inter = fused.intermediates
     assert torch.equal(inter["logits"], plain.intermediates["logits"])  # the nets are untouched
     expected = fuse_visible_surface(torch.sigmoid(inter["logits"]), inter["masked_depth"], rec.config.camera, rec.config.geometry, 0.3)
@@ -404,7 +404,7 @@ def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_p
 
     assert rec.config.geometry.primitive_snap == 0.0  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)
-    assert plain.primitive is None and plain.primitive_snap == 0.0
+    assert plain.primitive is None and plain.options.primitive_snap == 0.0
     snapped = rec.run(photos["rgba"], threshold=0.3, primitive_snap=0.99)  # so loose that the best fit is always taken
     assert snapped.primitive in FAMILIES and snapped.primitive_snap == 0.99
     assert torch.equal(snapped.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
@@ -431,7 +431,7 @@ def test_test_time_mirror_averages_the_photo_with_its_mirror_image(rec, photos, 
     assert rec.config.geometry.test_time_mirror is False  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)
     both = rec.run(photos["rgba"], threshold=0.3, test_time_mirror=True)
-    assert (plain.test_time_mirror, both.test_time_mirror) == (False, True)
+    assert (plain.options.test_time_mirror, both.options.test_time_mirror) == (False, True)
     inter = plain.intermediates
     with torch.no_grad():  # the mirror image of the crop the nets saw, with the mirror image of its mask
         mirrored = rec.model(inter["rgb"].flip(-1)[None], mask=inter["mask"].flip(-1)[None])["logits"]
@@ -453,7 +453,7 @@ def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_p
     assert rec.config.geometry.silhouette_carve is False  # weights stored without the key: off
     plain = rec.run(photos["rgba"], threshold=0.3)
     carved = rec.run(photos["rgba"], threshold=0.3, silhouette_carve=True)
-    assert (plain.silhouette_carve, carved.silhouette_carve) == (False, True)
+    assert (plain.options.silhouette_carve, carved.options.silhouette_carve) == (False, True)
     ramp = silhouette_ramp(carved.intermediates["mask"][None], rec.config.camera, rec.config.geometry.voxel_size)[0, 0]
     inside = ramp > 0
     p0, p1 = plain.intermediates["probability"], carved.intermediates["probability"]

@@ -13,8 +13,6 @@ from __future__ import annotations
 import os
 import stat
 import tempfile
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -126,11 +124,9 @@ def test_the_blender_cache_folder_is_not_a_planted_link(tmp_path, monkeypatch):
 
 
 def _addon_backend():
-    spec = importlib.util.spec_from_file_location("genre_addon_backend_tmp", REPO / "blender_addon" / "backend.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    from support.addon import load_addon_module
+
+    return load_addon_module("backend")
 
 
 def test_the_addons_job_folder_is_not_a_planted_link(tmp_path, monkeypatch):

@@ -427,13 +427,13 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     with pytest.raises(ValueError, match="pit_sealing"):
         install(shell, 0.4, tmp_path / "bad_pits.safetensors", pit_sealing=2)
     # any other geometry setting by name, checked by the config
-    install(src, 0.4, tmp_path / "keep.safetensors", settings={"sph_keep_seen": True})
+    install(src, 0.4, tmp_path / "keep.safetensors", sph_keep_seen=True)
     assert load_model(tmp_path / "keep.safetensors").config.geometry.sph_keep_seen is True
     assert load_model(src).config.geometry.sph_keep_seen is False
     with pytest.raises(ValueError, match="unknown geometry settings"):
-        install(src, 0.4, tmp_path / "bad.safetensors", settings={"no_such": 1})
+        install(src, 0.4, tmp_path / "bad.safetensors", no_such=1)
     with pytest.raises(ValueError, match="sph_keep_seen"):
-        install(src, 0.4, tmp_path / "bad.safetensors", settings={"sph_keep_seen": 3})
+        install(src, 0.4, tmp_path / "bad.safetensors", sph_keep_seen=3)
 
 
 def _extra(path) -> dict:
