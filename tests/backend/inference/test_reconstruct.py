@@ -348,7 +348,7 @@ def test_pit_sealing_fills_the_pits_of_the_grids_own_front(photos, tmp_path, cap
     inter = sealed.intermediates
     assert torch.equal(inter["logits"], plain.intermediates["logits"])  # the nets are untouched
     expected = seal_pits(torch.sigmoid(inter["logits"]), inter["mask"], rec.config.camera, rec.config.geometry, 0.3, 8)
-    expected = torch.from_numpy(fill_enclosed(expected, 0.3, sealed.hole_closing))
+    expected = torch.from_numpy(fill_enclosed(expected, 0.3, sealed.options.hole_closing))
     assert torch.allclose(inter["probability"], expected)
     for bad in (-1, 9, 2.5, True):
         with pytest.raises(ValueError, match="pit_sealing"):
@@ -382,7 +382,7 @@ def test_visible_fusion_fills_the_holes_in_the_visible_face_from_the_depth(photo
     inter = fused.intermediates
     assert torch.equal(inter["logits"], plain.intermediates["logits"])  # the nets are untouched
     expected = fuse_visible_surface(torch.sigmoid(inter["logits"]), inter["masked_depth"], rec.config.camera, rec.config.geometry, 0.3)
-    expected = torch.from_numpy(fill_enclosed(expected, 0.3, fused.hole_closing))
+    expected = torch.from_numpy(fill_enclosed(expected, 0.3, fused.options.hole_closing))
     assert torch.allclose(inter["probability"], expected)
     for bad in (1, "yes"):
         with pytest.raises(ValueError, match="visible_fusion"):
@@ -406,7 +406,7 @@ def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_p
     plain = rec.run(photos["rgba"], threshold=0.3)
     assert plain.primitive is None and plain.options.primitive_snap == 0.0
     snapped = rec.run(photos["rgba"], threshold=0.3, primitive_snap=0.99)  # so loose that the best fit is always taken
-    assert snapped.primitive in FAMILIES and snapped.primitive_snap == 0.99
+    assert snapped.primitive in FAMILIES and snapped.options.primitive_snap == 0.99
     assert torch.equal(snapped.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
     v, f, fit = snap(plain.vertices, plain.faces, plain.intermediates["masked_depth"], rec.config.camera, 0.99)
     assert fit.family == snapped.primitive and np.allclose(v, snapped.vertices) and np.array_equal(f, snapped.faces)
@@ -460,7 +460,7 @@ def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_p
     assert torch.equal(carved.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
     expected = torch.minimum(torch.sigmoid(carved.intermediates["logits"]), ramp)
     if rec.config.geometry.target == "distance":  # then the enclosed voxels are filled, as without the carve
-        expected = torch.from_numpy(fill_enclosed(expected, 0.3, carved.hole_closing))
+        expected = torch.from_numpy(fill_enclosed(expected, 0.3, carved.options.hole_closing))
     assert bool((p1[~inside] == 0).all()) and torch.allclose(p1, expected)
     assert float(p0[~inside].max()) > 0.3  # the tiny refiner spills past the outline, so the carve removes something
     for bad in (1, "yes", 0.5):
