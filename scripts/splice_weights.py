@@ -1,4 +1,4 @@
-"""One weights file from two: the depth net of DEPTH, the inpainting net and refiner of NETS (same geometry and camera).
+"""One weights file from two: the depth net of DEPTH (with its widths), the inpainting net and refiner of NETS (same geometry and camera).
 
 The start of a bank session whose depth net was trained apart (docs/training.md, "Training on the depth net's own
 depth")::
@@ -8,9 +8,10 @@ depth")::
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
-from genre_backend.nets.model import load_model, save_model
+from genre_backend.nets.model import GenRe, load_model, save_model
 
 
 def main(argv: list[str]) -> int:
@@ -22,8 +23,11 @@ def main(argv: list[str]) -> int:
     if a.config.geometry != b.config.geometry or a.config.camera != b.config.camera:
         print("the two files differ in geometry or camera: their nets do not fit together", file=sys.stderr)
         return 1
-    b.depth_net.load_state_dict(a.depth_net.state_dict())
-    save_model(b, out, {"spliced": {"depth_net": depth, "inpaint_net+refiner": nets}})
+    # the depth net's own sizes come with it (a widened depth net: training/learn/widen.py)
+    depth_fields = {f: getattr(a.config.network, f) for f in ("depth_widths", "depth_decoder_blocks", "depth_output_scale")}
+    spliced = GenRe(dataclasses.replace(b.config, network=dataclasses.replace(b.config.network, **depth_fields)))
+    spliced.load_state_dict({**b.state_dict(), **{f"depth_net.{k}": v for k, v in a.depth_net.state_dict().items()}})
+    save_model(spliced, out, {"spliced": {"depth_net": depth, "inpaint_net+refiner": nets}})
     print(f"wrote {out}")
     return 0
 
