@@ -193,7 +193,7 @@ class GeometryConfig:
     hole_closing: int = _setting(
         0, kind="int", lo=0, hi=12, unit="voxels", metavar="K", label="Seal Holes",
         help="seal holes in the mesh up to about twice this many voxels across (0: none; more also fills narrow gaps "
-             "between parts)", chosen="scripts/hole_closing.py on seen-test views")
+             "between parts)", chosen="genre eval --sweep hole_closing=… on seen-test views (its rule in the table)")
     # The one-view visual hull (geometry.voxels.silhouette_ramp): the refiner's output is capped by
     # a ramp that falls from 1 to 0 across the object's outline (one voxel wide, 0.5 on the outline)
     # before the mesh is made, in reconstruction and in evaluation (every learned row alike; never
@@ -218,13 +218,12 @@ class GeometryConfig:
     # (real photos: the apple's and the orange's fronts).  The basins of the grid's own visible front
     # deeper than 2 voxels and at most about twice this many voxels across are filled with the front
     # around them before the mesh is made, in reconstruction and in evaluation (every row with a mask
-    # alike, after any fusion).  0: off.  Chosen by the rule in results/decisions.md
-    # (scripts/visible_fusion.py --pit-sealing; docs/lab/reconstruct-settings.md, "Pits in the side the
-    # photo shows").  Weights stored without the key: 0 (off).
+    # alike, after any fusion).  0: off.  Chosen by the rule in results/decisions.md (genre eval --sweep;
+    # docs/lab/reconstruct-settings.md, "Pits in the side the photo shows").  Weights stored without the key: 0.
     pit_sealing: int = _setting(
         0, kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", distance_only=True, metavar="K", label="Seal Pits",
         help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
-             "surface around them (0: none)", chosen="scripts/visible_fusion.py --pit-sealing (results/decisions.md)")
+             "surface around them (0: none)", chosen="genre eval --sweep on the product test split (results/decisions.md)")
     # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
     # ellipsoid fitted to the mask's outline, the mesh and the depth when its disagreement (1 - the IoU of
     # its silhouette with the mask, or twice the mesh's mean distance to it over its diagonal, whichever

@@ -32,15 +32,13 @@ re-rendering the same views moves it (0.1 %) by an order of magnitude less than
 the differences between weights.  The other groups are reported, never used
 to choose.
 
-``--pit-sealing K[,K...]`` compares, instead of the fusion, the sealing of the
-narrow wells in the grid's own front (``geometry.pit_sealing``,
-:func:`genre_backend.geometry.visible_front.seal_pits`) at each width K; its rule
-(``results/decisions.md``) picks the largest K whose CD rises by at
-most ``CD_TOLERANCE`` on the group given by ``--choose-group``.
+The sealing of the narrow wells in the grid's own front (*Seal Pits*) is compared by ``genre eval --sweep``
+(``docs/lab/reconstruct-settings.md``); its rule (``results/decisions.md``) picks the largest width whose CD rises
+by at most 1 % on the product test split.
 
     .venv/bin/python scripts/visible_fusion.py --weights protocol --views $GENRE_HOME/views/eval --groups test
     .venv/bin/python scripts/visible_fusion.py --weights default --views $GENRE_HOME/views/product_eval \
-        --groups product-test --pit-sealing 2,4 --choose-group all
+        --groups product-test --choose-group all
 """
 
 from __future__ import annotations
@@ -56,7 +54,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from genre_backend.geometry.visible_front import fuse_visible_surface, seal_pits  # noqa: E402
+from genre_backend.geometry.visible_front import fuse_visible_surface  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
 from genre_backend.output.colour import zbuffer  # noqa: E402
@@ -85,14 +83,6 @@ def choose(seen: dict[bool, dict[str, float]]) -> bool:
     return bool(seen[True]["cd"] <= (1.0 + CD_TOLERANCE) * seen[False]["cd"])
 
 
-def choose_width(figures: dict[str, dict[str, float]]) -> int:
-    """The pit-sealing rule: the largest width ``K`` (variants named ``"pits K"``) whose mean CD is at most
-    (1 + CD_TOLERANCE) × that of ``"off"``; 0 (off) when none is."""
-    widths = [int(name.split()[1]) for name in figures if name.startswith("pits ")]
-    ok = [k for k in widths if figures[f"pits {k}"]["cd"] <= (1.0 + CD_TOLERANCE) * figures["off"]["cd"]]
-    return max(ok, default=0)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--weights", default="default", help="'default', 'protocol' or a weights file")
@@ -103,20 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--level", type=float, default=None, help="isosurface level (default: the weights')")
     p.add_argument("--pit-voxels", type=float, default=None, metavar="P",
                    help="also fill pits deeper than P voxels behind the depth map (default: holes only, as the setting does)")
-    p.add_argument("--pit-sealing", default=None, metavar="K[,K...]",
-                   help="compare sealing the pits of the grid's own front at these widths (voxels) instead of the fusion")
     p.add_argument("--choose-group", default="seen-test (chooses)",
                    help="the group whose mean chooses (default: the seen-test views; 'all' for the product test split)")
     p.add_argument("--json", default=None, help="also write the figures here")
     args = p.parse_args(argv)
-    widths = None
-    if args.pit_sealing is not None:
-        try:
-            widths = [int(k) for k in args.pit_sealing.split(",")]
-        except ValueError:
-            p.error(f"--pit-sealing: expected comma-separated ints, got {args.pit_sealing!r}")
-        if not widths or any(not 1 <= k <= 8 for k in widths):
-            p.error(f"--pit-sealing: widths must be in 1-8, got {args.pit_sealing!r}")
     try:
         weights = resolve_weights(args.weights)
     except ValueError as exc:
@@ -131,13 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     if geometry.target != "distance":
         p.error(f"{weights}: the visible surface is fused only into distance-target grids (these weights: {geometry.target})")
     level = geometry.default_threshold if args.level is None else args.level
-    if widths is None:
-        variants = {"off": lambda prob, depth, mask: prob,
-                    "fused": lambda prob, depth, mask: fuse_visible_surface(prob, depth, camera, geometry, level, pit_voxels=args.pit_voxels)}
-    else:
-        variants = {"off": lambda prob, depth, mask: prob}
-        for k in widths:
-            variants[f"pits {k}"] = lambda prob, depth, mask, k=k: seal_pits(prob, mask, camera, geometry, level, k)
+    variants = {"off": lambda prob, depth, mask: prob,
+                "fused": lambda prob, depth, mask: fuse_visible_surface(prob, depth, camera, geometry, level, pit_voxels=args.pit_voxels)}
     truth = Truth()
     figures: dict[str, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     with torch.no_grad():
@@ -163,10 +138,8 @@ def main(argv: list[str] | None = None) -> int:
                     figures[g][name]["under"].append(float(c < COVERED))
             if (i + 1) % 25 == 0:
                 print(f"  {i + 1}/{len(views)} views", file=sys.stderr)
-    result = {"weights": str(weights), "level": level, "views": len(views), "pit_voxels": args.pit_voxels,
-              "pit_sealing": widths, "groups": {}}
-    what = (f"pits sealed at widths {', '.join(map(str, widths))}" if widths is not None else
-            "filled: holes" + (f" and pits deeper than {args.pit_voxels:g} voxels" if args.pit_voxels is not None else " only"))
+    result = {"weights": str(weights), "level": level, "views": len(views), "pit_voxels": args.pit_voxels, "groups": {}}
+    what = "filled: holes" + (f" and pits deeper than {args.pit_voxels:g} voxels" if args.pit_voxels is not None else " only")
     print(f"{len(views)} views of {args.views} ({args.groups}); weights {weights}; level {level:.2f}; "
           f"hole_closing {geometry.hole_closing}; carve {geometry.silhouette_carve}; {what}")
     names = list(variants)
@@ -182,12 +155,8 @@ def main(argv: list[str] | None = None) -> int:
               + " | ".join(f"{100 * per[v]['under']:.0f} %" for v in names) + " |")
     chooser = result["groups"].get(args.choose_group)
     if chooser:
-        if widths is None:
-            chosen = choose({False: chooser["off"], True: chooser["fused"]})
-            print(f"chosen on {args.choose_group} (on when CD rises by <= {100 * CD_TOLERANCE:.0f} %): visible_fusion = {chosen}")
-        else:
-            chosen = choose_width(chooser)
-            print(f"chosen on {args.choose_group} (the widest K whose CD rises by <= {100 * CD_TOLERANCE:.0f} %): pit_sealing = {chosen}")
+        chosen = choose({False: chooser["off"], True: chooser["fused"]})
+        print(f"chosen on {args.choose_group} (on when CD rises by <= {100 * CD_TOLERANCE:.0f} %): visible_fusion = {chosen}")
         result["chosen"] = chosen
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))

@@ -20,14 +20,15 @@ import torch
 
 from genre_backend.atomic import atomic_write_text
 from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, resolve_weights, weights_extra
+from genre_backend.inference.options import BY_NAME, MeshOptions, OptionError
 from genre_backend.nets.model import WeightsError, load_model
 from genre_backend.arguments import add_device, add_jobs, add_out, add_weights
 
 from .protocol import GROUPS, ROWS, find_eval_views
-from .rows import Models
+from .rows import SWEEPABLE, Models
 from .runner import ModelSpec, evaluate_views
 from .statistics import CLOSED_SHARE, aggregate, choose_thresholds
-from .report import flatness_table, format_table, write_csv
+from .report import flatness_table, format_table, sweep_table, write_csv
 
 __all__ = ['HINTS', 'main']
 
@@ -81,6 +82,10 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     add_out(p, help="results folder (default $GENRE_HOME/results/<run name>; results/ in the repository holds the committed ones)")
     p.add_argument("--groups", default="test,unseen,unseen-pix3d", help="groups to evaluate: test (seen-test), unseen, unseen-pix3d (Table 1, the default); product-test (the product model's test split); flat-from-above (genre data flat-test's shapes)")
     p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
+    p.add_argument("--sweep", action="append", default=[], metavar="OPTION=V1,V2",
+                   help=f"score GenRe again with one mesh option at each value (rows 'GenRe [OPTION=V]', the networks run "
+                        f"once; the others at the weights' setting); repeatable; options: {', '.join(SWEEPABLE)}; "
+                        "booleans on/off")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
     p.add_argument("--thresholds-from", help="thresholds.json of a run on seen-test data (when this run has none)")
     add_device(p)
@@ -129,6 +134,33 @@ def _rows_and_groups(args: argparse.Namespace) -> tuple[list[str], tuple[str, ..
     return rows_wanted, groups
 
 
+_BOOLS = {"on": True, "true": True, "1": True, "yes": True, "off": False, "false": False, "0": False, "no": False}
+
+
+def parse_sweeps(texts: list[str], geometry) -> tuple[tuple[str, object], ...]:
+    """``--sweep`` texts (``OPTION=V1,V2``) as ``((option, value), ...)``, each checked against the weights' ``geometry``
+    (a value these weights cannot take is refused); :class:`_Refused` with the reason."""
+    sweeps = []
+    for text in texts:
+        name, sep, values = text.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or name not in SWEEPABLE or not values.strip():
+            raise _Refused(f"--sweep {text!r}: expected OPTION=V1[,V2...] with OPTION one of {', '.join(SWEEPABLE)}")
+        spec = BY_NAME[name]
+        for raw in values.split(","):
+            raw = raw.strip().lower()
+            try:
+                value = _BOOLS[raw] if spec.kind == "bool" else int(raw) if spec.kind == "int" else float(raw) \
+                    if spec.kind == "float" else raw
+                MeshOptions(**{name: value}).resolved(geometry)
+            except (KeyError, ValueError, OptionError) as exc:
+                raise _Refused(f"--sweep {name}: {raw!r} is not a value these weights take ({spec.expected()}; "
+                               f"{exc if isinstance(exc, OptionError) else 'not a ' + spec.kind})") from None
+            if (name, value) not in sweeps:
+                sweeps.append((name, spec.check(value)))
+    return tuple(sweeps)
+
+
 def _needed_weights(args: argparse.Namespace, paths: dict[str, Path | None], rows_wanted: list[str]) -> dict[str, bool]:
     """Which of the three weights the rows need (each present, or :class:`_Refused` with every one missing)."""
     need = {"genre": True, "completion": bool({"3D Completion", "3D Completion-Oracle"} & set(rows_wanted)), "onestep": "GenRe-1step" in rows_wanted}
@@ -175,7 +207,7 @@ def _models(args: argparse.Namespace, paths: dict[str, Path | None], need: dict[
 
         completion = load_baseline(paths["completion"], "completion", args.device) if need["completion"] else None
         onestep = load_baseline(paths["onestep"], "onestep", args.device) if need["onestep"] else None
-        models = Models(genre, completion, onestep, wanted=tuple(rows_wanted))
+        models = Models(genre, completion, onestep, wanted=tuple(rows_wanted), sweeps=parse_sweeps(args.sweep, genre.config.geometry))
         models.check()
     except WeightsError as exc:
         raise _Refused(str(exc)) from None
@@ -194,7 +226,8 @@ def _out_folder(args: argparse.Namespace, paths: dict[str, Path | None], need: d
         out = data_dir() / "results" / (Path(args.run).name if args.run else Path(args.weights).stem)
     out.mkdir(parents=True, exist_ok=True)
     ident = {"weights": {k: (str(v), _digest(v)) for k, v in paths.items() if need[k] and v is not None},
-             "preset": models.genre.config.preset, "rows": rows_wanted, "train_views": [str(p) for p in args.train_views]}
+             "preset": models.genre.config.preset, "rows": rows_wanted, "train_views": [str(p) for p in args.train_views],
+             **({"sweeps": [list(s) for s in models.sweeps]} if models.sweeps else {})}
     ident = json.loads(json.dumps(ident))  # as it reads back (lists, not tuples)
     ident_path = out / "eval_config.json"
     if ident_path.is_file() and json.loads(ident_path.read_text()) != ident:
@@ -300,7 +333,8 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     genre = models.genre
     spec = ModelSpec(str(paths["genre"]), str(paths["completion"]) if need["completion"] else None,
                      str(paths["onestep"]) if need["onestep"] else None,
-                     str(out / "nearest_index.safetensors") if models.nearest is not None else None, tuple(rows_wanted), args.device)
+                     str(out / "nearest_index.safetensors") if models.nearest is not None else None, tuple(rows_wanted), args.device,
+                     models.sweeps)
     t_views = time.perf_counter()
     records = evaluate_views(models, views, out, device=args.device, progress=not args.no_progress, save_grids=set(gallery_keys),
                              jobs=args.jobs, spec=spec)
@@ -320,6 +354,8 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
               "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")
     table = format_table(per_class, group_means, choice, models.rows(), header) + _shipped_threshold_note(records, choice)
     table += flatness_table(records, choice, models.rows())
+    level = min(genre.config.geometry.thresholds(), key=lambda t: abs(t - genre.config.geometry.default_threshold))
+    table += sweep_table(records, models.sweeps, level)
     table += _figures(args, out, per_class, models, views, choice, train_ids, gallery_keys)
     atomic_write_text(out / "table.md", table)
     print(table)

@@ -127,6 +127,53 @@ def flatness_table(records: list[dict], choice: dict, rows: list[str], group: st
     return "\n".join(lines) + "\n"
 
 
+def sweep_table(records: list[dict], sweeps, level: float) -> str:
+    """``genre eval --sweep``'s table (Markdown, empty without sweeps): for each swept mesh option, per view group,
+    the mean CD and the share of closed meshes of GenRe at the weights' own level at each value, beside the
+    weights' own setting (row ``GenRe``).  Where ``hole_closing`` is swept and seen-test views are present, the
+    rule that picks it (:func:`training.eval.statistics.choose_hole_closing`, seen-test closed shares) is applied."""
+    from .rows import sweep_row
+    from .statistics import choose_hole_closing
+
+    if not sweeps:
+        return ""
+    t = threshold_key(level)
+    groups = sorted({g for r in records for g in r["groups"].split("|")})
+    lines = ["", f"## Mesh option sweeps (level {level:.2f}, the weights' own)", "",
+             "Each row is GenRe with one option changed, the networks run once; CD the mean over the group's views, "
+             "closed the share of meshes without holes or tunnels.", "",
+             "| option | value | " + " | ".join(f"{GROUP_LABEL.get(g, g)} CD | closed" for g in groups) + " |",
+             "|---|---|" + "---|---|" * len(groups)]
+
+    def cells(row: str) -> tuple[list[str], dict[str, float]]:
+        out, closed = [], {}
+        for g in groups:
+            recs = [r for r in records if r["row"] == row and g in r["groups"].split("|")]
+            cd = [float(r[f"cd1k@{t}"]) for r in recs]
+            cl = [float(r[f"closed@{t}"]) for r in recs]
+            closed[g] = sum(cl) / len(cl) if cl else math.nan
+            out += [_fmt(sum(cd) / len(cd) if cd else math.nan), _fmt(closed[g])]
+        return out, closed
+
+    notes = []
+    for name in dict.fromkeys(n for n, _ in sweeps):
+        own, _ = cells("GenRe")
+        lines.append(f"| {name} | the weights' | " + " | ".join(own) + " |")
+        shares = {}
+        for n, v in sweeps:
+            if n == name:
+                row_cells, closed = cells(sweep_row(n, v))
+                shares[v] = closed.get("test", math.nan)
+                lines.append(f"| {name} | {v} | " + " | ".join(row_cells) + " |")
+        if name == "hole_closing" and "test" in groups:
+            try:
+                notes.append(f"hole_closing by its rule (the least sealing whose seen-test closed share reaches 90 %): "
+                             f"**{choose_hole_closing(shares)}**")
+            except ValueError:
+                pass
+    return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
+
+
 def pyplot():
     """matplotlib's pyplot on the Agg backend (no screen)."""
     import matplotlib

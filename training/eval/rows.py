@@ -34,18 +34,30 @@ mirror image (``geometry.test_time_mirror``), every learned row does so with its
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
 from genre_backend.config import GenreConfig
 from genre_backend.inference.net_outputs import View
-from genre_backend.inference.options import MeshOptions
+from genre_backend.inference.options import OPTIONS, MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
 from .protocol import REPRESENTATION, ROWS
 
-__all__ = ['Models', 'predict']
+__all__ = ['Models', 'predict', 'sweep_row', 'SWEEPABLE']
+
+# the mesh options ``genre eval --sweep`` can vary: every setting the weights store (GeometryConfig's option fields)
+# but the level, which every row is scored at anyway
+SWEEPABLE = tuple(o.name for o in OPTIONS if o.weights and o.name != "threshold")
+
+
+def sweep_row(name: str, value: Any) -> str:
+    """The row name of GenRe with mesh option ``name`` set to ``value`` (``genre eval --sweep``)."""
+    shown = ("on" if value else "off") if isinstance(value, bool) else f"{value:g}" if isinstance(value, float) else str(value)
+    return f"GenRe [{name}={shown}]"
 
 
 @dataclass
@@ -55,6 +67,8 @@ class Models:
     onestep: torch.nn.Module | None = None
     nearest: object | None = None  # training.learn.baselines.NearestIndex
     wanted: tuple[str, ...] = ROWS  # the rows to produce
+    # GenRe again with one mesh option changed, per (name, value): rows sweep_row(name, value) (genre eval --sweep)
+    sweeps: tuple[tuple[str, Any], ...] = ()
 
     @property
     def config(self) -> GenreConfig:
@@ -69,7 +83,7 @@ class Models:
         if self.nearest is not None:
             rows.append("Nearest training shape")
         rows.append(REPRESENTATION)
-        return [r for r in rows if r in self.wanted]
+        return [r for r in rows if r in self.wanted] + [sweep_row(n, v) for n, v in self.sweeps]
 
     def check(self) -> None:
         g = self.config.geometry
@@ -96,6 +110,11 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     mirror = opts.test_time_mirror  # every learned row alike
     g = m(rgb, mask=mask, mirror=mirror)
     out["GenRe"] = {"prob": torch.sigmoid(g["logits"])[0, 0].cpu(), "depth": g["masked_depth"][0].cpu()}
+    for name, value in models.sweeps:  # the networks run again only where the option changes their pass (the mirror)
+        swept = dataclasses.replace(opts, **{name: value})
+        s = g if swept.test_time_mirror == mirror else m(rgb, mask=mask, mirror=swept.test_time_mirror)
+        out[sweep_row(name, value)] = {"prob": torch.sigmoid(s["logits"])[0, 0].cpu(), "depth": s["masked_depth"][0].cpu(),
+                                       "options": swept}
     pred_depth = g["masked_depth"]
     valid = mask & (depth > 0)
     err = float(((g["depth"] - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
@@ -126,10 +145,15 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     for row in out.values():  # the steps after the networks, genre reconstruct's own (options.py), every learned row alike
         if isinstance(row, dict) and "depth" in row:  # (the depth maps go either way: no row after this point carries one)
             view = View(mask[0], row.pop("depth"), camera)
-            row["prob"] = opts.shape_grid(row["prob"], view, m.config.geometry)
-            if opts.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
-                _, v, f, _ = opts.mesh(row["prob"], m.config.geometry, clean=False)
-                v, f, fit = opts.snap_mesh(v, f, view)
+            o = row.pop("options", opts)
+            geometry = m.config.geometry
+            if o is not opts:  # a swept row: its surface is made with the changed setting too (hole_closing)
+                row["geometry"] = geometry = dataclasses.replace(geometry, **{
+                    spec.weights: getattr(o, spec.name) for spec in OPTIONS if spec.weights and spec.name in SWEEPABLE})
+            row["prob"] = o.shape_grid(row["prob"], view, geometry)
+            if o.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
+                _, v, f, _ = o.mesh(row["prob"], geometry, clean=False)
+                v, f, fit = o.snap_mesh(v, f, view)
                 if fit is not None:
                     row["mesh"] = (v, f)
     if REPRESENTATION in models.wanted:

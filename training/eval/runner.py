@@ -20,6 +20,7 @@ import os
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -170,6 +171,7 @@ class ModelSpec:
     nearest_index: str | None
     wanted: tuple[str, ...]
     device: str = "cpu"
+    sweeps: tuple[tuple[str, Any], ...] = ()  # Models.sweeps
 
     def load(self) -> Models:
         from genre_backend.nets.model import load_model
@@ -179,7 +181,7 @@ class ModelSpec:
         models = Models(load_model(self.genre, self.device),
                         load_baseline(self.completion, "completion", self.device) if self.completion else None,
                         load_baseline(self.onestep, "onestep", self.device) if self.onestep else None,
-                        wanted=self.wanted)
+                        wanted=self.wanted, sweeps=self.sweeps)
         if self.nearest_index:
             models.nearest = NearestIndex.load(self.nearest_index)
         return models
@@ -205,7 +207,7 @@ def score_view(models: Models, view: EvalView, sample: dict, truth: Truth, devic
             m = mesh_metrics(*p["mesh"], target)
             results[row] = {t: m for t in thresholds}
         elif "prob" in p:
-            results[row] = score_grid(p["prob"], thresholds, target, models.config.geometry)
+            results[row] = score_grid(p["prob"], thresholds, target, p.get("geometry", models.config.geometry))
         else:
             pts = p["points"]
             m = {**target.metrics(pts[:POINTS_SMALL], pts), "closed": float("nan")}  # (points: no surface to judge)

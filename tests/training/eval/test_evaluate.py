@@ -502,25 +502,59 @@ def test_representation_floor_scores_the_truth_through_each_representation(tiny,
     assert lines["distance, shipped, t=0.50"] < 1.5 * lines["noise floor (truth resampled)"]
 
 
-def test_hole_closing_script_scores_each_setting_and_applies_the_rule(tiny, tmp_path, capsys):
-    import importlib.util
+def test_a_sweep_scores_genre_again_at_each_setting_and_applies_the_hole_closing_rule(tiny, tmp_path, monkeypatch):
+    import dataclasses
 
+    from genre_backend.geometry.mesh_voxels import grid_to_surface
+    from training.eval.rows import Models, predict, sweep_row
     from training.eval.statistics import choose_hole_closing
 
     root, views, run = tiny
-    spec = importlib.util.spec_from_file_location("hole_closing", Path(__file__).resolve().parents[3] / "scripts" / "hole_closing.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    out = tmp_path / "hc.json"
-    assert mod.main(["--weights", str(run / "refine" / "final.safetensors"), "--views", str(views), "--manifest",
-                     str(root / "manifest.json"), "--groups", "test,unseen", "--closings", "0,2", "--level", "0.5",
-                     "--json", str(out)]) == 0
-    got = json.loads(out.read_text())
-    assert got["level"] == 0.5 and set(got["groups"]["all"]) == {"0", "2"}
-    seen = got["groups"]["seen-test (chooses k)"]
-    assert got["chosen"] == choose_hole_closing({int(k): v["closed"] for k, v in seen.items()})
-    assert all(0 <= v["closed"] <= 1 and v["cd"] > 0 for g in got["groups"].values() for v in g.values())
-    assert "hole_closing = " in capsys.readouterr().out
+    genre, _, sample = _tiny_genre_completion_and_a_view(tiny)
+    geometry = genre.config.geometry
+    own = geometry.hole_closing
+    out = tmp_path / "sweep"
+    assert main(_args(root, views, run, out, "--rows", "GenRe", "--no-figures", "--gallery", "0",
+                      "--sweep", f"hole_closing=0,3,{own}", "--sweep", "visible_fusion=off")) == 0
+    table = (out / "table.md").read_text()
+    records = _read(out / "per_view.csv")
+    assert {r["row"] for r in records} == {"GenRe", "GenRe [hole_closing=0]", "GenRe [hole_closing=3]",
+                                           sweep_row("hole_closing", own), "GenRe [visible_fusion=off]", FLOOR}
+    # the weights' own setting swept gives GenRe's own numbers, view by view, at every level
+    by_key = lambda row: sorted((r for r in records if r["row"] == row), key=lambda r: r["key"])  # noqa: E731
+    for a, b in zip(by_key("GenRe"), by_key(sweep_row("hole_closing", own)), strict=True):
+        assert {k: v for k, v in a.items() if k not in ("row", "depth_abs_err")} == \
+            {k: v for k, v in b.items() if k not in ("row", "depth_abs_err")}
+    # a swept row is GenRe's grid, its surface made with the changed setting
+    pred = predict(Models(genre, wanted=("GenRe",), sweeps=(("hole_closing", 3),)), sample, "cpu")
+    swept = pred[sweep_row("hole_closing", 3)]
+    assert torch.equal(swept["prob"], pred["GenRe"]["prob"])
+    assert swept["geometry"] == dataclasses.replace(geometry, hole_closing=3)
+    from training.eval import runner
+
+    seen = []
+    monkeypatch.setattr(runner, "grid_to_surface", lambda p, t, g: (seen.append(g.hole_closing), grid_to_surface(p, t, g))[1])
+    from training.eval.protocol import find_eval_views
+
+    manifest = json.loads((root / "manifest.json").read_text())
+    view = next(v for v in find_eval_views([views], manifest, ("unseen",)) if v.shape_dir.name == "table" and v.view == 0)
+    runner.score_view(Models(genre, wanted=("GenRe",), sweeps=(("hole_closing", 3),)), view, sample, runner.Truth(), "cpu")
+    n = len(geometry.thresholds())
+    assert seen == [own] * n + [3] * n  # GenRe's surfaces with the weights' k, the swept row's with k = 3
+    # the table's closed shares are the records' means, and the rule is applied to the seen-test ones
+    level = min(geometry.thresholds(), key=lambda t: abs(t - geometry.default_threshold))
+    shares = {k: float(np.mean([float(r[f"closed@{level:.2f}"]) for r in records
+                                if r["row"] == sweep_row("hole_closing", k) and r["groups"] == "test"])) for k in (0, 3, own)}
+    assert f"seen-test closed share reaches 90 %): **{choose_hole_closing(shares)}**" in table
+    assert "| hole_closing | 3 |" in table and "| visible_fusion | False |" in table
+
+
+def test_a_bad_sweep_is_refused_before_anything_runs(tiny, tmp_path, capsys):
+    root, views, run = tiny
+    for bad in ("hole_closing", "colour=1", "hole_closing=x", "pit_sealing=-1", "threshold=0.5"):
+        assert main(_args(root, views, run, tmp_path / "bad", "--rows", "GenRe", "--sweep", bad)) == 2, bad
+        assert "--sweep" in capsys.readouterr().err
+    assert not (tmp_path / "bad" / "per_view.csv").exists()
 
 
 def test_weights_that_mirror_average_every_learned_row_with_its_own_model(tiny):

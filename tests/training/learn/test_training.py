@@ -419,7 +419,7 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     save_model(GenRe(dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, target="distance"))), distance)
     install(distance, 0.4, tmp_path / "pits.safetensors", pit_sealing=3)
     assert load_model(tmp_path / "pits.safetensors").config.geometry.pit_sealing == 3
-    assert _extra(tmp_path / "pits.safetensors")["pit_sealing_from"].startswith("scripts/visible_fusion.py")
+    assert _extra(tmp_path / "pits.safetensors")["pit_sealing_from"].startswith("genre eval --sweep")
     install(tmp_path / "pits.safetensors", 0.45, tmp_path / "pits2.safetensors")
     assert load_model(tmp_path / "pits2.safetensors").config.geometry.pit_sealing == 3
     shell = tmp_path / "shell.safetensors"
