@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import trimesh
 
+from genre_backend.arguments import add_weights
 from genre_backend.nets.model import load_model
 from training.data.pack import Pack, _decimate, quantise
 from training.data.targets import load_targets
@@ -31,7 +32,7 @@ def main() -> None:
     p.add_argument("--count", type=int, default=4)
     p.add_argument("--max-faces", type=int, default=65535, help="decimate as the pack does (default: not at all)")
     p.add_argument("--grid-factor", type=int, default=2)
-    p.add_argument("--weights", default="genre_backend/weights/default.safetensors", help="whose config (resolutions)")
+    add_weights(p, default="genre_backend/weights/default.safetensors", help="whose config (resolutions)")
     args = p.parse_args()
     cfg = load_model(args.weights).config
     dirs = sorted(d for d in Path(args.views).iterdir() if (d / "view_000.json").is_file())[: args.count]

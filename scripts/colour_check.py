@@ -14,6 +14,7 @@ holds the error to ≤ 8.
 import argparse
 import sys
 from pathlib import Path
+from genre_backend.arguments import add_weights
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -28,7 +29,7 @@ def main() -> int:
     from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")
+    add_weights(p, type=resolve_weights, default="default")
     p.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
                    help="fill the holes in the visible side from the depth (default: the weights' config)")
     args = p.parse_args()

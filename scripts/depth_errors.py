@@ -10,7 +10,9 @@ is the **relief** error:
 * ``relief MAE``: the mean absolute error after removing the offset (median over views, and mean);
 * ``relief ÷ truth``: the predicted relief's interquartile range over the true one (1 = as deep as the truth,
   > 1 too curved), median over views;
-* ``better``: on how many views the weights beat the first weights named.
+* ``offset``: the removed offset's size, ``|median error|``, median over views (the whole shape's shift along the
+  view direction, which the relief leaves out);
+* ``better``: on how many views the weights beat the first weights named (relief MAE).
 
 Usage::
 
@@ -28,13 +30,14 @@ import numpy as np
 import torch
 from scipy.ndimage import binary_erosion
 
+from genre_backend.arguments import add_out, add_weights
 from genre_backend.nets.model import load_model
 from genre_backend.weights_file import resolve_weights
 from training.data.views import find_views, load_view
 
 
-def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float] | None:
-    """(relief MAE, relief IQR ÷ the truth's) of one view, or None when the eroded silhouette is too small."""
+def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float] | None:
+    """(relief MAE, relief IQR ÷ the truth's, |offset|) of one view, or None when the eroded silhouette is too small."""
     inner = binary_erosion(view["mask"] > 0.5, iterations=erode)
     if inner.sum() < 20:
         return None
@@ -44,19 +47,20 @@ def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float] | None:
     true = view["depth"][inner]
     err = pred - true
     iqr = lambda x: float(np.subtract(*np.percentile(x, [75, 25])))  # noqa: E731
-    return float(np.mean(np.abs(err - np.median(err)))), iqr(pred) / max(iqr(true), 1e-6)
+    offset = float(np.median(err))
+    return float(np.mean(np.abs(err - offset))), iqr(pred) / max(iqr(true), 1e-6), abs(offset)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--views", nargs="+", required=True, help="folders of rendered views")
-    parser.add_argument("--weights", action="append", required=True, help="weights (name or file); repeat to compare")
-    parser.add_argument("--out", default=None, help="write the table here (markdown) as well as printing it")
+    add_weights(parser, action="append", required=True, help="weights (name or file); repeat to compare")
+    add_out(parser, default=None, help="write the table here (markdown) as well as printing it")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     nets = [load_model(resolve_weights(w)).eval() for w in args.weights]
-    lines = ["| views | weights | n | relief MAE median | relief MAE mean | relief ÷ truth (median) | better than the first |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| views | weights | n | relief MAE median | relief MAE mean | relief ÷ truth (median) | offset (median) | "
+             "better than the first |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for folder in args.views:
         rows = [[] for _ in nets]
         for ref in find_views(folder, targets=False):
@@ -68,9 +72,9 @@ def main(argv: list[str] | None = None) -> int:
                 rows[k].append(g)
         first = np.array([r[0] for r in rows[0]])
         for w, r in zip(args.weights, rows):
-            mae, ratio = np.array([x[0] for x in r]), np.array([x[1] for x in r])
+            mae, ratio, offset = (np.array([x[i] for x in r]) for i in range(3))
             lines.append(f"| {Path(folder).name} | {w} | {len(r)} | {np.median(mae):.4f} | {np.mean(mae):.4f} | "
-                         f"{np.median(ratio):.2f} | {int((mae < first).sum())} / {len(r)} |")
+                         f"{np.median(ratio):.2f} | {np.median(offset):.4f} | {int((mae < first).sum())} / {len(r)} |")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     if args.out:

@@ -59,6 +59,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from genre_backend.arguments import add_out, add_weights  # noqa: E402
 from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
 from genre_backend.photo.preprocess import preprocess  # noqa: E402
 from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor  # noqa: E402
@@ -184,9 +185,9 @@ def gallery(rows: list[dict], path: Path, size: int, samples: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="GenRe on real photos with hand masks: mask IoU before/after refinement, side ratios, tilt, parts.")
     parser.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos", help="folder of NAME.jpg + NAME_mask.png (+ truth.json)")
-    parser.add_argument("--weights", type=resolve_weights, default="default",
+    add_weights(parser, type=resolve_weights, default="default",
                         help="shipped weights by name (default: the product model, 'default'; 'protocol') or a file")
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "photos", help="where table.md, photos.csv and gallery.png go")
+    add_out(parser, type=Path, default=ROOT / "results" / "photos", help="where table.md, photos.csv and gallery.png go")
     parser.add_argument("--only", nargs="+", metavar="NAME", help="only these photos")
     parser.add_argument("--seedings", action="store_true", help="also the mask IoU of each GrabCut seeding (border, network, auto)")
     parser.add_argument("--no-gallery", action="store_true", help="skip the Blender renders")

@@ -31,6 +31,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from genre_backend.arguments import add_weights
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -73,7 +74,7 @@ def main() -> int:
     from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")
+    add_weights(p, type=resolve_weights, default="default")
     p.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = p.parse_args()
     rec = Reconstructor(args.weights)

@@ -43,6 +43,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from genre_backend.arguments import add_out, add_seed, add_weights  # noqa: E402
 from genre_backend.frame import camera_rotation  # noqa: E402
 from genre_backend.geometry.spherical import NO_HIT, directions_to_pixels, sph_to_points  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
@@ -142,12 +143,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--manifest", required=True)
     ap.add_argument("--pack", required=True, help="the training pack (for the retrieval bank)")
-    ap.add_argument("--weights", action="append", default=None, help="weights (repeat to compare several); default: default")
+    add_weights(ap, action="append", default=None, help="weights (repeat to compare several); default: default")
     ap.add_argument("--views", type=int, default=4, help="views per test shape")
     ap.add_argument("--bank", type=int, default=8000, help="training views in the retrieval bank")
     ap.add_argument("--elevation", type=float, nargs=2, default=None, help="elevation range (default the recipe's)")
-    ap.add_argument("--out", default=None, help="write the table (markdown) here")
-    ap.add_argument("--seed", type=int, default=1234)
+    add_out(ap, default=None, help="write the table (markdown) here")
+    add_seed(ap, default=1234)
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     t0 = time.time()

@@ -37,6 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from genre_backend.arguments import add_jobs, add_seed, add_weights  # noqa: E402
 from genre_backend.geometry.primitives import MESH_FACTOR  # noqa: E402
 
 GRID = [0.0] + [round(0.01 * k, 2) for k in range(1, 21)]  # off, then 0.01 … 0.20 (PrimitiveFit.disagreement)
@@ -141,13 +142,13 @@ def family_table(records: list[dict], manifest_path) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", default="default", help="'default', 'protocol' or a weights file (its mesh settings are used)")
+    add_weights(p, default="default", help="'default', 'protocol' or a weights file (its mesh settings are used)")
     p.add_argument("--views", nargs="+", required=True, help="view folders; FOLDER:all takes the first views of every shape")
     p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--shapes", type=int, default=300, help="seeded shapes per folder (one seeded view each)")
     p.add_argument("--first-views", type=int, default=3, help="views per shape of a FOLDER:all")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--jobs", type=int, default=2, help="worker processes (one thread each)")
+    add_seed(p)
+    add_jobs(p, default=2, help="worker processes (one thread each)")
     p.add_argument("--csv", required=True, help="per-view figures (appended; views already there are not redone)")
     p.add_argument("--json", default=None, help="also write the choice and the means here")
     args = p.parse_args(argv)

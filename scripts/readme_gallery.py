@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
+from genre_backend.arguments import add_out, add_weights
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -49,8 +50,8 @@ def main() -> int:
     from genre_backend.weights_file import resolve_weights
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=REPO / "docs" / "gallery.png")
-    p.add_argument("--weights", type=resolve_weights, default="default", help="'default' (the product model), 'protocol' or a file")
+    add_out(p, type=Path, default=REPO / "docs" / "gallery.png")
+    add_weights(p, type=resolve_weights, default="default")
     p.add_argument("--tile", type=int, default=150, help="pixels a side of each picture")
     p.add_argument("--hand-masks", action="store_true", help="the hand-drawn masks, not the automatic (salient net's) ones")
     args = p.parse_args()

@@ -37,6 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from genre_backend.arguments import add_out, add_seed  # noqa: E402
 from training.data import views as view_files  # noqa: E402
 from training.render.scene import ENGINES, RenderSettings  # noqa: E402
 
@@ -151,9 +152,9 @@ def main() -> int:
     p.add_argument("--samples", type=int, default=RenderSettings.samples, help="samples (as genre data render)")
     p.add_argument("--no-denoise", action="store_true", help="Cycles without its denoiser")
     p.add_argument("--preset", default="default")
-    p.add_argument("--seed", type=int, default=0)
+    add_seed(p)
     p.add_argument("--worker", choices=ENGINES, help=argparse.SUPPRESS)
-    p.add_argument("--out", type=Path, help=argparse.SUPPRESS)
+    add_out(p, type=Path, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.worker:
         _worker(args)

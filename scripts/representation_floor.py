@@ -29,6 +29,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from genre_backend.arguments import add_seed  # noqa: E402
 from genre_backend import frame  # noqa: E402
 from genre_backend.config import get_preset  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
@@ -46,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--views-count", type=int, default=10)
     p.add_argument("--thresholds", default="0.5,0.75", help="levels of the distance rows")
-    p.add_argument("--seed", type=int, default=0)
+    add_seed(p)
     args = p.parse_args(argv)
     geometry = get_preset("default").geometry
     n = geometry.voxel_size

@@ -65,6 +65,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from genre_backend.arguments import add_seed, add_weights  # noqa: E402
 from genre_backend.weights_file import resolve_weights, weights_extra  # noqa: E402
 from genre_backend.nets.model import load_model  # noqa: E402
 from training.data.dataset import ViewDataset, ViewRef  # noqa: E402
@@ -106,13 +107,13 @@ def depth_error_parts(pred: torch.Tensor, true: torch.Tensor, mask: torch.Tensor
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", default="protocol",
+    add_weights(p, default="protocol",
                    help="'protocol' (default: the shipped research weights, seen classes only) or a weights file")
     p.add_argument("--views", required=True, help="evaluation views (genre data render + targets of the test split)")
     p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--views-count", type=int, default=8)
     p.add_argument("--thresholds", default="0.5,0.7,0.9")
-    p.add_argument("--seed", type=int, default=0)
+    add_seed(p)
     p.add_argument("--hit-levels", default="0.1,0.2,0.3,0.5",
                    help="the hit head's decision levels (geometry.sph_hit_probability) to sweep: the inpainted map, from "
                         "the true depth and from GenRe's own, projected at each (hit-head weights only)")

@@ -54,6 +54,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from genre_backend.arguments import add_weights  # noqa: E402
 from genre_backend.geometry.visible_front import fuse_visible_surface  # noqa: E402
 from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
 from genre_backend.geometry.voxels import silhouette_ramp  # noqa: E402
@@ -85,7 +86,7 @@ def choose(seen: dict[bool, dict[str, float]]) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--weights", default="default", help="'default', 'protocol' or a weights file")
+    add_weights(p, default="default")
     p.add_argument("--views", required=True, help="evaluation views (genre data render + targets)")
     p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
     p.add_argument("--groups", default="test", help="manifest groups of the views to score (comma-separated)")

@@ -145,6 +145,25 @@ def test_the_view_file_names_are_spelled_in_one_module():
     assert hits == ["training/data/views.py"]
 
 
+def test_the_shared_flags_are_defined_once():
+    """``--weights``, ``--out``, ``--device``, ``--threads``, ``--seed`` and ``--jobs`` come from
+    ``genre_backend.arguments`` in every parser of the backend, the training side and the scripts."""
+    shared = {"--weights", "--out", "--device", "--threads", "--seed", "--jobs"}
+    hand_written, parsers = [], 0
+    for root in ("genre_backend", "training", "scripts"):
+        for path in (REPO / root).rglob("*.py"):
+            if path.name == "arguments.py":
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_argument":
+                    parsers += 1
+                    flags = {a.value for a in node.args if isinstance(a, ast.Constant)}
+                    if flags & shared:
+                        hand_written.append(f"{path.relative_to(REPO)}:{node.lineno} {sorted(flags & shared)}")
+    assert parsers > 100  # the walk sees the parsers
+    assert hand_written == []
+
+
 def test_cli_lists_the_training_commands_without_importing_them():
     code = (
         "import sys\n"
