@@ -84,7 +84,7 @@ def _score(item) -> dict:
     import torch
 
     from genre_backend.geometry.mesh_voxels import grid_to_surface
-    from genre_backend.inference.net_outputs import View
+    from genre_backend.nets.outputs import View
     from genre_backend.inference.options import MeshOptions
     from genre_backend.geometry.metrics import CloudScorer, sample_surface
     from genre_backend.geometry.primitives import POINTS, fit_primitive, visible_points
@@ -101,7 +101,7 @@ def _score(item) -> dict:
         out = model(s["rgb"][None], mask=s["mask"][None], mirror=model.config.geometry.test_time_mirror)
     gt, _ = truth.posed(view)
     target = CloudScorer(gt[:POINTS_SMALL], gt)
-    prob = torch.sigmoid(out["logits"])[0, 0]
+    prob = torch.sigmoid(out.logits)[0, 0]
     # the weights' pits sealed first, as genre eval does before it fits (the record's step; neither carve nor fusion)
     prob = MeshOptions(silhouette_carve=False, visible_fusion=False).resolved(g).shape_grid(prob, View(s["mask"], None, model.config.camera), g)
     v, f = grid_to_surface(prob, g.default_threshold, g)
@@ -110,7 +110,7 @@ def _score(item) -> dict:
     if len(f) == 0:
         rec.update(cd_fit=rec["cd_mesh"], family="", residual=float("inf"), mesh_residual=float("inf"))
     else:
-        d = out["masked_depth"][0]
+        d = out.masked_depth[0]
         fit = fit_primitive(visible_points(d, model.config.camera), sample_surface(v, f, POINTS).numpy(), depth=d, camera=model.config.camera)
         rec.update(cd_fit=mesh_metrics(*fit.mesh(), target)["cd1k"], family=fit.family, residual=fit.residual, mesh_residual=fit.mesh_residual)
     rec["seconds"] = time.perf_counter() - t0

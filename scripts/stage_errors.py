@@ -161,20 +161,20 @@ def main(argv: list[str] | None = None) -> int:
             target_fraction.append(float((s["voxels"] > 0).float().mean()))
             add(f"true {model.config.geometry.target}, its surface", score_grid(s["voxels"], thresholds, target, model.config.geometry))
             sph_oracle = model(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror)
-            add("true spherical map, projected", score_grid(sph_oracle["vox_sph"][0, 0], [HIT], target))
-            add("refiner <- true depth + true map", score_grid(torch.sigmoid(sph_oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
+            add("true spherical map, projected", score_grid(sph_oracle.vox_sph[0, 0], [HIT], target))
+            add("refiner <- true depth + true map", score_grid(torch.sigmoid(sph_oracle.logits)[0, 0], thresholds, target, model.config.geometry))
             oracle = model(rgb, mask=mask, depth=depth, mirror=mirror)
-            add("refiner <- true depth", score_grid(torch.sigmoid(oracle["logits"])[0, 0], thresholds, target, model.config.geometry))
+            add("refiner <- true depth", score_grid(torch.sigmoid(oracle.logits)[0, 0], thresholds, target, model.config.geometry))
             genre = model(rgb, mask=mask, mirror=mirror)
             # how much the refiner leans on the spherical channel: the same depth voxels, the spherical ones emptied
-            emptied = model.refine(torch.zeros_like(genre["vox_sph"]), genre["vox_depth"])
+            emptied = model.refine(torch.zeros_like(genre.vox_sph), genre.vox_depth)
             add("GenRe, spherical channel emptied", score_grid(torch.sigmoid(emptied)[0, 0], thresholds, target, model.config.geometry))
             # the predicted depth less its offset from the truth (the view's median error inside the mask): is the
             # object's distance, which one photo leaves ambiguous, what GenRe loses on, or the surface's shape?
             valid = mask & (depth > 0)
-            offset = (genre["depth"] - depth)[valid].median()
-            shifted = genre["depth"] - offset
-            add("GenRe, depth offset removed", score_grid(torch.sigmoid(model(rgb, mask=mask, depth=shifted, mirror=mirror)["logits"])[0, 0],
+            offset = (genre.depth - depth)[valid].median()
+            shifted = genre.depth - offset
+            add("GenRe, depth offset removed", score_grid(torch.sigmoid(model(rgb, mask=mask, depth=shifted, mirror=mirror).logits)[0, 0],
                                                           thresholds, target, model.config.geometry))
             if completion is not None:
                 own = completion.depth_net(rgb)["depth"]  # the baseline's own (frozen) depth net
@@ -183,11 +183,11 @@ def main(argv: list[str] | None = None) -> int:
                                 ("3D Completion", own)):
                     logits = completion(rgb, mask=mask, depth=d)["logits"]
                     add(name, score_grid(torch.sigmoid(logits)[0, 0], thresholds, target, model.config.geometry))
-            for name, value in depth_error_parts(genre["depth"][0], depth[0], mask[0], brightness=rgb[0].mean(0)).items():
+            for name, value in depth_error_parts(genre.depth[0], depth[0], mask[0], brightness=rgb[0].mean(0)).items():
                 maps.setdefault(name, []).append(value)
-            add("GenRe spherical map, projected", score_grid(genre["vox_sph"][0, 0], [HIT], target))
+            add("GenRe spherical map, projected", score_grid(genre.vox_sph[0, 0], [HIT], target))
             # the inpainting alone: the partial maps it starts from, and what it makes of the true depth's
-            partial = model.partial_sph(genre["masked_depth"])
+            partial = model.partial_sph(genre.masked_depth)
             partial_true = model.partial_sph(depth)
             add("partial map (GenRe depth), projected", score_grid(model.sph_voxels(partial)[0, 0], [HIT], target))
             add("partial map (true depth), projected", score_grid(model.sph_voxels(partial_true)[0, 0], [HIT], target))
@@ -202,20 +202,20 @@ def main(argv: list[str] | None = None) -> int:
                             score_grid(model.sph_voxels(swept)[0, 0], [HIT], target))
             seen = partial < 1
             maps.setdefault("GenRe partial map: MSE on its hits", []).append(float(((partial - full) ** 2)[seen].mean()))
-            maps.setdefault("inpainted map: MSE on those pixels", []).append(float(((genre["full_sph"] - full) ** 2)[seen].mean()))
-            maps.setdefault("inpainted map: MSE elsewhere", []).append(float(((genre["full_sph"] - full) ** 2)[~seen].mean()))
-            maps.setdefault("inpainted map: std of its hits", []).append(float(genre["full_sph"][genre["full_sph"] < 0.9999].std()))
+            maps.setdefault("inpainted map: MSE on those pixels", []).append(float(((genre.full_sph - full) ** 2)[seen].mean()))
+            maps.setdefault("inpainted map: MSE elsewhere", []).append(float(((genre.full_sph - full) ** 2)[~seen].mean()))
+            maps.setdefault("inpainted map: std of its hits", []).append(float(genre.full_sph[genre.full_sph < 0.9999].std()))
             maps.setdefault("true map: std of its hits", []).append(float(full[full < 0.9999].std()))
             maps.setdefault("true map: share of no-hit pixels", []).append(float((full >= 0.9999).float().mean()))
-            maps.setdefault("inpainted map: share of hit pixels", []).append(float((genre["full_sph"] < 0.9999).float().mean()))
-            pred_hit, true_hit = genre["full_sph"] < 0.9999, full < 0.9999
+            maps.setdefault("inpainted map: share of hit pixels", []).append(float((genre.full_sph < 0.9999).float().mean()))
+            pred_hit, true_hit = genre.full_sph < 0.9999, full < 0.9999
             maps.setdefault("inpainted map: hit/no-hit as the true map", []).append(float((pred_hit == true_hit).float().mean()))
             both = pred_hit & true_hit & ~seen
             if both.any():  # (a view whose unseen part the map calls empty has none)
-                maps.setdefault("inpainted map: MSE on unseen true hits", []).append(float(((genre["full_sph"] - full) ** 2)[both].mean()))
-            add("GenRe", score_grid(torch.sigmoid(genre["logits"])[0, 0], thresholds, target, model.config.geometry))
+                maps.setdefault("inpainted map: MSE on unseen true hits", []).append(float(((genre.full_sph - full) ** 2)[both].mean()))
+            add("GenRe", score_grid(torch.sigmoid(genre.logits)[0, 0], thresholds, target, model.config.geometry))
             ramp = silhouette_ramp(mask, model.config.camera, model.config.geometry.voxel_size)[0, 0]
-            add("GenRe, trimmed to the outline", score_grid(torch.minimum(torch.sigmoid(genre["logits"])[0, 0], ramp),
+            add("GenRe, trimmed to the outline", score_grid(torch.minimum(torch.sigmoid(genre.logits)[0, 0], ramp),
                                                             thresholds, target, model.config.geometry))
     print(f"{len(views)} {'seen-test' if args.groups == 'test' else args.groups} views; mean CD (1,024 points) per threshold; "
           f"the true {model.config.geometry.target} target is non-zero in {100 * np.mean(target_fraction):.1f} % of the grid")

@@ -123,14 +123,14 @@ def main(argv: list[str] | None = None) -> int:
             target = CloudScorer(gt[:POINTS_SMALL], gt)
             mask = s["mask"]
             out = model(s["rgb"][None], mask=mask[None], mirror=model.config.geometry.test_time_mirror)
-            prob = torch.sigmoid(out["logits"])[0, 0]
+            prob = torch.sigmoid(out.logits)[0, 0]
             if geometry.silhouette_carve:
                 prob = torch.minimum(prob, silhouette_ramp(mask[None], camera, geometry.voxel_size)[0, 0])
             groups = list(group_of_shape(entries.get(view.shape_dir.name, {"class": view.cls})))
             if SEEN_TEST in view.groups:
                 groups.append("seen-test (chooses)")
             for name, variant in variants.items():
-                grid = variant(prob, out["masked_depth"][0], mask.bool())
+                grid = variant(prob, out.masked_depth[0], mask.bool())
                 m = score_grid(grid, [level], target, geometry)[level]
                 c = coverage(grid, mask, level, geometry, camera)
                 for g in groups:

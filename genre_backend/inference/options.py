@@ -45,7 +45,7 @@ import torch
 from ..config import SETTINGS, check_setting
 from ..protocol import Option, OptionError
 from ..protocol import shown as _shown
-from .net_outputs import View
+from ..nets.outputs import View
 
 __all__ = [
     "Option",
@@ -156,7 +156,7 @@ class _Record:
 
         In order: capped by the mask's outline ramp (``silhouette_carve``), the holes in the visible face filled from
         the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*); the
-        last two at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`.net_outputs.View`).
+        last two at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`genre_backend.nets.outputs.View`).
         """
         from ..geometry.visible_front import fuse_visible_surface, seal_pits
         from ..geometry.voxels import silhouette_ramp

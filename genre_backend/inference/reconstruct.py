@@ -35,7 +35,7 @@ from ..weights_file import DEFAULT_WEIGHTS_NAME, named_weights
 from ..geometry.cleanup import CleanReport, clean_mesh
 from ..nets.model import GenRe, WeightsError, load_model, mirror_averaged
 from ..output.mesh_export import MESH_FORMATS, OutputError, check_output_path, write_mesh
-from .net_outputs import NetOutputs
+from ..nets.outputs import NetOutputs
 from .options import MeshOptions, mesh_of_probability
 from .result import Reconstruction
 from ..photo.decode import ImageError, MIN_OBJECT_PIXELS, load_image
@@ -250,7 +250,7 @@ class Reconstructor:
         )
 
     def _networks(self, pre: Preprocessed, opts: MeshOptions, stage: _StageClock, path) -> NetOutputs:
-        """The networks on one framed photo (:class:`.net_outputs.NetOutputs`)."""
+        """The networks on one framed photo (:class:`genre_backend.nets.outputs.NetOutputs`)."""
         model = self.model
         stage("depth")
         out = self._depth_net(pre.rgb)
@@ -263,14 +263,14 @@ class Reconstructor:
         stage("partial_sph")
         partial = model.partial_sph(masked)
         stage("inpaint")
-        full = model.inpaint_net(partial)
+        full = model.full_sph(partial)
         stage("voxels")
         vox_sph = model.sph_voxels(full)
         vox_depth = model.depth_voxels(masked)
         stage("refine")
         logits = model.refine(vox_sph, vox_depth)
         if opts.test_time_mirror:  # the mirror image through every net, its output reflected back
-            logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k)["logits"], pre.rgb[None].to(self.device), mask,
+            logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k).logits, pre.rgb[None].to(self.device), mask,
                                      logits=logits)
         return NetOutputs(depth=out["depth"], silhouette_logits=out["silhouette_logits"], mask=mask, masked_depth=masked,
                           partial_sph=partial, full_sph=full, vox_sph=vox_sph, vox_depth=vox_depth, logits=logits)

@@ -25,6 +25,7 @@ from ..config import GenreConfig
 from .depth_net import DepthNet
 from ..frame import depth_to_points
 from .inpaint_net import InpaintNet
+from .outputs import NetOutputs
 from .refiner import VoxelRefiner
 from ..geometry.spherical import depth_to_sph, mirror_sph, sph_to_voxels
 from ..validation import check_tensor
@@ -56,6 +57,14 @@ class GenRe(nn.Module):
         g = self.config.geometry
         return depth_to_sph(depth, self.config.camera, g.sph_size, g.depth_edge_max_ratio)
 
+    def full_sph(self, partial: torch.Tensor) -> torch.Tensor:
+        """Partial spherical maps (B, H, H) → full ones: the inpainting net's, its seen side the partial map's own
+        where the weights say so (``geometry.sph_keep_seen``)."""
+        full = self.inpaint_net(partial)
+        if self.config.geometry.sph_keep_seen:
+            full = torch.where(partial < self.config.geometry.sph_nohit_min, partial, full)
+        return full
+
     def depth_voxels(self, depth: torch.Tensor) -> torch.Tensor:
         """Masked depth (B, S, S) → voxels (B, 1, N, N, N) by the paper's rule."""
         pts = depth_to_points(depth, self.config.camera).flatten(1, 2)
@@ -71,8 +80,8 @@ class GenRe(nn.Module):
 
     # -- the whole pipeline -----------------------------------------------------------------
     def forward(self, rgb: torch.Tensor, mask: torch.Tensor | None = None, depth: torch.Tensor | None = None,
-                full_sph: torch.Tensor | None = None, mirror: bool = False) -> dict[str, torch.Tensor]:
-        """Run the pipeline; every intermediate is returned.
+                full_sph: torch.Tensor | None = None, mirror: bool = False) -> NetOutputs:
+        """Run the pipeline; every intermediate is returned (:class:`.outputs.NetOutputs`).
 
         rgb: (B, 3, S, S) in [0, 1].  mask: (B, S, S) bool, optional (else the
         depth net's silhouette > 0.5).  ``depth`` (B, S, S) or ``full_sph``
@@ -83,28 +92,20 @@ class GenRe(nn.Module):
         """
         s = self.config.geometry.image_size
         check_tensor("rgb", rgb, ("B", 3, s, s))
-        out = self.depth_net(rgb)
+        net = self.depth_net(rgb)
         if mask is None:
-            mask = out["silhouette_logits"] > 0
-        if depth is not None:
-            out["depth"] = depth
-        out["mask"] = mask
-        out["masked_depth"] = self.masked_depth(out["depth"], mask)
-        out["partial_sph"] = self.partial_sph(out["masked_depth"])
-        if full_sph is None:
-            out["full_sph"] = self.inpaint_net(out["partial_sph"])
-            if self.config.geometry.sph_keep_seen:  # the seen side is the partial map's own
-                seen = out["partial_sph"] < self.config.geometry.sph_nohit_min
-                out["full_sph"] = torch.where(seen, out["partial_sph"], out["full_sph"])
-        else:
-            out["full_sph"] = full_sph
-        out["vox_sph"] = self.sph_voxels(out["full_sph"])
-        out["vox_depth"] = self.depth_voxels(out["masked_depth"])
-        out["logits"] = self.refine(out["vox_sph"], out["vox_depth"])
+            mask = net["silhouette_logits"] > 0
+        planar = net["depth"] if depth is None else depth
+        masked = self.masked_depth(planar, mask)
+        partial = self.partial_sph(masked)
+        full = self.full_sph(partial) if full_sph is None else full_sph
+        vox_sph, vox_depth = self.sph_voxels(full), self.depth_voxels(masked)
+        logits = self.refine(vox_sph, vox_depth)
         if mirror:
-            out["logits"] = mirror_averaged(lambda r, k, d, s: self.forward(r, k, d, s)["logits"], rgb, mask, depth,
-                                            full_sph, logits=out["logits"])
-        return out
+            logits = mirror_averaged(lambda r, k, d, s: self.forward(r, k, d, s).logits, rgb, mask, depth, full_sph,
+                                     logits=logits)
+        return NetOutputs(depth=planar, silhouette_logits=net["silhouette_logits"], mask=mask, masked_depth=masked,
+                          partial_sph=partial, full_sph=full, vox_sph=vox_sph, vox_depth=vox_depth, logits=logits)
 
 
 def mean_probability_logits(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -41,7 +41,7 @@ from typing import Any
 import torch
 
 from genre_backend.config import GenreConfig
-from genre_backend.inference.net_outputs import View
+from genre_backend.nets.outputs import View
 from genre_backend.inference.options import OPTIONS, MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
@@ -109,20 +109,20 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     opts = MeshOptions().resolved(m.config.geometry)  # the weights' own options, as genre reconstruct takes them by default
     mirror = opts.test_time_mirror  # every learned row alike
     g = m(rgb, mask=mask, mirror=mirror)
-    out["GenRe"] = {"prob": torch.sigmoid(g["logits"])[0, 0].cpu(), "depth": g["masked_depth"][0].cpu()}
+    out["GenRe"] = {"prob": torch.sigmoid(g.logits)[0, 0].cpu(), "depth": g.masked_depth[0].cpu()}
     for name, value in models.sweeps:  # the networks run again only where the option changes their pass (the mirror)
         swept = dataclasses.replace(opts, **{name: value})
         s = g if swept.test_time_mirror == mirror else m(rgb, mask=mask, mirror=swept.test_time_mirror)
-        out[sweep_row(name, value)] = {"prob": torch.sigmoid(s["logits"])[0, 0].cpu(), "depth": s["masked_depth"][0].cpu(),
+        out[sweep_row(name, value)] = {"prob": torch.sigmoid(s.logits)[0, 0].cpu(), "depth": s.masked_depth[0].cpu(),
                                        "options": swept}
-    pred_depth = g["masked_depth"]
+    pred_depth = g.masked_depth
     valid = mask & (depth > 0)
-    err = float(((g["depth"] - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
+    err = float(((g.depth - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
     out["depth_abs_err"] = err
     if "GenRe-Oracle" in models.wanted:
-        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, mirror=mirror)["logits"])[0, 0].cpu(), "depth": true_depth}
+        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, mirror=mirror).logits)[0, 0].cpu(), "depth": true_depth}
     if "GenRe-SphOracle" in models.wanted:
-        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror)["logits"])[0, 0].cpu(),
+        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror).logits)[0, 0].cpu(),
                                   "depth": true_depth}
     if models.completion is not None:
         def completion(r, k, d, s):

@@ -145,7 +145,7 @@ def _save_grids(models: Models, views: list[EvalView], grids_dir: Path, device) 
     for i, view in enumerate(views):
         sample = data.sample(i, None)
         out = models.genre(sample["rgb"][None].to(device), mask=sample["mask"][None].to(device))
-        _write_grid(grids_dir, view.key, torch.sigmoid(out["logits"])[0, 0].cpu())
+        _write_grid(grids_dir, view.key, torch.sigmoid(out.logits)[0, 0].cpu())
 
 
 def _read_done(path: Path, columns: list[str]) -> list[dict]:

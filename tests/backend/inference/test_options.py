@@ -130,7 +130,7 @@ def test_the_steps_run_in_their_one_order():
     from genre_backend.config import CameraConfig
     from genre_backend.geometry.visible_front import fuse_visible_surface, seal_pits
     from genre_backend.geometry.voxels import silhouette_ramp
-    from genre_backend.inference.net_outputs import View
+    from genre_backend.nets.outputs import View
 
     g = GeometryConfig(target="distance", image_size=32, voxel_size=16, sph_size=16, sph_pad=8)
     cam = CameraConfig()

@@ -434,7 +434,7 @@ def test_test_time_mirror_averages_the_photo_with_its_mirror_image(rec, photos, 
     assert (plain.options.test_time_mirror, both.options.test_time_mirror) == (False, True)
     inter = plain.intermediates
     with torch.no_grad():  # the mirror image of the crop the nets saw, with the mirror image of its mask
-        mirrored = rec.model(inter["rgb"].flip(-1)[None], mask=inter["mask"].flip(-1)[None])["logits"]
+        mirrored = rec.model(inter["rgb"].flip(-1)[None], mask=inter["mask"].flip(-1)[None]).logits
     want = mean_probability_logits(inter["logits"][None, None], mirror_voxels(mirrored))[0, 0]
     assert torch.allclose(both.intermediates["logits"], want, atol=1e-5)
     assert torch.equal(both.intermediates["masked_depth"], inter["masked_depth"])  # the rest is the photo's own
@@ -498,3 +498,24 @@ def test_genre_reconstruct_ends_quickly_but_whole(tmp_path, thread):
     assert proc.stderr.endswith("mark.missing.png: no such file [bad_image]\n") and proc.stderr.count("\n") == 1
     assert mark.read_text() == "exit functions ran"
     assert (tmp_path / "mark.thread").is_file() == (thread == "thread")
+
+
+def test_weights_that_keep_the_seen_side_keep_it_in_reconstruction_as_in_the_model(photos, trained, tmp_path):
+    """``geometry.sph_keep_seen``: the full map ``genre reconstruct`` refines is the model's own (its seen side the
+    partial map's), so the shipped pipeline and ``genre eval`` (the model's forward) give the same grid."""
+    import dataclasses
+
+    from genre_backend.nets.model import GenRe, load_model, save_model
+
+    model = load_model(trained[0])
+    keep = GenRe(dataclasses.replace(model.config, geometry=dataclasses.replace(model.config.geometry, sph_keep_seen=True)))
+    keep.load_state_dict(model.state_dict())
+    save_model(keep, tmp_path / "keep.safetensors")
+    inter = Reconstructor(tmp_path / "keep.safetensors").run(photos["rgba"], threshold=0.3).intermediates
+    seen = inter["partial_sph"] < model.config.geometry.sph_nohit_min
+    assert 0 < int(seen.sum()) < seen.numel()
+    assert torch.equal(inter["full_sph"][seen], inter["partial_sph"][seen])
+    with torch.no_grad():
+        out = keep.eval()(inter["rgb"][None], mask=inter["mask"][None])
+    assert torch.allclose(inter["full_sph"], out.full_sph[0], atol=1e-6)
+    assert torch.allclose(inter["logits"], out.logits[0, 0], atol=1e-4)

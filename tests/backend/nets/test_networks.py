@@ -69,10 +69,10 @@ def test_default_model_shapes():
     cfg = get_preset("default")
     g = cfg.geometry
     out = GenRe(cfg).eval()(torch.rand(2, 3, g.image_size, g.image_size))
-    assert out["depth"].shape == (2, 128, 128)
-    assert out["partial_sph"].shape == out["full_sph"].shape == (2, 64, 64)
-    assert out["vox_sph"].shape == out["vox_depth"].shape == out["logits"].shape == (2, 1, 64, 64, 64)
-    assert out["mask"].dtype == torch.bool
+    assert out.depth.shape == (2, 128, 128)
+    assert out.partial_sph.shape == out.full_sph.shape == (2, 64, 64)
+    assert out.vox_sph.shape == out.vox_depth.shape == out.logits.shape == (2, 1, 64, 64, 64)
+    assert out.mask.dtype == torch.bool
 
 
 def test_oracle_inputs_replace_network_outputs():
@@ -85,9 +85,9 @@ def test_oracle_inputs_replace_network_outputs():
     full = torch.full((1, g.sph_size, g.sph_size), 0.7)
     with torch.no_grad():
         out = model(torch.rand(1, 3, g.image_size, g.image_size), mask=mask, depth=depth, full_sph=full)
-    assert torch.equal(out["full_sph"], full)
-    assert torch.equal(out["masked_depth"][0, 40:80, 40:80], depth[0, 40:80, 40:80])
-    assert (out["masked_depth"][~mask] == 0).all()
+    assert torch.equal(out.full_sph, full)
+    assert torch.equal(out.masked_depth[0, 40:80, 40:80], depth[0, 40:80, 40:80])
+    assert (out.masked_depth[~mask] == 0).all()
 
 
 def test_keeping_the_seen_side_takes_the_partial_map_where_it_sees_and_the_net_elsewhere():
@@ -106,11 +106,11 @@ def test_keeping_the_seen_side_takes_the_partial_map_where_it_sees_and_the_net_e
     rgb = torch.rand(1, 3, g.image_size, g.image_size)
     with torch.no_grad():
         a, b = plain(rgb, mask=mask, depth=depth), keep(rgb, mask=mask, depth=depth)
-    seen = a["partial_sph"] < g.sph_nohit_min
+    seen = a.partial_sph < g.sph_nohit_min
     assert 50 < int(seen.sum()) < g.sph_size ** 2 // 2
-    assert torch.equal(b["full_sph"][seen], a["partial_sph"][seen])
-    assert torch.equal(b["full_sph"][~seen], a["full_sph"][~seen])
-    assert not torch.equal(a["full_sph"][seen], a["partial_sph"][seen])  # the net alone does not copy its input
+    assert torch.equal(b.full_sph[seen], a.partial_sph[seen])
+    assert torch.equal(b.full_sph[~seen], a.full_sph[~seen])
+    assert not torch.equal(a.full_sph[seen], a.partial_sph[seen])  # the net alone does not copy its input
 
 
 def test_weights_round_trip_and_bad_files(tmp_path):
@@ -164,10 +164,10 @@ def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
     rgb = torch.rand(1, 3, 128, 128)
     with torch.no_grad():
         a = model(rgb)
-        depth = loaded(rgb)["depth"]
-        full = loaded.inpaint_net(a["partial_sph"])  # each net on the float32 model's own inputs
-        logits = loaded.refine(a["vox_sph"], a["vox_depth"])
-    for got, want in ((depth, a["depth"]), (full, a["full_sph"]), (logits, a["logits"])):
+        depth = loaded(rgb).depth
+        full = loaded.inpaint_net(a.partial_sph)  # each net on the float32 model's own inputs
+        logits = loaded.refine(a.vox_sph, a.vox_depth)
+    for got, want in ((depth, a.depth), (full, a.full_sph), (logits, a.logits)):
         assert (got - want).abs().max() <= 1e-2 * want.abs().max(), (got - want).abs().max()
     # a statistic beyond float16's range (a refiner's running variance reached 6e7) survives the round trip
     bn = next(k for k in model.state_dict() if k.startswith("refiner") and k.endswith("running_var"))
@@ -420,9 +420,9 @@ def test_genre_forward_with_mirror_averages_the_view_and_its_mirror_image():
     plain = model(rgb, mask=mask)
     mirrored = model(rgb.flip(-1), mask=mask.flip(-1))
     both = model(rgb, mask=mask, mirror=True)
-    assert torch.allclose(both["logits"], mean_probability_logits(plain["logits"], mirror_voxels(mirrored["logits"])), atol=1e-5)
-    assert torch.equal(both["depth"], plain["depth"]) and torch.equal(both["full_sph"], plain["full_sph"])  # the view's own
-    assert not torch.allclose(both["logits"], plain["logits"], atol=1e-3)  # random nets are not symmetric
+    assert torch.allclose(both.logits, mean_probability_logits(plain.logits, mirror_voxels(mirrored.logits)), atol=1e-5)
+    assert torch.equal(both.depth, plain.depth) and torch.equal(both.full_sph, plain.full_sph)  # the view's own
+    assert not torch.allclose(both.logits, plain.logits, atol=1e-3)  # random nets are not symmetric
     from genre_backend.config import GeometryConfig
 
     for bad in (1, "yes"):

@@ -122,8 +122,8 @@ def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_on
     rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
     with torch.no_grad():
         expected = {
-            "GenRe": genre(rgb, mask=mask)["logits"],
-            "GenRe-Oracle": genre(rgb, mask=mask, depth=depth)["logits"],
+            "GenRe": genre(rgb, mask=mask).logits,
+            "GenRe-Oracle": genre(rgb, mask=mask, depth=depth).logits,
             "3D Completion": completion(rgb, mask=mask)["logits"],
             "3D Completion-Oracle": completion(rgb, mask=mask, depth=depth)["logits"],
         }
@@ -170,7 +170,7 @@ def test_weights_that_fuse_the_visible_surface_fill_every_depth_row_from_its_own
     mask, depth = sample["mask"], sample["depth"]
     true_depth = torch.where(mask, depth, torch.zeros_like(depth))
     with torch.no_grad():
-        own = {"GenRe": genre(sample["rgb"][None], mask=mask[None])["masked_depth"][0],
+        own = {"GenRe": genre(sample["rgb"][None], mask=mask[None]).masked_depth[0],
                "3D Completion": completion(sample["rgb"][None], mask=mask[None])["masked_depth"][0]}
     depths = {**own, "GenRe-Oracle": true_depth, "GenRe-SphOracle": true_depth, "3D Completion-Oracle": true_depth}
     level = geometry.default_threshold
@@ -573,9 +573,9 @@ def test_weights_that_mirror_average_every_learned_row_with_its_own_model(tiny):
     flip = {"rgb": rgb.flip(-1), "mask": mask.flip(-1), "depth": depth.flip(-1)}
     with torch.no_grad():
         pairs = {
-            "GenRe": (genre(rgb, mask=mask)["logits"], genre(flip["rgb"], mask=flip["mask"])["logits"]),
-            "GenRe-Oracle": (genre(rgb, mask=mask, depth=depth)["logits"],
-                             genre(flip["rgb"], mask=flip["mask"], depth=flip["depth"])["logits"]),
+            "GenRe": (genre(rgb, mask=mask).logits, genre(flip["rgb"], mask=flip["mask"]).logits),
+            "GenRe-Oracle": (genre(rgb, mask=mask, depth=depth).logits,
+                             genre(flip["rgb"], mask=flip["mask"], depth=flip["depth"]).logits),
             "3D Completion": (completion(rgb, mask=mask)["logits"], completion(flip["rgb"], mask=flip["mask"])["logits"]),
             "3D Completion-Oracle": (completion(rgb, mask=mask, depth=depth)["logits"],
                                      completion(flip["rgb"], mask=flip["mask"], depth=flip["depth"])["logits"]),

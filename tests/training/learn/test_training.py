@@ -59,14 +59,14 @@ def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
     model = GenRe(TINY)
     module = StageModule(model, "joint", 10.0).train()
     out = model(batch["rgb"], mask=batch["mask"])
-    loss3d, _ = module.voxel_loss(out["logits"], batch)
+    loss3d, _ = module.voxel_loss(out.logits, batch)
     loss3d.backward()
     grad = sum(p.grad.abs().sum() for p in model.depth_net.parameters() if p.grad is not None)
     assert grad > 0
     # and through the spherical path alone (depth → partial map → inpainting → full map)
     model.zero_grad()
     out = model(batch["rgb"], mask=batch["mask"])
-    out["full_sph"].sum().backward()
+    out.full_sph.sum().backward()
     assert sum(p.grad.abs().sum() for p in model.depth_net.parameters() if p.grad is not None) > 0
 
 

@@ -1,8 +1,8 @@
-"""What the networks make of one framed photo, and the view the steps after them read.
+"""What the networks make of a framed photo, and the view the steps after them read.
 
-:class:`NetOutputs` is the networks' outputs of one photo (:meth:`.reconstruct.Reconstructor.run`'s stages ``depth`` to
-``refine``), batches of one on the run's device; :class:`View` is the framed view the steps after the networks need
-(:meth:`.options.MeshOptions.shape_grid`, :meth:`~.options.MeshOptions.snap_mesh`): the mask, the masked depth and the
+:class:`NetOutputs` is every intermediate of the pipeline (:meth:`.model.GenRe.forward`; ``genre reconstruct``'s stages
+``depth`` to ``refine``); :class:`View` is the framed view the steps after the networks need
+(:meth:`genre_backend.inference.options.MeshOptions.shape_grid`, ``snap_mesh``): the mask, the masked depth and the
 camera.
 """
 
@@ -29,9 +29,10 @@ class View:
 
 @dataclass(frozen=True)
 class NetOutputs:
-    """The networks on one framed photo (S = image size, H = spherical map size, N = voxel grid size), batches of one:
-    ``depth`` (1, S, S), ``silhouette_logits`` (1, S, S), ``mask`` (1, S, S) bool, ``masked_depth`` (1, S, S),
-    ``partial_sph`` and ``full_sph`` (1, H, H), ``vox_sph``, ``vox_depth`` and ``logits`` (1, 1, N, N, N)."""
+    """The networks on a batch of B framed photos (S = image size, H = spherical map size, N = voxel grid size):
+    ``depth`` (B, S, S), ``silhouette_logits`` (B, S, S), ``mask`` (B, S, S) bool, ``masked_depth`` (B, S, S),
+    ``partial_sph`` and ``full_sph`` (B, H, H), ``vox_sph``, ``vox_depth`` and ``logits`` (B, 1, N, N, N).
+    :meth:`view` and :meth:`images` read the first photo of the batch."""
 
     depth: torch.Tensor
     silhouette_logits: torch.Tensor
@@ -44,11 +45,11 @@ class NetOutputs:
     logits: torch.Tensor
 
     def view(self, camera: CameraConfig) -> View:
-        """The mask and the masked depth (S, S), seen through ``camera``."""
+        """The first photo's mask and masked depth (S, S), seen through ``camera``."""
         return View(self.mask[0], self.masked_depth[0], camera)
 
     def images(self) -> dict[str, torch.Tensor]:
-        """Name → the output without its batch axis (and a grid's channel axis): (S, S), (H, H) or (N, N, N), as
-        :attr:`.result.Reconstruction.intermediates` keeps them."""
+        """Name → the first photo's output without its batch axis (and a grid's channel axis): (S, S), (H, H) or
+        (N, N, N), as ``Reconstruction.intermediates`` keeps them."""
         maps = ("depth", "silhouette_logits", "mask", "masked_depth", "partial_sph", "full_sph")
         return {**{k: getattr(self, k)[0] for k in maps}, **{k: getattr(self, k)[0, 0] for k in ("vox_sph", "vox_depth", "logits")}}
