@@ -42,7 +42,7 @@ import torch
 
 from genre_backend.config import GenreConfig
 from genre_backend.nets.outputs import View
-from genre_backend.inference.options import OPTIONS, MeshOptions
+from genre_backend.inference.options import BY_NAME, OPTIONS, MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
 from .protocol import REPRESENTATION, ROWS
@@ -114,7 +114,8 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
         swept = dataclasses.replace(opts, **{name: value})
         s = g if swept.test_time_mirror == mirror else m(rgb, mask=mask, mirror=swept.test_time_mirror)
         out[sweep_row(name, value)] = {"prob": torch.sigmoid(s.logits)[0, 0].cpu(), "depth": s.masked_depth[0].cpu(),
-                                       "options": swept}
+                                       "options": swept,  # and its surface made with the changed setting (hole_closing)
+                                       "geometry": dataclasses.replace(m.config.geometry, **{BY_NAME[name].weights: value})}
     pred_depth = g.masked_depth
     valid = mask & (depth > 0)
     err = float(((g.depth - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
@@ -145,11 +146,7 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     for row in out.values():  # the steps after the networks, genre reconstruct's own (options.py), every learned row alike
         if isinstance(row, dict) and "depth" in row:  # (the depth maps go either way: no row after this point carries one)
             view = View(mask[0], row.pop("depth"), camera)
-            o = row.pop("options", opts)
-            geometry = m.config.geometry
-            if o is not opts:  # a swept row: its surface is made with the changed setting too (hole_closing)
-                row["geometry"] = geometry = dataclasses.replace(geometry, **{
-                    spec.weights: getattr(o, spec.name) for spec in OPTIONS if spec.weights and spec.name in SWEEPABLE})
+            o, geometry = row.pop("options", opts), row.get("geometry", m.config.geometry)
             row["prob"] = o.shape_grid(row["prob"], view, geometry)
             if o.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
                 _, v, f, _ = o.mesh(row["prob"], geometry, clean=False)
