@@ -326,6 +326,14 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
         lr=5e-4, batch_size=4, total_steps=20_000, warmup_steps=200, reuse=2, buffer_steps=100, sph_teacher=0.1,
         bank_share=0.75,
     ),
+    BurstRecipe(
+        name="session-bank-ft",
+        description="session-bank as a fine-tune of the installed nets (--init default): lr 1.5e-4 with a 100-step "
+                    "warm-up and a cosine to 5 % over 8,000 steps (one session), so that the refiner the product "
+                    "ships keeps what it knows while it learns the installed depth net's errors from every angle",
+        lr=1.5e-4, batch_size=4, total_steps=8_000, warmup_steps=100, reuse=2, buffer_steps=100, sph_teacher=0.1,
+        bank_share=0.75,
+    ),
 )}
 
 
