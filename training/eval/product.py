@@ -41,7 +41,7 @@ from genre_backend.arguments import add_out
 from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key
 
-__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "curve_point", "fit_table", "main"]
+__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "rule_figures", "curve_point", "fit_table", "main"]
 
 PRIMITIVE_KINDS = ("cube", "cylinder", "cone", "torus")  # the issue's regular primitives
 GROUPS = ("all", "seen by protocol", "unseen by protocol", "procedural", "regular primitives")
@@ -162,6 +162,20 @@ def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: 
         ma, mb = _mean(cd_a[s] for s in ss), _mean(cd_b[s] for s in ss)
         lines.append(f"| {cls} | {groups[ss[0]][1]} | {len(ss)} | {ma:.3f} | {mb:.3f} | {ma / mb:.3f} |")
     return "\n".join(lines) + "\n"
+
+
+def rule_figures(installed_dir: Path, candidate_dir: Path, threshold: float | None = None, row: str = "GenRe") -> dict:
+    """The product rule's figures (``results/decisions.md``): the per-view mean CD of the installed weights' and a
+    candidate's ``genre eval`` folders over the views both hold, the change in percent, and on how many views the
+    candidate is lower, for ``row`` (e.g. GenRe-SphOracle).  Means over views, not over shapes (one view a shape on
+    the product test split)."""
+    a, b = (load_scores(d, row, threshold) for d in (installed_dir, candidate_dir))
+    keys = sorted(k for k in set(a) & set(b) if math.isfinite(a[k]["cd"]) and math.isfinite(b[k]["cd"]))
+    if not keys:
+        raise ValueError(f"{installed_dir} and {candidate_dir} share no scored view")
+    ma, mb = (float(np.mean([s[k]["cd"] for k in keys])) for s in (a, b))
+    return {"views": len(keys), "installed": ma, "candidate": mb, "change_percent": 100.0 * (mb / ma - 1.0),
+            "better": sum(b[k]["cd"] < a[k]["cd"] for k in keys)}
 
 
 def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
@@ -293,6 +307,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="a model's label and its genre eval folders on product-train and product-test views (repeatable)")
     f.add_argument("--threshold", type=float, help="score at this level (default: each folder's thresholds.json)")
     add_out(f, required=True, help="markdown file to write")
+    r = sub.add_parser("rule", help="the product rule's figures: per-view mean CD of a candidate against the installed "
+                                    "weights on the views both folders hold, the change and the views it is lower on")
+    r.add_argument("--installed", required=True, help="genre eval folder of the installed weights")
+    r.add_argument("--candidate", required=True, help="genre eval folder of the candidate (the same views)")
+    r.add_argument("--threshold", type=float, help="score both at this level (default: each folder's thresholds.json)")
+    r.add_argument("--row", default="GenRe", help="the row compared (default GenRe; e.g. GenRe-SphOracle)")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
@@ -315,6 +335,10 @@ def main(argv: list[str] | None = None) -> int:
                                  thresholds=(args.threshold, args.threshold), product_row=args.product_row)
             atomic_write_text(Path(args.out), text)
             print(text)
+        elif args.cmd == "rule":
+            f = rule_figures(Path(args.installed), Path(args.candidate), args.threshold, args.row)
+            print(f"{f['views']} views: candidate {f['candidate']:.5f} against installed {f['installed']:.5f} "
+                  f"({f['change_percent']:+.2f} %), lower on {f['better']}")
         elif args.cmd == "fit":
             text = fit_table([(label, Path(tr), Path(te)) for label, tr, te in args.model], args.threshold)
             atomic_write_text(Path(args.out), text)

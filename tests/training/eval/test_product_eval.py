@@ -133,3 +133,19 @@ def test_fit_table_puts_training_views_beside_the_test_split(tmp_path):
     out = tmp_path / "fit.md"
     assert product.main(["fit", "--model", "installed", str(train), str(test), "--out", str(out)]) == 0
     assert out.read_text() == text
+
+
+def test_rule_figures_are_per_view_means_over_the_shared_views(tmp_path, capsys):
+    a = _eval_dir(tmp_path / "a", 0.45, _rows({"plane": [0.10, 0.20], "lamp": [0.11], "procedural-primitive-000": [0.04],
+                                               "procedural-lathe-000": [0.10]}))
+    b_rows = _rows({"plane": [0.16, 0.14], "lamp": [0.24], "procedural-primitive-000": [0.09], "procedural-lathe-000": [0.10]})
+    b = _eval_dir(tmp_path / "b", 0.45, [r for r in b_rows if r[1] != "lamp"])  # the candidate lacks the lamp's view
+    f = product.rule_figures(a, b)
+    # shared views: plane/000, plane/001, primitive, lathe; installed (0.10 + 0.20 + 0.04 + 0.10) / 4 = 0.11,
+    # candidate (0.16 + 0.14 + 0.09 + 0.10) / 4 = 0.1225; lower only on plane/001
+    assert f["views"] == 4 and f["better"] == 1
+    assert f["installed"] == pytest.approx(0.11) and f["candidate"] == pytest.approx(0.1225)
+    assert f["change_percent"] == pytest.approx(100 * (0.1225 / 0.11 - 1))
+    assert product.main(["rule", "--installed", str(a), "--candidate", str(b)]) == 0
+    assert capsys.readouterr().out.strip() == "4 views: candidate 0.12250 against installed 0.11000 (+11.36 %), lower on 1"
+    assert product.rule_figures(a, b, threshold=0.50)["installed"] == pytest.approx(9.0)  # read at the level given
