@@ -24,7 +24,7 @@ from genre_backend.inference.options import BY_NAME, MeshOptions, OptionError
 from genre_backend.nets.model import WeightsError, load_model
 from genre_backend.arguments import add_device, add_jobs, add_out, add_weights
 
-from .protocol import GROUPS, ROWS, find_eval_views
+from .protocol import DIAGNOSTIC_ROWS, GROUPS, ROWS, find_eval_views
 from .rows import SWEEPABLE, Models
 from .runner import ModelSpec, evaluate_views
 from .statistics import CLOSED_SHARE, aggregate, choose_thresholds
@@ -81,7 +81,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--manifest", help="manifest JSON for classes and splits (default $GENRE_HOME/corpus/manifest.json if present)")
     add_out(p, help="results folder (default $GENRE_HOME/results/<run name>; results/ in the repository holds the committed ones)")
     p.add_argument("--groups", default="test,unseen,unseen-pix3d", help="groups to evaluate: test (seen-test), unseen, unseen-pix3d (Table 1, the default); product-test (the product model's test split); flat-from-above (genre data flat-test's shapes)")
-    p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}")
+    p.add_argument("--rows", help=f"comma-separated rows (default all): {', '.join(ROWS)}; "
+                   f"diagnostics, only when named: {', '.join(DIAGNOSTIC_ROWS)}")
     p.add_argument("--sweep", action="append", default=[], metavar="OPTION=V1,V2",
                    help=f"score GenRe again with one mesh option at each value (rows 'GenRe [OPTION=V]', the networks run "
                         f"once; the others at the weights' setting); repeatable; options: {', '.join(SWEEPABLE)}; "
@@ -118,9 +119,9 @@ class _Refused(Exception):
 def _rows_and_groups(args: argparse.Namespace) -> tuple[list[str], tuple[str, ...]]:
     """The rows and view groups asked for, checked; the GenRe weights resolved (``--weights protocol`` → a file)."""
     rows_wanted = [r.strip() for r in args.rows.split(",")] if args.rows else list(ROWS)
-    unknown = [r for r in rows_wanted if r not in ROWS]
+    unknown = [r for r in rows_wanted if r not in ROWS + DIAGNOSTIC_ROWS]
     if unknown:
-        raise _Refused(f"--rows: unknown {unknown}; choose from {list(ROWS)}")
+        raise _Refused(f"--rows: unknown {unknown}; choose from {list(ROWS + DIAGNOSTIC_ROWS)}")
     groups = tuple(g.strip() for g in args.groups.split(","))
     if any(g not in GROUPS for g in groups):
         raise _Refused(f"--groups: choose from {list(GROUPS)}")

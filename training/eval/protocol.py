@@ -15,11 +15,15 @@ from pathlib import Path
 
 from ..data.views import manifest_index
 
-__all__ = ['BASE_COLUMNS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'REPRESENTATION', 'ROWS', 'find_eval_views', 'sample_seen_test_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
+__all__ = ['BASE_COLUMNS', 'DIAGNOSTIC_ROWS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'REPRESENTATION', 'ROWS', 'find_eval_views', 'sample_seen_test_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
 
 
 ROWS = ("GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle", "GenRe-1step", "Nearest training shape",
         "Truth through the representation")
+# diagnostic rows, produced only when --rows names them: the depth net's error split in two. GenRe's predicted depth
+# moved along the view by the median of (true - predicted) over the mask (its relief at the true offset), and the
+# true depth moved by the median of (predicted - true) (the true relief at the predicted offset)
+DIAGNOSTIC_ROWS = ("GenRe-OffsetOracle", "GenRe-ReliefOracle")
 REPRESENTATION = "Truth through the representation"  # the true voxel target → marching cubes: the best a refiner can do
 
 

@@ -45,7 +45,7 @@ from genre_backend.nets.outputs import View
 from genre_backend.inference.options import BY_NAME, OPTIONS, MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
-from .protocol import REPRESENTATION, ROWS
+from .protocol import DIAGNOSTIC_ROWS, REPRESENTATION, ROWS
 
 __all__ = ['Models', 'predict', 'sweep_row', 'SWEEPABLE']
 
@@ -58,6 +58,17 @@ def sweep_row(name: str, value: Any) -> str:
     """The row name of GenRe with mesh option ``name`` set to ``value`` (``genre eval --sweep``)."""
     shown = ("on" if value else "off") if isinstance(value, bool) else f"{value:g}" if isinstance(value, float) else str(value)
     return f"GenRe [{name}={shown}]"
+
+
+def median_offset(target: torch.Tensor, moved: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """The median of ``target - moved`` over ``valid``, per batch item, shaped to broadcast over ``moved`` (0 where
+    nothing is valid): the shift along the view that puts ``moved`` at ``target``'s offset."""
+    out = torch.zeros(moved.shape[0], dtype=moved.dtype, device=moved.device)
+    for i in range(moved.shape[0]):
+        diff = (target[i] - moved[i])[valid[i]]
+        if diff.numel():
+            out[i] = diff.median()
+    return out.view(-1, *([1] * (moved.dim() - 1)))
 
 
 @dataclass
@@ -75,7 +86,7 @@ class Models:
         return self.genre.config
 
     def rows(self) -> list[str]:
-        rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle"]
+        rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", *DIAGNOSTIC_ROWS]
         if self.completion is not None:
             rows += ["3D Completion", "3D Completion-Oracle"]
         if self.onestep is not None:
@@ -122,6 +133,12 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     out["depth_abs_err"] = err
     if "GenRe-Oracle" in models.wanted:
         out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, mirror=mirror).logits)[0, 0].cpu(), "depth": true_depth}
+    for name, moved in (("GenRe-OffsetOracle", g.depth), ("GenRe-ReliefOracle", depth)):
+        if name in models.wanted:  # one depth map moved along the view to the other's median offset over the mask
+            other = depth if moved is g.depth else g.depth
+            shifted = moved + median_offset(other, moved, valid)
+            out[name] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=shifted, mirror=mirror).logits)[0, 0].cpu(),
+                         "depth": torch.where(mask, shifted, torch.zeros_like(shifted))[0].cpu()}
     if "GenRe-SphOracle" in models.wanted:
         out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror).logits)[0, 0].cpu(),
                                   "depth": true_depth}

@@ -133,6 +133,45 @@ def test_the_oracle_rows_feed_the_true_depth_and_the_plain_rows_the_predicted_on
     assert not torch.allclose(out["3D Completion-Oracle"]["prob"], out["3D Completion"]["prob"])
 
 
+def test_median_offset_moves_one_depth_map_to_the_others_offset_over_the_mask():
+    from training.eval.rows import median_offset
+
+    g = torch.Generator().manual_seed(0)
+    relief = torch.rand(2, 8, 8, generator=g)
+    valid = torch.zeros(2, 8, 8, dtype=torch.bool)
+    valid[0, 2:6, 2:6] = True  # the second item has nothing valid: no shift
+    target = relief + torch.tensor([0.37, -1.0]).view(2, 1, 1)
+    target[0, 0, 0] = 50.0  # outside the mask: ignored
+    shift = median_offset(target, relief, valid)
+    assert shift.shape == (2, 1, 1)
+    assert shift[0].item() == pytest.approx(0.37, abs=1e-6) and shift[1].item() == 0.0
+    # the median, not the mean: one outlier inside the mask does not move it
+    target[0, 3, 3] = 100.0
+    assert median_offset(target, relief, valid)[0].item() == pytest.approx(0.37, abs=1e-6)
+
+
+def test_the_offset_and_relief_oracles_feed_one_depth_map_at_the_others_offset(tiny):
+    from training.eval.protocol import DIAGNOSTIC_ROWS
+    from training.eval.rows import Models, predict
+
+    genre, _, sample = _tiny_genre_completion_and_a_view(tiny)
+    out = predict(Models(genre, wanted=("GenRe", *DIAGNOSTIC_ROWS)), sample, "cpu")
+    rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
+    valid = mask & (depth > 0)
+    with torch.no_grad():
+        pred = genre(rgb, mask=mask).depth
+    own_offset = (depth - pred)[valid].median()
+    moved_pred = pred + own_offset  # the depth net's relief where the truth is
+    moved_true = depth - own_offset  # the true relief where the depth net put it
+    with torch.no_grad():
+        for row, d in (("GenRe-OffsetOracle", moved_pred), ("GenRe-ReliefOracle", moved_true)):
+            assert torch.allclose(out[row]["prob"], torch.sigmoid(genre(rgb, mask=mask, depth=d).logits)[0, 0], atol=1e-6), row
+    # the two are other inputs than the plain row's (the tiny net's offset is not the truth's)
+    assert not torch.allclose(out["GenRe-OffsetOracle"]["prob"], out["GenRe"]["prob"])
+    # diagnostics are produced only when named
+    assert not set(DIAGNOSTIC_ROWS) & set(predict(Models(genre, wanted=("GenRe",)), sample, "cpu"))
+
+
 def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_not_the_truth(tiny):
     import dataclasses
 
