@@ -174,10 +174,10 @@ def mesh_to_distance(vertices: torch.Tensor, faces: torch.Tensor, resolution: in
     at each voxel centre, ``d`` its exact distance to the nearest triangle and
     ``h = 1/N``; 0 beyond ``band`` voxels.  ``surface``: the mesh's surface
     voxels if already known (:func:`mesh_to_surface_voxels`); only the voxels
-    near them are measured.
+    near them are measured.  libigl's AABB tree (a training extra) measures them where it is installed; else the
+    exact pair tests of :func:`~genre_backend.geometry.triangle_distance.near_surface_distance` (the slim runtime:
+    its pit sealing needs this, on a few voxels).
     """
-    import igl
-
     _check_mesh(vertices, faces)
     check_positive_int("resolution", resolution)
     if not (np.isfinite(band) and band > 0):
@@ -192,9 +192,18 @@ def mesh_to_distance(vertices: torch.Tensor, faces: torch.Tensor, resolution: in
     if len(idx) == 0:
         return torch.from_numpy(out)
     centres = grid_index_to_view(idx.astype(np.float64), n)
-    sq, _, _ = igl.point_mesh_squared_distance(centres, vertices.detach().cpu().numpy().astype(np.float64),
-                                               faces.detach().cpu().numpy().astype(np.int64))
-    out[tuple(idx.T)] = np.clip(1.0 - np.sqrt(np.maximum(sq, 0.0)) * n / band, 0.0, 1.0)
+    verts = vertices.detach().cpu().numpy().astype(np.float64)
+    tris = faces.detach().cpu().numpy().astype(np.int64)
+    try:
+        import igl
+    except ImportError:
+        from .triangle_distance import near_surface_distance
+
+        dist = near_surface_distance(torch.from_numpy(centres), torch.from_numpy(verts[tris]), band / n).numpy()
+    else:
+        sq, _, _ = igl.point_mesh_squared_distance(centres, verts, tris)
+        dist = np.sqrt(np.maximum(sq, 0.0))
+    out[tuple(idx.T)] = np.clip(1.0 - dist * n / band, 0.0, 1.0)
     return torch.from_numpy(out)
 
 
