@@ -167,16 +167,17 @@ def band_voxels(surface: torch.Tensor, band: float) -> torch.Tensor:
 
 
 def mesh_to_distance(vertices: torch.Tensor, faces: torch.Tensor, resolution: int, band: float,
-                     surface: torch.Tensor | None = None) -> torch.Tensor:
+                     surface: torch.Tensor | None = None, tree: bool = True) -> torch.Tensor:
     """Truncated unsigned distance target (N, N, N) float32 of a view-frame mesh.
 
     vertices: (V, 3) float; faces: (F, 3) int.  Value ``clip(1 − d/(band·h), 0, 1)``
     at each voxel centre, ``d`` its exact distance to the nearest triangle and
     ``h = 1/N``; 0 beyond ``band`` voxels.  ``surface``: the mesh's surface
     voxels if already known (:func:`mesh_to_surface_voxels`); only the voxels
-    near them are measured.  libigl's AABB tree (a training extra) measures them where it is installed; else the
-    exact pair tests of :func:`~genre_backend.geometry.triangle_distance.near_surface_distance` (the slim runtime:
-    its pit sealing needs this, on a few voxels).
+    near them are measured.  With ``tree``, libigl's AABB tree (a training extra) measures them where it is
+    installed; else (and without libigl) the exact pair tests of
+    :func:`~genre_backend.geometry.triangle_distance.near_surface_distance`, which the runtime's mesh stages use
+    (pit sealing measures a few voxels), so that ``genre reconstruct`` needs no training extra.
     """
     _check_mesh(vertices, faces)
     check_positive_int("resolution", resolution)
@@ -195,6 +196,8 @@ def mesh_to_distance(vertices: torch.Tensor, faces: torch.Tensor, resolution: in
     verts = vertices.detach().cpu().numpy().astype(np.float64)
     tris = faces.detach().cpu().numpy().astype(np.int64)
     try:
+        if not tree:
+            raise ImportError("the pair tests asked for")
         import igl
     except ImportError:
         from .triangle_distance import near_surface_distance

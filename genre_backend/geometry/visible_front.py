@@ -41,7 +41,7 @@ def depth_to_distance(depth: torch.Tensor, camera, geometry, mask: torch.Tensor 
         return torch.zeros((n, n, n), dtype=torch.float32)
     vertices = tris.reshape(-1, 3).double()
     faces = torch.arange(len(vertices), dtype=torch.int64).reshape(-1, 3)
-    return mesh_to_distance(vertices, faces, n, geometry.distance_band)
+    return mesh_to_distance(vertices, faces, n, geometry.distance_band, tree=False)  # the runtime's: no libigl
 
 
 def fuse_visible_surface(prob: torch.Tensor, depth: torch.Tensor, camera, geometry, level: float,

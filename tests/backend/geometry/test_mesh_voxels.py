@@ -102,6 +102,15 @@ def distance_way(request, monkeypatch):
     return request.param
 
 
+def test_the_pair_tests_asked_for_match_the_tree():
+    from genre_backend.geometry.mesh_voxels import mesh_to_distance
+
+    mesh = trimesh.creation.annulus(r_min=0.12, r_max=0.3, height=0.15, sections=24)
+    v, f = torch.tensor(mesh.vertices), torch.tensor(mesh.faces)
+    tree, pairs = mesh_to_distance(v, f, 24, 2.0), mesh_to_distance(v, f, 24, 2.0, tree=False)
+    assert (tree > 0).sum() > 500 and torch.allclose(tree, pairs, atol=1e-5)
+
+
 def test_distance_target_of_a_sphere_is_the_analytic_distance(distance_way):
     from genre_backend.geometry.mesh_voxels import mesh_to_distance
 

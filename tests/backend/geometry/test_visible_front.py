@@ -101,7 +101,11 @@ def test_a_pit_in_the_front_is_filled_where_the_depth_map_says_and_an_offset_dep
 
 
 @pytest.mark.slow
-def test_sealing_pits_fills_a_narrow_well_in_the_front_with_the_front_around_it_and_nothing_else():
+def test_sealing_pits_fills_a_narrow_well_in_the_front_with_the_front_around_it_and_nothing_else(monkeypatch):
+    """(Without libigl, as in the slim runtime: the mesh stages measure with the pair tests.)"""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "igl", None)  # import igl raises ImportError
     from genre_backend.geometry.visible_front import PIT_MIN_DEPTH_VOXELS, seal_pits
     from genre_backend.geometry.voxels import ray_first_hit
 
