@@ -166,6 +166,15 @@ def band_voxels(surface: torch.Tensor, band: float) -> torch.Tensor:
     return dilate(surface, int(np.floor(band + 0.5)) + 1)
 
 
+def _libigl():
+    """libigl (a training extra), or None where it is not installed."""
+    try:
+        import igl
+    except ImportError:
+        return None
+    return igl
+
+
 def mesh_to_distance(vertices: torch.Tensor, faces: torch.Tensor, resolution: int, band: float,
                      surface: torch.Tensor | None = None, tree: bool = True) -> torch.Tensor:
     """Truncated unsigned distance target (N, N, N) float32 of a view-frame mesh.
@@ -195,11 +204,8 @@ def mesh_to_distance(vertices: torch.Tensor, faces: torch.Tensor, resolution: in
     centres = grid_index_to_view(idx.astype(np.float64), n)
     verts = vertices.detach().cpu().numpy().astype(np.float64)
     tris = faces.detach().cpu().numpy().astype(np.int64)
-    try:
-        if not tree:
-            raise ImportError("the pair tests asked for")
-        import igl
-    except ImportError:
+    igl = _libigl() if tree else None
+    if igl is None:
         from .triangle_distance import near_surface_distance
 
         dist = near_surface_distance(torch.from_numpy(centres), torch.from_numpy(verts[tris]), band / n).numpy()
