@@ -25,6 +25,10 @@ shipped weights (or ``--weights``):
   of ``genre_backend/frame.py``) next to our judgement of the true ratio
   (``truth.json`` beside the photos: ``{"NAME": {"depth_over_width": r,
   "why": "..."}}``);
+* the **flatness** of that mesh: its depth ÷ width along its own thinnest principal axis
+  (:func:`genre_backend.geometry.metrics.thinnest_depth_over_width`, frame-free: a plate seen from
+  above should read about 0.1 whatever the camera's elevation) next to our judgement
+  (``"thinnest_depth_over_width"`` in ``truth.json``, given for the flat things);
 * the **tilt** of the reconstructed vertical axis: of the three principal
   axes of the mesh's surface (1,000 area-uniform points), the one closest to
   the view's up (+y), turned so that it points up; tilt = its angle from +y
@@ -90,6 +94,17 @@ def side_ratio(vertices: np.ndarray) -> float:
     """Extent along the view's z over extent along its x of (V, 3) view-frame vertices."""
     ext = vertices.max(axis=0) - vertices.min(axis=0)
     return float(ext[2] / max(ext[0], 1e-9))
+
+
+def flatness(vertices: np.ndarray, faces: np.ndarray, points: int = 4000) -> float:
+    """Depth ÷ width of the mesh's area-uniform surface points along their thinnest principal axis."""
+    import torch
+    import trimesh
+
+    from genre_backend.geometry.metrics import thinnest_depth_over_width
+
+    pts, _ = trimesh.sample.sample_surface(trimesh.Trimesh(vertices=vertices, faces=faces, process=False), points, seed=0)
+    return thinnest_depth_over_width(torch.from_numpy(pts))
 
 
 def tilt(vertices: np.ndarray, faces: np.ndarray, points: int = 1000) -> tuple[float, float, bool]:
@@ -231,6 +246,8 @@ def main(argv: list[str] | None = None) -> int:
             "warning_before": before.mask_warning,
             "ratio": side_ratio(hand.vertices),
             "true_ratio": float(truth.get(name, {}).get("depth_over_width", float("nan"))),
+            "flat": flatness(hand.vertices, hand.faces),
+            "true_flat": float(truth.get(name, {}).get("thinnest_depth_over_width", float("nan"))),
             "tilt": tilt_deg,
             "roll": roll_deg,
             "tilt_defined": defined,
@@ -249,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
               + "".join(f" {s} {row[f'iou_{s}']:.3f}" for s in (*SEEDINGS, "auto*") if f"iou_{s}" in row)
               + f" | cover {row['cover_before']:.2f}→{row['cover_after']:.2f}{' DOUBTFUL' if row['warning'] else ''}"
               + f" | depth/width {row['ratio']:.2f} (true ~{row['true_ratio']:.2f})"
+              + f" | flat {row['flat']:.2f} (true ~{row['true_flat']:.2f})"
               + f" | tilt {row['tilt']:+.0f}° roll {row['roll']:+.0f}°{'' if defined else ' ~'}"
               + f" | parts hand {row['parts_hand']} ({row['parts_hand_before']}) auto {row['parts_auto']} ({row['parts_auto_before']})"
               + f" ({time.perf_counter() - t0:.1f} s)", flush=True)
@@ -268,13 +286,13 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     seed_cols = [s for s in (*SEEDINGS, "auto*") if f"iou_{s}" in rows[0]]
     header = ["photo", "IoU before (net)", "IoU after (GrabCut)", *(f"IoU {s}" for s in seed_cols), "cover before", "cover after", "doubtful after",
-              "depth/width (hand mask)", "judged true", "tilt°", "roll°", "parts (hand mask)", "parts (auto mask)"]
+              "depth/width (hand mask)", "judged true", "thinnest depth/width", "judged true", "tilt°", "roll°", "parts (hand mask)", "parts (auto mask)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     table = []
     for r in rows:
         cells = [r["name"], f"{r['iou_before']:.3f}", f"{r['iou_after']:.3f}", *(f"{r[f'iou_{s}']:.3f}" for s in seed_cols),
                  f"{r['cover_before']:.2f}", f"{r['cover_after']:.2f}", "yes" if r["warning"] else "no",
-                 f"{r['ratio']:.2f}", f"{r['true_ratio']:.2f}", f"{r['tilt']:+.0f}{'' if r['tilt_defined'] else ' ~'}", f"{r['roll']:+.0f}",
+                 f"{r['ratio']:.2f}", f"{r['true_ratio']:.2f}", f"{r['flat']:.2f}", f"{r['true_flat']:.2f}", f"{r['tilt']:+.0f}{'' if r['tilt_defined'] else ' ~'}", f"{r['roll']:+.0f}",
                  f"{r['parts_hand']} ({r['parts_hand_before']})", f"{r['parts_auto']} ({r['parts_auto_before']})"]
         table.append(cells)
         lines.append("| " + " | ".join(cells) + " |")
@@ -283,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
         f"# GenRe on {len(rows)} real photos (`scripts/eval_photos.py`, weights `{args.weights.name}`)",
         "",
         "IoU of the automatic mask (no user mask) against the hand mask at the photo's pixels; cover = fraction of the photo the automatic mask covers; "
-        "depth/width = the side-view ratio of the mesh made with the hand mask; tilt / roll = angle of its principal axis nearest the view's up from +y, "
+        "depth/width = the side-view ratio of the mesh made with the hand mask; thinnest depth/width = its depth over width along its thinnest principal axis (a plate: ~0.1); tilt / roll = angle of its principal axis nearest the view's up from +y, "
         "seen from the side (+ = top toward the camera) / from the camera (+ = top to the right), ~ = ill-defined (round object); parts after clean-up (before it).",
         "",
         *lines,

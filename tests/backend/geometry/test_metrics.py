@@ -9,6 +9,7 @@ from genre_backend.geometry.metrics import (
     chamfer_distance,
     chamfer_distance_reference,
     depth_over_width,
+    thinnest_depth_over_width,
     mesh_chamfer,
     normalize_points,
     sample_surface,
@@ -110,6 +111,20 @@ def test_depth_over_width_of_boxes_and_a_sphere():
     assert depth_over_width(sphere, torch.tensor([0.3, -0.2, 0.9])) == pytest.approx(1.0, rel=0.03)
     with pytest.raises(ValueError, match="zero width"):
         depth_over_width(torch.zeros(10, 3), torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_thinnest_depth_over_width_finds_the_flat_axis_in_any_pose():
+    """A disc 1 across and 0.1 thick reads 0.1 however it is turned (its up unknown); the card, its height over
+    its diagonal; a sphere, 1; and a rod 1 x 0.2 x 0.1, its thinnest side over the diagonal of the other two."""
+    rot = _random_rotation(7)
+    disc = trimesh.creation.cylinder(radius=0.5, height=0.1, sections=128)
+    card = trimesh.creation.box(extents=(0.8, 0.6, 0.08))
+    rod = trimesh.creation.box(extents=(1.0, 0.2, 0.1))
+    for mesh, want, rel in ((disc, 0.1, 0.04), (card, 0.08, 0.04), (rod, 0.1 / np.hypot(1.0, 0.2), 0.04)):
+        pts = torch.from_numpy(trimesh.sample.sample_surface(mesh, 20000, seed=3)[0]) @ rot.T
+        assert thinnest_depth_over_width(pts) == pytest.approx(want, rel=rel)
+    sphere = torch.from_numpy(trimesh.sample.sample_surface(trimesh.creation.icosphere(4), 20000, seed=2)[0])
+    assert thinnest_depth_over_width(sphere) == pytest.approx(1.0, rel=0.04)
 
 
 def test_cloud_scorer_reports_depth_over_width_with_an_up():
