@@ -164,12 +164,15 @@ def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: 
     return "\n".join(lines) + "\n"
 
 
-def rule_figures(installed_dir: Path, candidate_dir: Path, threshold: float | None = None, row: str = "GenRe") -> dict:
+def rule_figures(installed_dir: Path, candidate_dir: Path, threshold: float | None = None, row: str = "GenRe",
+                 candidate_row: str | None = None) -> dict:
     """The product rule's figures (``results/decisions.md``): the per-view mean CD of the installed weights' and a
     candidate's ``genre eval`` folders over the views both hold, the change in percent, and on how many views the
     candidate is lower, for ``row`` (e.g. GenRe-SphOracle).  Means over views, not over shapes (one view a shape on
-    the product test split)."""
-    a, b = (load_scores(d, row, threshold) for d in (installed_dir, candidate_dir))
+    the product test split).  ``candidate_row``: the candidate's row when it is another (default ``row``): its
+    weights with a mesh option its rule changes, ``GenRe [visible_fusion=on]`` of ``genre eval --sweep``."""
+    a = load_scores(installed_dir, row, threshold)
+    b = load_scores(candidate_dir, candidate_row or row, threshold)
     keys = sorted(k for k in set(a) & set(b) if math.isfinite(a[k]["cd"]) and math.isfinite(b[k]["cd"]))
     if not keys:
         raise ValueError(f"{installed_dir} and {candidate_dir} share no scored view")
@@ -313,6 +316,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--candidate", required=True, help="genre eval folder of the candidate (the same views)")
     r.add_argument("--threshold", type=float, help="score both at this level (default: each folder's thresholds.json)")
     r.add_argument("--row", default="GenRe", help="the row compared (default GenRe; e.g. GenRe-SphOracle)")
+    r.add_argument("--candidate-row", help="the candidate's row when it is another (e.g. 'GenRe [visible_fusion=on]' "
+                   "of 'genre eval --sweep visible_fusion=on'); default --row")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
@@ -336,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
             atomic_write_text(Path(args.out), text)
             print(text)
         elif args.cmd == "rule":
-            f = rule_figures(Path(args.installed), Path(args.candidate), args.threshold, args.row)
+            f = rule_figures(Path(args.installed), Path(args.candidate), args.threshold, args.row, args.candidate_row)
             print(f"{f['views']} views: candidate {f['candidate']:.5f} against installed {f['installed']:.5f} "
                   f"({f['change_percent']:+.2f} %), lower on {f['better']}")
         elif args.cmd == "fit":

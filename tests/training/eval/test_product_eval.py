@@ -149,3 +149,10 @@ def test_rule_figures_are_per_view_means_over_the_shared_views(tmp_path, capsys)
     assert product.main(["rule", "--installed", str(a), "--candidate", str(b)]) == 0
     assert capsys.readouterr().out.strip() == "4 views: candidate 0.12250 against installed 0.11000 (+11.36 %), lower on 1"
     assert product.rule_figures(a, b, threshold=0.50)["installed"] == pytest.approx(9.0)  # read at the level given
+    # the candidate's own row named apart (a swept mesh option): read from the candidate only
+    swept = [(k, sh, c, "GenRe [visible_fusion=on]", cd / 2) for k, sh, c, row, cd in b_rows if row == "GenRe"]
+    c = _eval_dir(tmp_path / "c", 0.45, b_rows + swept)
+    g = product.rule_figures(a, c, threshold=0.45, candidate_row="GenRe [visible_fusion=on]")
+    assert g["views"] == 5 and g["candidate"] == pytest.approx((0.16 + 0.14 + 0.24 + 0.09 + 0.10) / 10)
+    with pytest.raises(ValueError):
+        product.rule_figures(c, a, threshold=0.45, candidate_row="GenRe [visible_fusion=on]")  # the installed lacks it
