@@ -154,5 +154,5 @@ def test_rule_figures_are_per_view_means_over_the_shared_views(tmp_path, capsys)
     c = _eval_dir(tmp_path / "c", 0.45, b_rows + swept)
     g = product.rule_figures(a, c, threshold=0.45, candidate_row="GenRe [visible_fusion=on]")
     assert g["views"] == 5 and g["candidate"] == pytest.approx((0.16 + 0.14 + 0.24 + 0.09 + 0.10) / 10)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="share no scored view"):
         product.rule_figures(c, a, threshold=0.45, candidate_row="GenRe [visible_fusion=on]")  # the installed lacks it
