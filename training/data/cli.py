@@ -169,6 +169,10 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                                          "(training/data/sources/thin.py; in no training set): OUT/manifest.json + meshes")
     add_out(p, required=True, help="output folder")
     p.add_argument("--per-kind", type=int, default=6, help="shapes of each flat kind (plate, card, book, leaf; default 6)")
+    p = sub.add_parser("thin", parents=[common], help="the pack's thin shapes (plates, cards, books, leaves, bowls, rods) lying on "
+                       "the ground, for rendering training views (training/data/sources/thin.py): OUT/manifest.json + meshes")
+    add_out(p, required=True, help="output folder")
+    p.add_argument("--per-kind", type=int, default=40, help="shapes of each thin kind (default 40, as genre data pack --thin)")
     sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/cli.py)")
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")
     sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/data/show.py)")
@@ -280,32 +284,47 @@ def _from_manifest(args: argparse.Namespace, prog: str) -> int:
     return 0
 
 
-def _flat_test(args: argparse.Namespace, prog: str) -> int:
-    """``genre data flat-test``: the flat-from-above eval shapes as GLB files and a manifest (split ``flat-test``)."""
+def _write_shapes(out: Path, entries: list[tuple[str, str, object]], split: str, groups: list[str], seed: int) -> None:
+    """Each ``(id, class, trimesh)`` as OUT/shapes/ID.glb, and OUT/manifest.json naming them (the renderer's input)."""
     from genre_backend.atomic import atomic_write_json
 
+    (out / "shapes").mkdir(parents=True, exist_ok=True)
+    rows = []
+    for sid, cls, mesh in entries:
+        mesh.export(out / "shapes" / f"{sid}.glb")
+        rows.append({"id": sid, "class": cls, "split": split, "groups": groups, "mesh": f"shapes/{sid}.glb",
+                     "source": "procedural-thin", "licence": "CC0", "extents": [round(float(e), 6) for e in mesh.extents]})
+    atomic_write_json(out / "manifest.json", {"seed": seed, "shapes": rows})
+
+
+def _flat_test(args: argparse.Namespace, prog: str) -> int:
+    """``genre data flat-test``: the flat-from-above eval shapes as GLB files and a manifest (split ``flat-test``)."""
     from .sources.thin import FLAT_KINDS, FLAT_TEST_SEED, flat_test_shape
 
     if not 1 <= args.per_kind <= 100:
         print(f"{prog}: --per-kind must be in 1..100, got {args.per_kind}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    (out / "shapes").mkdir(parents=True, exist_ok=True)
-    entries = []
-    for kind in FLAT_KINDS:
-        for k in range(args.per_kind):
-            sid, cls, mesh = flat_test_shape(kind, k)
-            mesh.export(out / "shapes" / f"{sid}.glb")
-            entries.append({"id": sid, "class": cls, "split": "flat-test", "groups": ["flat-from-above"],
-                            "mesh": f"shapes/{sid}.glb", "source": "procedural-thin", "licence": "CC0",
-                            "extents": [round(float(e), 6) for e in mesh.extents]})
-    atomic_write_json(out / "manifest.json", {"seed": FLAT_TEST_SEED, "shapes": entries})
-    print(f"{prog}: {len(entries)} flat shapes lying on the ground plane in {out}")
+    entries = [flat_test_shape(kind, k) for kind in FLAT_KINDS for k in range(args.per_kind)]
+    _write_shapes(Path(args.out), entries, "flat-test", ["flat-from-above"], FLAT_TEST_SEED)
+    print(f"{prog}: {len(entries)} flat shapes lying on the ground plane in {args.out}")
+    return 0
+
+
+def _thin(args: argparse.Namespace, prog: str) -> int:
+    """``genre data thin``: the pack's thin shapes (seed 0) lying on the ground, split ``product-train``, to render."""
+    from .sources.thin import KINDS, lying_thin_shape
+
+    if not 1 <= args.per_kind <= 1000:
+        print(f"{prog}: --per-kind must be in 1..1000, got {args.per_kind}", file=sys.stderr)
+        return 2
+    entries = [lying_thin_shape(kind, k) for kind in KINDS for k in range(args.per_kind)]
+    _write_shapes(Path(args.out), entries, "product-train", ["thin"], 0)
+    print(f"{prog}: {len(entries)} thin training shapes lying on the ground plane in {args.out}")
     return 0
 
 
 _COMMANDS = {"fetch": _fetch, "backgrounds": _backgrounds, "build": _build, "stats": _from_manifest,
-             "credits": _from_manifest, "flat-test": _flat_test}
+             "credits": _from_manifest, "flat-test": _flat_test, "thin": _thin}
 
 
 def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dict | None = None) -> int:

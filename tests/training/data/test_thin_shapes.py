@@ -128,3 +128,34 @@ def test_genre_data_flat_test_writes_a_manifest_the_renderer_reads(tmp_path):
         mesh = trimesh.load(s.path, force="mesh")
         assert mesh.extents[2] < 0.2 * mesh.extents[:2].max()
     assert main(["flat-test", "--out", str(tmp_path), "--per-kind", "0"]) == 2
+
+
+def test_lying_thin_shapes_are_the_packs_meshes_laid_flat():
+    from training.data.sources.thin import lying_thin_shape
+
+    for (sid, cls, packed), kind in zip(thin_shapes(1), ("plate", "card", "book", "leaf", "bowl", "rod")):
+        lid, lcls, lying = lying_thin_shape(kind, 0)
+        assert (lid, lcls) == (sid, cls) == (f"thin-{kind}-000", f"thin-{kind}")
+        assert np.isclose(np.linalg.norm(lying.extents), 1.0)
+        # the same mesh in another pose: its faces, and its vertices' pairwise distances up to the scale of the
+        # two normalisations (each is scaled to an axis-aligned diagonal of 1), are the pack's
+        assert np.array_equal(lying.faces, packed.faces)
+        d_lying = np.linalg.norm(lying.vertices[1:] - lying.vertices[0], axis=1)
+        d_packed = np.linalg.norm(packed.vertices[1:] - packed.vertices[0], axis=1)
+        assert np.allclose(d_lying / d_lying.max(), d_packed / d_packed.max(), atol=1e-9)
+        # lying: the thinnest principal axis is vertical, so the vertical extent is the smallest
+        assert lying.extents[2] <= lying.extents[:2].min() + 1e-9
+
+
+def test_genre_data_thin_writes_training_shapes_the_renderer_reads(tmp_path):
+    from training.data.cli import main
+    from training.data.views import read_shapes
+
+    assert main(["thin", "--out", str(tmp_path), "--per-kind", "1"]) == 0
+    shapes = read_shapes(tmp_path / "manifest.json")
+    assert [s.id for s in shapes] == [f"thin-{k}-000" for k in ("plate", "card", "book", "leaf", "bowl", "rod")]
+    for s in shapes:
+        assert s.split == "product-train" and s.groups == ("thin",) and s.path.is_file()
+        mesh = trimesh.load(s.path, force="mesh")
+        assert mesh.extents[2] <= mesh.extents[:2].min() + 1e-6
+    assert main(["thin", "--out", str(tmp_path), "--per-kind", "0"]) == 2

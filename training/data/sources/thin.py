@@ -1,10 +1,11 @@
-"""Procedural flat and thin shapes for the training pack only (CC0, written here).
+"""Procedural flat and thin shapes for training only (CC0, written here).
 
 Why: real photos are often of flat or thin things lying on a table (a
 lighter, a card, a leaf, a plate), and a model trained on the corpus alone
 makes every object a rounded lump about as deep as wide.  These shapes go
 into the GPU burst's training pack (``genre data pack --thin N``,
-:mod:`training.data.pack`) and nowhere else: they are **not** a corpus source
+:mod:`training.data.pack`) and, lying on the ground, into rendered training
+views (``genre data thin``, then ``genre data render``); they are **not** a corpus source
 (no ``enumerate_shapes``, not in the manifest), so the corpus, its splits and
 the product test split do not change, and none of them is ever a test shape.
 
@@ -65,7 +66,7 @@ import trimesh
 
 from .procedural import _extrusion_mesh, _rounded_rectangle, quaternion_matrix
 
-__all__ = ["FLAT_KINDS", "FLAT_TEST_SEED", "GENERATOR_VERSION", "KINDS", "MAX_FACES", "SUBKINDS", "flat_test_shape", "lying_rotation",
+__all__ = ["FLAT_KINDS", "FLAT_TEST_SEED", "GENERATOR_VERSION", "KINDS", "MAX_FACES", "SUBKINDS", "flat_test_shape", "lying_rotation", "lying_thin_shape",
            "thin_shape", "thin_shapes"]
 
 KINDS: tuple[str, ...] = ("plate", "card", "book", "leaf", "bowl", "rod")
@@ -475,19 +476,31 @@ FLAT_KINDS: tuple[str, ...] = ("plate", "card", "book", "leaf")  # what lies fla
 FLAT_TEST_SEED = 20261128  # not the pack's seed (0): no flat test shape is a training shape
 
 
+def lying_thin_shape(kind: str, k: int, seed: int = 0) -> tuple[str, str, trimesh.Trimesh]:
+    """Shape ``k`` of ``kind`` (the mesh :func:`thin_shape` draws) lying on the ground plane, not in a random pose.
+
+    Posed by :func:`lying_rotation` (its thinnest axis along +Z, a random yaw,
+    upside down for half of them), as a thing lies on a table, so that views
+    from -10° to 88° elevation see it from the side up to from above.  With
+    the pack's seed (0) these are the training set's rendered thin shapes
+    (``genre data thin``); ``id = thin-<kind>-<k:03d>``, class ``thin-<kind>``.
+    """
+    rng, mesh = _built(kind, k, seed)
+    rotation = lying_rotation(mesh.vertices, float(rng.uniform(0.0, 2 * math.pi)), bool(rng.random() < 0.5))
+    return f"thin-{kind}-{k:03d}", f"thin-{kind}", _normalised(mesh, rotation)
+
+
 def flat_test_shape(kind: str, k: int, seed: int = FLAT_TEST_SEED) -> tuple[str, str, trimesh.Trimesh]:
     """Shape ``k`` of a flat ``kind`` lying on the ground plane, for ``genre eval``'s flat-from-above group.
 
-    Drawn from another seed than the pack's thin shapes, and posed lying flat
-    (:func:`lying_rotation`, a random yaw, upside down for half of them)
-    instead of in a random pose, so that a camera from 60-88° elevation sees
-    it from above.  ``id = flat-<kind>-<k:03d>``, class ``thin-<kind>``.
+    :func:`lying_thin_shape` drawn from another seed than the training set's
+    thin shapes (the pack's, 0), so that no test shape is a training shape.
+    ``id = flat-<kind>-<k:03d>``, class ``thin-<kind>``.
     """
     if kind not in FLAT_KINDS:
         raise ValueError(f"{kind!r} is not a flat kind; flat kinds: {', '.join(FLAT_KINDS)}")
-    rng, mesh = _built(kind, k, seed)
-    rotation = lying_rotation(mesh.vertices, float(rng.uniform(0.0, 2 * math.pi)), bool(rng.random() < 0.5))
-    return f"flat-{kind}-{k:03d}", f"thin-{kind}", _normalised(mesh, rotation)
+    _, cls, mesh = lying_thin_shape(kind, k, seed)
+    return f"flat-{kind}-{k:03d}", cls, mesh
 
 
 def thin_shapes(count_per_kind: int = 40, seed: int = 0) -> list[tuple[str, str, trimesh.Trimesh]]:
