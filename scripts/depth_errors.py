@@ -14,6 +14,9 @@ is the **relief** error:
   view direction, which the relief leaves out);
 * ``better``: on how many views the weights beat the first weights named (relief MAE).
 
+A last row per folder is the flat plane, a constant depth: its relief MAE is the true relief's own mean deviation,
+what a net that learned no relief at all would score.
+
 Usage::
 
     python scripts/depth_errors.py --views $GENRE_HOME/views/product_eval $GENRE_HOME/views/flat_eval \\
@@ -35,16 +38,24 @@ from genre_backend.nets.model import load_model
 from genre_backend.weights_file import resolve_weights
 from training.data.views import find_views, load_view
 
+FLAT_PLANE = "flat plane (a constant depth; reference)"
+
 
 def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float] | None:
-    """(relief MAE, relief IQR ÷ the truth's, |offset|) of one view, or None when the eroded silhouette is too small."""
+    """(relief MAE, relief IQR ÷ the truth's, |offset|) of one view, or None when the eroded silhouette is too small.
+
+    ``net`` None: the flat plane, a constant depth (relief MAE: the true relief's mean deviation from its median;
+    ratio 0; its offset is not a prediction, so NaN).
+    """
     inner = binary_erosion(view["mask"] > 0.5, iterations=erode)
     if inner.sum() < 20:
         return None
+    true = view["depth"][inner]
+    if net is None:
+        return float(np.mean(np.abs(true - np.median(true)))), 0.0, float("nan")
     rgb = torch.from_numpy(view["rgb"]).permute(2, 0, 1)[None].float() / 255.0
     with torch.no_grad():
         pred = net.depth_net(rgb)["depth"][0].numpy()[inner]
-    true = view["depth"][inner]
     err = pred - true
     iqr = lambda x: float(np.subtract(*np.percentile(x, [75, 25])))  # noqa: E731
     offset = float(np.median(err))
@@ -62,19 +73,20 @@ def main(argv: list[str] | None = None) -> int:
     lines = ["| views | weights | n | relief MAE median | relief MAE mean | relief ÷ truth (median) | offset (median) | "
              "better than the first |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for folder in args.views:
-        rows = [[] for _ in nets]
+        rows = [[] for _ in nets + [None]]
         for ref in find_views(folder, targets=False):
             view = load_view(ref.shape_dir, ref.view)
-            got = [view_errors(net, view) for net in nets]
+            got = [view_errors(net, view) for net in nets + [None]]
             if any(g is None for g in got):
                 continue
             for k, g in enumerate(got):
                 rows[k].append(g)
         first = np.array([r[0] for r in rows[0]])
-        for w, r in zip(args.weights, rows):
+        for w, r in zip(args.weights + [FLAT_PLANE], rows):
             mae, ratio, offset = (np.array([x[i] for x in r]) for i in range(3))
             lines.append(f"| {Path(folder).name} | {w} | {len(r)} | {np.median(mae):.4f} | {np.mean(mae):.4f} | "
-                         f"{np.median(ratio):.2f} | {np.median(offset):.4f} | {int((mae < first).sum())} / {len(r)} |")
+                         f"{np.median(ratio):.2f} | {'–' if w == FLAT_PLANE else f'{np.median(offset):.4f}'} | "
+                         f"{int((mae < first).sum())} / {len(r)} |")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     if args.out:

@@ -1,0 +1,42 @@
+"""scripts/depth_errors.py: the relief errors of a depth prediction, and the flat plane's reference row."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import torch
+
+_SPEC = importlib.util.spec_from_file_location("depth_errors", Path(__file__).parents[3] / "scripts" / "depth_errors.py")
+depth_errors = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(depth_errors)
+
+
+class _Predicts:
+    """A model whose depth net returns a fixed map, whatever the picture (only ``depth_net`` is read)."""
+
+    def __init__(self, depth: np.ndarray):
+        self.depth = torch.from_numpy(depth.astype(np.float32))[None]
+
+    def depth_net(self, rgb):
+        return {"depth": self.depth}
+
+
+def _ramp_view(size: int = 32):
+    """A square silhouette whose depth is a ramp 2.0 … 2.31 across it (planar, like a tilted card)."""
+    mask = np.zeros((size, size), np.float32)
+    mask[4:28, 4:28] = 1
+    depth = np.where(mask > 0, 2.0 + 0.01 * np.arange(size)[None, :].repeat(size, 0), 0.0).astype(np.float32)
+    return {"rgb": np.zeros((size, size, 3), np.uint8), "mask": mask, "depth": depth}
+
+
+def test_a_shifted_truth_has_no_relief_error_and_the_flat_plane_scores_the_reliefs_own_spread():
+    view = _ramp_view()
+    inner = view["depth"][6:26, 6:26]  # the silhouette eroded by 2 px
+    mae, ratio, offset = depth_errors.view_errors(_Predicts(view["depth"] + 0.05), view)
+    assert mae < 1e-6 and np.isclose(ratio, 1.0) and np.isclose(offset, 0.05, atol=1e-6)
+    mae, ratio, offset = depth_errors.view_errors(None, view)
+    assert np.isclose(mae, np.mean(np.abs(inner - np.median(inner))), atol=1e-6) and mae > 0.04
+    assert ratio == 0.0 and np.isnan(offset)
+    halved = 2.0 + 0.5 * (view["depth"] - 2.0)  # the same ramp at half its relief: too flat by two
+    mae, ratio, _ = depth_errors.view_errors(_Predicts(halved), view)
+    assert np.isclose(ratio, 0.5, atol=0.02) and np.isclose(mae, 0.5 * np.mean(np.abs(inner - np.median(inner))), atol=1e-3)
