@@ -72,11 +72,12 @@ def main(argv: list[str] | None = None) -> int:
     nets = [load_model(resolve_weights(w)).eval() for w in args.weights]
     lines = ["| views | weights | n | relief MAE median | relief MAE mean | relief ÷ truth (median) | offset (median) | "
              "better than the first |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    rowed = nets + [None]  # None: the flat plane's row
     for folder in args.views:
-        rows = [[] for _ in nets + [None]]
+        rows = [[] for _ in rowed]
         for ref in find_views(folder, targets=False):
             view = load_view(ref.shape_dir, ref.view)
-            got = [view_errors(net, view) for net in nets + [None]]
+            got = [view_errors(net, view) for net in rowed]
             if any(g is None for g in got):
                 continue
             for k, g in enumerate(got):
