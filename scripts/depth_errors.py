@@ -15,7 +15,10 @@ is the **relief** error:
 * ``better``: on how many views the weights beat the first weights named (relief MAE).
 
 A last row per folder is the flat plane, a constant depth: its relief MAE is the true relief's own mean deviation,
-what a net that learned no relief at all would score.
+what a net that learned no relief at all would score.  With ``--silhouette-only``, each weights file gets a second
+row: the same net on the picture with the object painted one colour (its own mean; the background kept), so the
+net sees the silhouette and nothing of the shading or texture inside it.  Where that row matches the first, the
+net's relief comes from the outline alone.
 
 Usage::
 
@@ -39,6 +42,15 @@ from genre_backend.weights_file import resolve_weights
 from training.data.views import find_views, load_view
 
 FLAT_PLANE = "flat plane (a constant depth; reference)"
+
+
+def flat_coloured(view: dict) -> dict:
+    """The view with its object painted its own mean colour (weighted by the mask), the background untouched."""
+    alpha = np.clip(view["mask"], 0.0, 1.0)[..., None]
+    rgb = view["rgb"].astype(np.float64)
+    mean = (rgb * alpha).sum((0, 1)) / max(float(alpha.sum()), 1e-6)
+    painted = mean * alpha + rgb * (1.0 - alpha)
+    return dict(view, rgb=np.clip(np.round(painted), 0, 255).astype(np.uint8))
 
 
 def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float] | None:
@@ -66,24 +78,33 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--views", nargs="+", required=True, help="folders of rendered views")
     add_weights(parser, action="append", required=True, help="weights (name or file); repeat to compare")
+    parser.add_argument("--silhouette-only", action="store_true",
+                        help="add a row per weights: the net on the picture with the object painted one colour")
     add_out(parser, default=None, help="write the table here (markdown) as well as printing it")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     nets = [load_model(resolve_weights(w)).eval() for w in args.weights]
+    names = list(args.weights)
+    painted = [False] * len(nets)
+    if args.silhouette_only:
+        names += [f"{w}, object one colour (silhouette only)" for w in args.weights]
+        nets, painted = nets + nets, painted + [True] * len(nets)
     lines = ["| views | weights | n | relief MAE median | relief MAE mean | relief ÷ truth (median) | offset (median) | "
              "better than the first |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     rowed = nets + [None]  # None: the flat plane's row
+    painted += [False]
     for folder in args.views:
         rows = [[] for _ in rowed]
         for ref in find_views(folder, targets=False):
             view = load_view(ref.shape_dir, ref.view)
-            got = [view_errors(net, view) for net in rowed]
+            flat = flat_coloured(view) if args.silhouette_only else None
+            got = [view_errors(net, flat if p else view) for net, p in zip(rowed, painted)]
             if any(g is None for g in got):
                 continue
             for k, g in enumerate(got):
                 rows[k].append(g)
         first = np.array([r[0] for r in rows[0]])
-        for w, r in zip(args.weights + [FLAT_PLANE], rows):
+        for w, r in zip(names + [FLAT_PLANE], rows):
             mae, ratio, offset = (np.array([x[i] for x in r]) for i in range(3))
             lines.append(f"| {Path(folder).name} | {w} | {len(r)} | {np.median(mae):.4f} | {np.mean(mae):.4f} | "
                          f"{np.median(ratio):.2f} | {'–' if w == FLAT_PLANE else f'{np.median(offset):.4f}'} | "

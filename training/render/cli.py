@@ -48,7 +48,7 @@ from genre_backend.arguments import add_out, add_seed, add_threads
 from ..data.views import (FAILURES_GLOB, crash_log_path, read_render_attempts, read_render_settings, read_shapes,
                           render_failures_path, view_is_complete, write_render_attempts, write_render_settings)
 from .randomness import sample_views
-from .scene import ENGINES, BlenderRenderer, RenderSettings, engine_problem, render_shape
+from .scene import ENGINES, LIGHTINGS, BlenderRenderer, RenderSettings, engine_problem, render_shape
 
 __all__ = ["MAX_CRASHES", "EXIT_INTERRUPTED", "main"]
 
@@ -90,6 +90,9 @@ def _build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--engine", choices=ENGINES, default="cycles",
                    help="render engine (default cycles; recorded in the folder's render_settings.json). Depth, mask "
                         "and camera mean the same for all; eevee and workbench need EGL (libegl1)")
+    p.add_argument("--lighting", choices=LIGHTINGS, default=RenderSettings.lighting,
+                   help="random (default): HDRI and suns from anywhere; camera-side: a key light from the camera's "
+                        "side, as product photos are lit (recorded in render_settings.json)")
     p.add_argument("--limit", type=_positive, default=None, help="render only the first K shapes")
     p.add_argument("--shard", type=_parse_shard, default=(0, 1), metavar="I/N", help="render every N-th shape from I")
     p.add_argument("--split", default=None, help="only manifest shapes of this split or group (e.g. train, unseen)")
@@ -400,9 +403,12 @@ def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> 
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    settings = RenderSettings(samples=args.samples, threads=args.threads, denoise=args.denoise, engine=args.engine)
+    settings = RenderSettings(samples=args.samples, threads=args.threads, denoise=args.denoise, engine=args.engine,
+                              lighting=args.lighting)
     run_settings = {"preset": args.preset, "seed": args.seed, "image_size": config.geometry.image_size,
                     "camera": config.to_dict()["camera"], "engine": args.engine}
+    if args.lighting != RenderSettings.lighting:  # folders rendered before the option keep matching
+        run_settings["lighting"] = args.lighting
     previous = read_render_settings(out)
     if previous is not None and previous != run_settings:
         print(f"{prog}: error: {out} was rendered with other settings: {_settings_difference(previous, run_settings)}; "

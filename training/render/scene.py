@@ -23,10 +23,15 @@ trimesh reads from the same file (so ground truth computed with trimesh
 agrees with the renders): OBJ and PLY are imported with no axis conversion,
 and for glTF/GLB the importer's Y-up → Z-up conversion is undone.
 
-Lighting is seeded per (seed, shape, view): one of Blender's bundled world
-HDRIs (``datafiles/studiolights/world``) at a random rotation and strength,
-plus zero to two random sun lights; without the HDRIs, a grey world and one
-to three suns.
+Lighting is seeded per (seed, shape, view), in one of :data:`LIGHTINGS`.
+``random``: one of Blender's bundled world HDRIs
+(``datafiles/studiolights/world``) at a random rotation and strength, plus
+zero to two sun lights from anywhere above the ground (so half of them light
+the object from behind); without the HDRIs, a grey world and one to three
+suns.  ``camera-side``: as a product photo is lit, a key sun always shines
+from within 60° of the camera's side (20–70° up), with a dimmer HDRI and
+sometimes a weaker fill sun, so the shading the camera sees follows the
+surface the same way from view to view.
 
 Engines (:data:`ENGINES`) differ in the RGB only: every engine's raw depth
 is the planar Z pass at the pixel centres with the background at 1e10, the
@@ -81,6 +86,7 @@ __all__ = [
 _GLTF_UNDO = ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
 
 ENGINES = ("cycles", "eevee", "workbench")
+LIGHTINGS = ("random", "camera-side")  # how render views are lit (the module's docstring)
 # Blender's identifiers of each engine (EEVEE was BLENDER_EEVEE_NEXT in 4.2–4.5, BLENDER_EEVEE before and since 5.0).
 _ENGINE_IDS = {"cycles": ("CYCLES",), "eevee": ("BLENDER_EEVEE", "BLENDER_EEVEE_NEXT"),
                "workbench": ("BLENDER_WORKBENCH",)}
@@ -141,6 +147,7 @@ class RenderSettings:
     ``engine``: one of :data:`ENGINES`.  ``samples``: per pixel for Cycles
     and EEVEE; Workbench's anti-aliasing samples (1: none; otherwise rounded
     up to one of 5, 8, 11, 16, 32).  ``threads``: CPU threads (Cycles).
+    ``lighting``: one of :data:`LIGHTINGS` (the module's docstring).
     ``denoise`` (Cycles): OpenImageDenoise with its fast prefilter and
     quality.  At 16 samples the HDRI lighting leaves strong speckle noise on
     every surface; the fast denoiser removes it for ~0.05 s/view at 128²,
@@ -154,6 +161,7 @@ class RenderSettings:
     threads: int = 2
     denoise: bool = True
     engine: str = "cycles"
+    lighting: str = "random"  # one of LIGHTINGS
 
     def __post_init__(self):
         if self.samples < 1:
@@ -162,6 +170,8 @@ class RenderSettings:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {self.engine!r}")
+        if self.lighting not in LIGHTINGS:
+            raise ValueError(f"lighting must be one of {', '.join(LIGHTINGS)}, got {self.lighting!r}")
 
     @property
     def workbench_aa(self) -> str:
@@ -565,34 +575,50 @@ class BlenderRenderer:
         return rot
 
     def randomise_lighting(self, rng: np.random.Generator) -> dict[str, Any]:
-        """Pick the world HDRI, its rotation and strength, and 0–2 suns (1–3 without HDRIs); returns a description.
+        """Light the view in the settings' :data:`LIGHTINGS` kind; returns a description.
 
+        ``random``: the world HDRI, its rotation and strength, and 0–2 suns from anywhere (1–3 without HDRIs).
+        ``camera-side``: a key sun from the camera's side (call after :meth:`place_camera`), a dimmer HDRI
+        (or grey world) and, half the time, a fill sun; see the module's docstring.
         Also gives the default material (used by meshes imported without one) a random colour.
         """
-        info: dict[str, Any] = {}
+        camera_side = self.settings.lighting == "camera-side"
+        info: dict[str, Any] = {"kind": self.settings.lighting} if camera_side else {}
         if self.hdris:
             img = self.hdris[int(rng.integers(len(self.hdris)))]
             self.env_texture.image = img
             rot_z = float(rng.uniform(0.0, 2.0 * math.pi))
             self.env_mapping.inputs["Rotation"].default_value = (0.0, 0.0, rot_z)
-            strength = float(rng.uniform(0.6, 1.6))
+            strength = float(rng.uniform(0.25, 0.6) if camera_side else rng.uniform(0.6, 1.6))
             self.world_background.inputs["Strength"].default_value = strength
             info.update(hdri=img.name, hdri_rotation_deg=round(math.degrees(rot_z), 2), hdri_strength=round(strength, 3))
-            n_suns = int(rng.integers(0, 3))
+            n_suns = int(rng.integers(1, 3) if camera_side else rng.integers(0, 3))
         else:
-            grey = float(rng.uniform(0.2, 0.6))
+            grey = float(rng.uniform(0.1, 0.3) if camera_side else rng.uniform(0.2, 0.6))
             self.world_background.inputs["Color"].default_value = (grey, grey, grey, 1.0)
             self.world_background.inputs["Strength"].default_value = 1.0
             info.update(world_grey=round(grey, 3))
-            n_suns = int(rng.integers(1, 4))
+            n_suns = int(rng.integers(1, 3) if camera_side else rng.integers(1, 4))
+        # the camera's own azimuth in the suns' convention (x = cos, y = sin), for camera-side lighting
+        cam = self.camera.matrix_world.translation
+        cam_az = math.atan2(cam.y, cam.x)
         suns = []
         for i, obj in enumerate(self.suns):
             obj.hide_render = i >= n_suns
             if i >= n_suns:
                 continue
-            az = float(rng.uniform(0.0, 2.0 * math.pi))
-            el = float(rng.uniform(math.radians(10.0), math.radians(80.0)))
-            strength = float(rng.uniform(1.0, 4.0))
+            if not camera_side:
+                az = float(rng.uniform(0.0, 2.0 * math.pi))
+                el = float(rng.uniform(math.radians(10.0), math.radians(80.0)))
+                strength = float(rng.uniform(1.0, 4.0))
+            elif i == 0:  # the key: within 60° of the camera's side
+                az = cam_az + float(rng.uniform(-1.0, 1.0)) * math.radians(60.0)
+                el = float(rng.uniform(math.radians(20.0), math.radians(70.0)))
+                strength = float(rng.uniform(2.5, 4.5))
+            else:  # the fill: weaker, from the camera's other flank or further round
+                az = cam_az + float(rng.choice([-1.0, 1.0]) * rng.uniform(math.radians(40.0), math.radians(120.0)))
+                el = float(rng.uniform(math.radians(10.0), math.radians(60.0)))
+                strength = float(rng.uniform(0.5, 1.5))
             tint = 1.0 - 0.15 * rng.random(3)
             obj.data.energy = strength
             obj.data.color = tuple(float(t) for t in tint)

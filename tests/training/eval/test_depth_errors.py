@@ -40,3 +40,28 @@ def test_a_shifted_truth_has_no_relief_error_and_the_flat_plane_scores_the_relie
     halved = 2.0 + 0.5 * (view["depth"] - 2.0)  # the same ramp at half its relief: too flat by two
     mae, ratio, _ = depth_errors.view_errors(_Predicts(halved), view)
     assert np.isclose(ratio, 0.5, atol=0.02) and np.isclose(mae, 0.5 * np.mean(np.abs(inner - np.median(inner))), atol=1e-3)
+
+
+class _ReadsShading:
+    """A depth net whose depth is the picture's red channel inside the silhouette: all of its relief is shading."""
+
+    def depth_net(self, rgb):
+        return {"depth": 2.0 + 0.31 * rgb[:, 0]}
+
+
+def test_painting_the_object_one_colour_keeps_the_background_and_leaves_only_the_silhouette():
+    view = _ramp_view()
+    shade = np.round(255 * (view["depth"] - 2.0) / 0.31).clip(0, 255).astype(np.uint8)  # shading follows the ramp
+    rgb = np.stack([shade, np.full_like(shade, 40), np.full_like(shade, 200)], -1)
+    rgb[view["mask"] == 0] = (10, 250, 90)
+    view["rgb"] = rgb
+    flat = depth_errors.flat_coloured(view)
+    inside, outside = view["mask"] > 0, view["mask"] == 0
+    assert np.array_equal(flat["rgb"][outside], rgb[outside])
+    assert np.ptp(flat["rgb"][inside].astype(int), axis=0).max() == 0  # one colour inside
+    assert np.allclose(flat["rgb"][inside][0], rgb[inside].mean(0), atol=0.5)
+    # the net that reads shading recovers the ramp from the picture, and nothing from the painted one
+    mae_rgb, ratio_rgb, _ = depth_errors.view_errors(_ReadsShading(), view)
+    mae_flat, ratio_flat, _ = depth_errors.view_errors(_ReadsShading(), flat)
+    assert mae_rgb < 2e-3 and np.isclose(ratio_rgb, 1.0, atol=0.02)
+    assert ratio_flat == 0.0 and np.isclose(mae_flat, depth_errors.view_errors(None, view)[0], atol=1e-6)

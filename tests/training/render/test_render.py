@@ -7,6 +7,7 @@ depth and back-projection under the frame convention of genre_backend.frame.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -109,6 +110,32 @@ def test_sphere_depth_mask_and_backprojection(active_renderer, sphere_path, view
     # (c) back-projected depth lies on the sphere
     pts = frame.depth_to_points(torch.from_numpy(depth)[None], CAM)[0].numpy()
     assert np.abs(np.linalg.norm(pts, axis=-1) - RADIUS)[inner].max() < 2e-3
+
+
+@pytest.mark.parametrize("view", [(30.0, 10.0), (200.0, 60.0), (300.0, -5.0)])
+def test_camera_side_lighting_shades_the_side_that_faces_the_camera(active_renderer, sphere_path, view):
+    """A grey sphere lit ``camera-side``: the key sun is within 60° of the camera's azimuth, and the sphere's
+    brightness follows the key's cosine law (its brighter pixels are those whose normals face the key)."""
+    settings = active_renderer.settings
+    active_renderer.settings = dataclasses.replace(settings, lighting="camera-side")
+    try:
+        active_renderer.load_shape(sphere_path)
+        out = active_renderer.render_view(*view, np.random.default_rng(int(view[0])))
+    finally:
+        active_renderer.settings = settings
+    lighting = out["lighting"]
+    assert lighting["kind"] == "camera-side" and 1 <= len(lighting["suns"]) <= 2
+    key = lighting["suns"][0]
+    # the camera sits at (sin az, -cos az) on the ground plane: azimuth az - 90° in the suns' (cos, sin) convention
+    off = (key["azimuth_deg"] - (view[0] - 90.0) + 180.0) % 360.0 - 180.0
+    assert abs(off) <= 60.0 + 1e-6 and 20.0 <= key["elevation_deg"] <= 70.0
+    az, el = np.radians(key["azimuth_deg"]), np.radians(key["elevation_deg"])
+    towards_key = np.array(out["rotation"]).T @ [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
+    depth = _encode(out["raw_depth"])
+    _, _, inner = _analytic_sphere(RADIUS, 0.9)
+    normals = frame.depth_to_points(torch.from_numpy(depth)[None], CAM)[0].numpy()[inner] / RADIUS
+    luminance = out["rgba"][..., :3].astype(float).mean(-1)[inner]
+    assert np.corrcoef(normals @ towards_key, luminance)[0, 1] > 0.5
 
 
 def _mask_centroid(mask: np.ndarray) -> tuple[float, float]:
