@@ -19,7 +19,7 @@ import sys
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
-from genre_backend.arguments import add_jobs, add_out
+from genre_backend.arguments import add_jobs, add_out, add_seed
 
 __all__ = ["main", "format_stats", "format_credits"]
 
@@ -173,6 +173,11 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                        "the ground, for rendering training views (training/data/sources/thin.py): OUT/manifest.json + meshes")
     add_out(p, required=True, help="output folder")
     p.add_argument("--per-kind", type=int, default=40, help="shapes of each thin kind (default 40, as genre data pack --thin)")
+    p = sub.add_parser("squashed", parents=[common], help="ellipsoids, cylinders and boxes squashed to a random thickness, lying "
+                       "flat: one outline, every depth (training/data/sources/squashed.py): OUT/manifest.json + meshes")
+    add_out(p, required=True, help="output folder")
+    p.add_argument("--per-kind", type=int, default=100, help="shapes of each kind (default 100)")
+    add_seed(p, help="seed of the shapes (default 0)")
     sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/cli.py)")
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")
     sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/data/show.py)")
@@ -284,7 +289,8 @@ def _from_manifest(args: argparse.Namespace, prog: str) -> int:
     return 0
 
 
-def _write_shapes(out: Path, entries: list[tuple[str, str, object]], split: str, groups: list[str], seed: int) -> None:
+def _write_shapes(out: Path, entries: list[tuple[str, str, object]], split: str, groups: list[str], seed: int,
+                  source: str = "procedural-thin") -> None:
     """Each ``(id, class, trimesh)`` as OUT/shapes/ID.glb, and OUT/manifest.json naming them (the renderer's input)."""
     from genre_backend.atomic import atomic_write_json
 
@@ -293,7 +299,7 @@ def _write_shapes(out: Path, entries: list[tuple[str, str, object]], split: str,
     for sid, cls, mesh in entries:
         mesh.export(out / "shapes" / f"{sid}.glb")
         rows.append({"id": sid, "class": cls, "split": split, "groups": groups, "mesh": f"shapes/{sid}.glb",
-                     "source": "procedural-thin", "licence": "CC0", "extents": [round(float(e), 6) for e in mesh.extents]})
+                     "source": source, "licence": "CC0", "extents": [round(float(e), 6) for e in mesh.extents]})
     atomic_write_json(out / "manifest.json", {"seed": seed, "shapes": rows})
 
 
@@ -323,8 +329,21 @@ def _thin(args: argparse.Namespace, prog: str) -> int:
     return 0
 
 
+def _squashed(args: argparse.Namespace, prog: str) -> int:
+    """``genre data squashed``: ellipsoids, cylinders and boxes of random thickness lying flat, split ``product-train``."""
+    from .sources.squashed import KINDS, squashed_shape
+
+    if not 1 <= args.per_kind <= 1000:
+        print(f"{prog}: --per-kind must be in 1..1000, got {args.per_kind}", file=sys.stderr)
+        return 2
+    entries = [squashed_shape(kind, k, args.seed) for kind in KINDS for k in range(args.per_kind)]
+    _write_shapes(Path(args.out), entries, "product-train", ["squashed"], args.seed, source="procedural-squashed")
+    print(f"{prog}: {len(entries)} squashed training shapes lying on the ground plane in {args.out}")
+    return 0
+
+
 _COMMANDS = {"fetch": _fetch, "backgrounds": _backgrounds, "build": _build, "stats": _from_manifest,
-             "credits": _from_manifest, "flat-test": _flat_test, "thin": _thin}
+             "credits": _from_manifest, "flat-test": _flat_test, "thin": _thin, "squashed": _squashed}
 
 
 def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dict | None = None) -> int:
