@@ -278,8 +278,9 @@ def write_render_attempts(views_root: str | os.PathLike, shard: tuple[int, int],
 def read_render_settings(views_root: str | os.PathLike) -> dict | None:
     """The folder's ``render_settings.json`` (None if absent or unreadable).
 
-    Folders rendered before the engine was a choice were rendered with Cycles:
-    their settings read ``engine: cycles``.
+    Folders rendered before the engine was a choice were rendered with Cycles,
+    and before the lighting was, lit at random: their settings read ``engine:
+    cycles`` and ``lighting: random``.
     """
     try:
         settings = json.loads((Path(views_root) / SETTINGS_FILE).read_text(encoding="utf-8"))
@@ -287,6 +288,7 @@ def read_render_settings(views_root: str | os.PathLike) -> dict | None:
         return None
     if isinstance(settings, dict):
         settings.setdefault("engine", "cycles")
+        settings.setdefault("lighting", "random")
     return settings
 
 

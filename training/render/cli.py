@@ -406,9 +406,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "genre data render") -> 
     settings = RenderSettings(samples=args.samples, threads=args.threads, denoise=args.denoise, engine=args.engine,
                               lighting=args.lighting)
     run_settings = {"preset": args.preset, "seed": args.seed, "image_size": config.geometry.image_size,
-                    "camera": config.to_dict()["camera"], "engine": args.engine}
-    if args.lighting != RenderSettings.lighting:  # folders rendered before the option keep matching
-        run_settings["lighting"] = args.lighting
+                    "camera": config.to_dict()["camera"], "engine": args.engine, "lighting": args.lighting}
     previous = read_render_settings(out)
     if previous is not None and previous != run_settings:
         print(f"{prog}: error: {out} was rendered with other settings: {_settings_difference(previous, run_settings)}; "

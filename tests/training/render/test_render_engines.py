@@ -145,11 +145,15 @@ def test_engine_is_recorded_and_a_folder_keeps_its_engine(meshes, tmp_path, caps
     assert _cli(tmp_path, shapes) == 2  # cycles (the default) into a workbench folder
     err = capsys.readouterr().err
     assert "engine='workbench' (asked: 'cycles')" in err and len(err.strip().splitlines()) == 1
-    # Folders rendered before engines were a choice were Cycles folders.
+    assert view_files.read_render_settings(out)["lighting"] == "random"  # the lighting is recorded too
+    assert _cli(tmp_path, shapes, "--engine", "workbench", "--lighting", "camera-side") == 2
+    assert "lighting='random' (asked: 'camera-side')" in capsys.readouterr().err
+    # Folders rendered before engines and lightings were a choice were Cycles folders lit at random.
     settings = json.loads((out / view_files.SETTINGS_FILE).read_text())
-    del settings["engine"]
+    del settings["engine"], settings["lighting"]
     (out / view_files.SETTINGS_FILE).write_text(json.dumps(settings))
     assert view_files.read_render_settings(out)["engine"] == "cycles"
+    assert view_files.read_render_settings(out)["lighting"] == "random"
 
 
 def test_classes_renders_only_those_classes(meshes, tmp_path, capsys):
