@@ -290,7 +290,7 @@ def _from_manifest(args: argparse.Namespace, prog: str) -> int:
 
 
 def _write_shapes(out: Path, entries: list[tuple[str, str, object]], split: str, groups: list[str], seed: int,
-                  source: str = "procedural-thin") -> None:
+                  source: str) -> None:
     """Each ``(id, class, trimesh)`` as OUT/shapes/ID.glb, and OUT/manifest.json naming them (the renderer's input)."""
     from genre_backend.atomic import atomic_write_json
 
@@ -303,43 +303,40 @@ def _write_shapes(out: Path, entries: list[tuple[str, str, object]], split: str,
     atomic_write_json(out / "manifest.json", {"seed": seed, "shapes": rows})
 
 
+def _procedural_shapes(args: argparse.Namespace, prog: str, make, kinds, limit: int, split: str, group: str,
+                       seed: int, source: str, what: str) -> int:
+    """Write ``make(kind, k)`` for each kind and k < ``--per-kind`` with :func:`_write_shapes`; 2 on a bad count."""
+    if not 1 <= args.per_kind <= limit:
+        print(f"{prog}: --per-kind must be in 1..{limit}, got {args.per_kind}", file=sys.stderr)
+        return 2
+    entries = [make(kind, k) for kind in kinds for k in range(args.per_kind)]
+    _write_shapes(Path(args.out), entries, split, [group], seed, source=source)
+    print(f"{prog}: {len(entries)} {what} lying on the ground plane in {args.out}")
+    return 0
+
+
 def _flat_test(args: argparse.Namespace, prog: str) -> int:
     """``genre data flat-test``: the flat-from-above eval shapes as GLB files and a manifest (split ``flat-test``)."""
     from .sources.thin import FLAT_KINDS, FLAT_TEST_SEED, flat_test_shape
 
-    if not 1 <= args.per_kind <= 100:
-        print(f"{prog}: --per-kind must be in 1..100, got {args.per_kind}", file=sys.stderr)
-        return 2
-    entries = [flat_test_shape(kind, k) for kind in FLAT_KINDS for k in range(args.per_kind)]
-    _write_shapes(Path(args.out), entries, "flat-test", ["flat-from-above"], FLAT_TEST_SEED)
-    print(f"{prog}: {len(entries)} flat shapes lying on the ground plane in {args.out}")
-    return 0
+    return _procedural_shapes(args, prog, flat_test_shape, FLAT_KINDS, 100, "flat-test", "flat-from-above",
+                              FLAT_TEST_SEED, "procedural-thin", "flat shapes")
 
 
 def _thin(args: argparse.Namespace, prog: str) -> int:
     """``genre data thin``: the pack's thin shapes (seed 0) lying on the ground, split ``product-train``, to render."""
     from .sources.thin import KINDS, lying_thin_shape
 
-    if not 1 <= args.per_kind <= 1000:
-        print(f"{prog}: --per-kind must be in 1..1000, got {args.per_kind}", file=sys.stderr)
-        return 2
-    entries = [lying_thin_shape(kind, k) for kind in KINDS for k in range(args.per_kind)]
-    _write_shapes(Path(args.out), entries, "product-train", ["thin"], 0)
-    print(f"{prog}: {len(entries)} thin training shapes lying on the ground plane in {args.out}")
-    return 0
+    return _procedural_shapes(args, prog, lying_thin_shape, KINDS, 1000, "product-train", "thin", 0,
+                              "procedural-thin", "thin training shapes")
 
 
 def _squashed(args: argparse.Namespace, prog: str) -> int:
     """``genre data squashed``: ellipsoids, cylinders and boxes of random thickness lying flat, split ``product-train``."""
     from .sources.squashed import KINDS, squashed_shape
 
-    if not 1 <= args.per_kind <= 1000:
-        print(f"{prog}: --per-kind must be in 1..1000, got {args.per_kind}", file=sys.stderr)
-        return 2
-    entries = [squashed_shape(kind, k, args.seed) for kind in KINDS for k in range(args.per_kind)]
-    _write_shapes(Path(args.out), entries, "product-train", ["squashed"], args.seed, source="procedural-squashed")
-    print(f"{prog}: {len(entries)} squashed training shapes lying on the ground plane in {args.out}")
-    return 0
+    return _procedural_shapes(args, prog, lambda kind, k: squashed_shape(kind, k, args.seed), KINDS, 1000,
+                              "product-train", "squashed", args.seed, "procedural-squashed", "squashed training shapes")
 
 
 _COMMANDS = {"fetch": _fetch, "backgrounds": _backgrounds, "build": _build, "stats": _from_manifest,
