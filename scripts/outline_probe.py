@@ -5,7 +5,8 @@ thin disc (3 % of its width) have the same round outline; only their shading dif
 (Cycles, the training renders' settings) from three azimuths in each of the renderer's lightings
 (:data:`training.render.scene.LIGHTINGS`), composited over a plain light grey backdrop as a product shot, and each
 weights file's depth net predicts its depth. Printed per render: the true depth range inside the silhouette
-(eroded by 2 px, as ``scripts/depth_errors.py`` does) and each net's; then, per net, in how many of the render pairs
+(eroded by 2 px, as ``scripts/depth_errors.py`` does) and each net's, each followed in brackets by how far the
+middle stands above the outline (:func:`centre_height`, which a few wrong pixels at the outline do not move); then, per net, in how many of the render pairs
 the disc's predicted range is below half the ball's (a net that reads shading: all; one that reads the outline: none).
 
 Usage::
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from scipy.ndimage import binary_erosion
+from scipy.ndimage import binary_erosion, distance_transform_edt
 
 from genre_backend import frame
 from genre_backend.arguments import add_weights
@@ -50,6 +51,22 @@ def probe_shapes() -> dict[str, trimesh.Trimesh]:
 def depth_range(depth: np.ndarray, inner: np.ndarray) -> float:
     """The range (max − min) of ``depth`` over the ``inner`` pixels."""
     return float(np.ptp(depth[inner]))
+
+
+def centre_height(depth: np.ndarray, inside: np.ndarray) -> float:
+    """How far the middle of the silhouette stands nearer the camera than a ring just inside its outline.
+
+    ``inside``: the silhouette (bool).  The middle: the pixels farthest from the outline (the top tenth of the
+    distance to it); the ring: the pixels 4–6 px inside it.  Mean depth of the ring minus mean depth of the
+    middle, so a dome facing the camera is positive and a flat face square to it is 0; unlike
+    :func:`depth_range` it does not see a few wrong pixels at the outline.
+    """
+    dist = distance_transform_edt(inside)
+    ring = (dist > 4) & (dist <= 6)
+    if not ring.any():
+        raise ValueError("the silhouette is too small for a ring 4-6 px inside its outline")
+    middle = dist >= np.percentile(dist[dist > 2], 90)
+    return float(depth[ring].mean() - depth[middle].mean())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,13 +96,16 @@ def main(argv: list[str] | None = None) -> int:
                         rgb = out["rgba"][..., :3].astype(np.float32) / 255.0
                         rgb = rgb * alpha[..., None] + BACKDROP * (1.0 - alpha[..., None])
                         x = torch.from_numpy(rgb).permute(2, 0, 1)[None]
-                        got = [depth_range(true, inner)]
+                        got, heights = [depth_range(true, inner)], [centre_height(true, alpha > 0.5)]
                         for net in nets:
                             with torch.no_grad():
-                                got.append(depth_range(net.depth_net(x)["depth"][0].numpy(), inner))
+                                pred = net.depth_net(x)["depth"][0].numpy()
+                            got.append(depth_range(pred, inner))
+                            heights.append(centre_height(pred, alpha > 0.5))
                         ranges[(lighting, name, azimuth)] = got
-                        print(f"{lighting:11s} {name} azimuth {azimuth:5.1f}: true {got[0]:.3f} | "
-                              + " | ".join(f"{w}: {g:.3f}" for w, g in zip(args.weights, got[1:])), flush=True)
+                        print(f"{lighting:11s} {name} azimuth {azimuth:5.1f}: true {got[0]:.3f} (centre {heights[0]:+.3f}) | "
+                              + " | ".join(f"{w}: {g:.3f} ({h:+.3f})" for w, g, h in zip(args.weights, got[1:], heights[1:])),
+                              flush=True)
             finally:
                 renderer.close()
     pairs = [(lighting, a) for lighting in render.LIGHTINGS for a in AZIMUTHS]

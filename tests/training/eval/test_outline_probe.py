@@ -26,3 +26,21 @@ def test_depth_range_reads_only_the_inner_pixels():
     depth = np.array([[0.0, 5.0], [2.0, 2.5]])
     inner = np.array([[False, False], [True, True]])
     assert outline_probe.depth_range(depth, inner) == 0.5
+
+
+def test_centre_height_of_a_paraboloid_dome_and_of_a_tilted_plane():
+    # A paraboloid cap over a disc of radius R = 30 px facing the camera: depth = 2 - h (1 - r²/R²). The ring 4–6 px
+    # inside the outline is r in (24, 26]: mean r² ≈ (24² + 26²) / 2. The middle is the tenth of the pixels more
+    # than 2 px inside (r < 28) farthest from the outline: r < 28 √0.1, mean r² half of that squared. So the
+    # middle stands h (ring r² - middle r²) / R² nearer than the ring.
+    n, radius, h = 80, 30.0, 0.2
+    y, x = np.mgrid[:n, :n] - (n - 1) / 2
+    r2 = (x ** 2 + y ** 2) / radius ** 2
+    inside = r2 < 1
+    dome = 2.0 - h * (1 - r2)
+    got = outline_probe.centre_height(dome, inside)
+    expected = h * ((24 ** 2 + 26 ** 2) / 2 - 28 ** 2 * 0.1 / 2) / radius ** 2
+    assert abs(got - expected) < 0.04 * expected, (got, expected)
+    # A plane, tilted or not, square over a symmetric silhouette: the middle and the ring average the same depth.
+    assert abs(outline_probe.centre_height(2.0 + 0.003 * x, inside)) < 1e-9
+    np.testing.assert_raises(ValueError, outline_probe.centre_height, dome, np.zeros((n, n), bool))
