@@ -6,8 +6,8 @@ thin disc (3 % of its width) have the same round outline; only their shading dif
 (:data:`training.render.scene.LIGHTINGS`), composited over a plain light grey backdrop as a product shot, and each
 weights file's depth net predicts its depth. Printed per render: the true depth range inside the silhouette
 (eroded by 2 px, as ``scripts/depth_errors.py`` does) and each net's, each followed in brackets by how far the
-middle stands above the outline (:func:`centre_height`, which a few wrong pixels at the outline do not move); then, per net, in how many of the render pairs
-the disc's predicted range is below half the ball's (a net that reads shading: all; one that reads the outline: none).
+middle stands above the outline (:func:`centre_height`, which a few wrong pixels at the outline do not move);
+then, per net, in how many of the render pairs the disc's predicted range is below half the ball's (a net that reads shading: all; one that reads the outline: none).
 
 Usage::
 
@@ -91,17 +91,18 @@ def main(argv: list[str] | None = None) -> int:
                     for k, azimuth in enumerate(AZIMUTHS):
                         out = renderer.render_view(azimuth, ELEVATION, np.random.default_rng(k))
                         alpha = out["rgba"][..., 3].astype(np.float32) / 255.0
-                        inner = binary_erosion(alpha > 0.5, iterations=2)
+                        inside = alpha > 0.5
+                        inner = binary_erosion(inside, iterations=2)
                         true = frame.encode_raw_depth(torch.from_numpy(out["raw_depth"])).numpy()
                         rgb = out["rgba"][..., :3].astype(np.float32) / 255.0
                         rgb = rgb * alpha[..., None] + BACKDROP * (1.0 - alpha[..., None])
                         x = torch.from_numpy(rgb).permute(2, 0, 1)[None]
-                        got, heights = [depth_range(true, inner)], [centre_height(true, alpha > 0.5)]
+                        got, heights = [depth_range(true, inner)], [centre_height(true, inside)]
                         for net in nets:
                             with torch.no_grad():
                                 pred = net.depth_net(x)["depth"][0].numpy()
                             got.append(depth_range(pred, inner))
-                            heights.append(centre_height(pred, alpha > 0.5))
+                            heights.append(centre_height(pred, inside))
                         ranges[(lighting, name, azimuth)] = got
                         print(f"{lighting:11s} {name} azimuth {azimuth:5.1f}: true {got[0]:.3f} (centre {heights[0]:+.3f}) | "
                               + " | ".join(f"{w}: {g:.3f} ({h:+.3f})" for w, g, h in zip(args.weights, got[1:], heights[1:])),
