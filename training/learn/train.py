@@ -77,7 +77,8 @@ class TrainSpec:
 def _parser(prog: str) -> argparse.ArgumentParser:
     """``genre train``'s options: the fixed ones, then one per :class:`TrainConfig` field (default: the recipe's)."""
     parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically; "
-                                     "'genre train burst --help': a GPU burst from a training pack).")
+                                     "'genre train burst --help': a GPU burst from a training pack; 'genre train average --help': "
+                                     "the mean of several weights files).")
     parser.add_argument("stage", choices=STAGES)
     parser.add_argument("--data", required=True, nargs="+",
                         help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets'); a folder "
@@ -151,6 +152,10 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
         from . import bench
 
         return bench.main(argv[1:], prog="genre bench train")
+    if argv[:1] == ["average"]:  # one weights file, the mean of several snapshots (training/learn/average.py)
+        from . import average
+
+        return average.main(argv[1:], prog=f"{prog} average")
     if argv[:1] == ["session"]:  # the background training of every session (training/learn/session.py)
         from . import session
 
