@@ -3,7 +3,8 @@
 Each stage writes ``OUT/STAGE/``: ``best.safetensors`` (lowest validation
 loss) and ``final.safetensors`` (weights + config, no pickle), ``config.json``
 (the resolved training config), ``log.csv``, ``tb/`` (TensorBoard),
-``loss.png``, ``summary.json`` and ``checkpoint/`` (:mod:`.checkpoint`).
+``loss.png``, ``summary.json``, ``checkpoint/`` (:mod:`.checkpoint`) and, with
+``snapshot_every``, ``snapshots/step_N.safetensors``.
 Running the same stage again resumes from the checkpoint with the same step
 count and, on the CPU, the same numbers: the batch of step k and its
 augmentation depend only on (seed, k) (:mod:`.batches`).
@@ -287,6 +288,10 @@ def _run_steps(run: _Run) -> None:
             window_t, window_n = time.perf_counter(), 0
         if run.val_set is not None and (done % tcfg.val_every == 0 or done == tcfg.steps):
             _validate_and_keep_best(run, log, done, lr_now)
+        if tcfg.snapshot_every and done % tcfg.snapshot_every == 0:  # weights to average later (training/learn/average.py)
+            extra = {"stage": tcfg.stage, "step": done, "cpu_s": round(run.cpu_total(), 1)}
+            (run.stage_dir / "snapshots").mkdir(exist_ok=True)
+            run.module.save_weights(run.stage_dir / "snapshots" / f"step_{done:07d}.safetensors", extra)
         due = time.monotonic() - last_ckpt > 60 * tcfg.checkpoint_minutes
         if due or (tcfg.checkpoint_every and done % tcfg.checkpoint_every == 0) or done == tcfg.steps:
             save_checkpoint(run.stage_dir, run.module, run.opt, done, run.best, tcfg, run.cpu_total())

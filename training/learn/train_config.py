@@ -52,6 +52,7 @@ class TrainConfig:
     val_samples: int = 48
     checkpoint_minutes: float = 3.0
     checkpoint_every: int = 0  # also every this many steps (0: off)
+    snapshot_every: int = 0  # keep the weights every this many steps in STAGE/snapshots/ (for 'genre train average'; 0: off)
     log_every: int = 10
     seed: int = 0
     workers: int = 0

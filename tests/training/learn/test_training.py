@@ -204,6 +204,24 @@ def test_several_views_folders_and_processor_time_that_accumulates(tiny_views, t
 
 
 @pytest.mark.slow
+def test_snapshots_are_the_weights_of_their_steps_and_average(tiny_views, tmp_path):
+    from training.learn.average import average_models
+
+    run = tmp_path / "run"
+    train(_cfg("refine", tiny_views, run, steps=4, snapshot_every=2), TINY)
+    snaps = sorted((run / "refine" / "snapshots").glob("*.safetensors"))
+    assert [p.name for p in snaps] == ["step_0000002.safetensors", "step_0000004.safetensors"]
+    last, final = load_model(snaps[-1]), load_model(run / "refine" / "final.safetensors")
+    assert weights_digest(last) == weights_digest(final)  # the step-4 snapshot is the final weights
+    first = load_model(snaps[0])
+    assert weights_digest(first.refiner) != weights_digest(last.refiner)  # two steps moved the refiner
+    mid = average_models([first, last])
+    a, b, m = first.refiner.state_dict(), last.refiner.state_dict(), mid.refiner.state_dict()
+    name = next(k for k in a if a[k].is_floating_point() and not torch.equal(a[k], b[k]))
+    assert torch.allclose(m[name], (a[name] + b[name]) / 2, atol=1e-7)
+
+
+@pytest.mark.slow
 def test_a_stage_continued_with_another_learning_rate_trains_with_it(tiny_views, tmp_path):
     run = tmp_path / "run"
     train(_cfg("depth", tiny_views, run, steps=3, lr=1e-3), TINY)
