@@ -11,6 +11,11 @@ on-the-fly sample maker (:class:`training.learn.burst.ViewMaker`, no voxel
 target and with it), the data side of ``genre train session``.
 
     genre bench train --weights default --batch 4 --rounds 5
+    genre bench train --stages joint --ways fp32,channels-last --batch 4,16   # larger batches beside the plain one
+
+The header names the processor and what torch's CPU kernels use on it (its
+vector extension, and whether oneDNN has native bf16): the bf16 and
+channels-last figures depend on both, and the machines lent differ.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model
 from genre_backend.arguments import add_threads, add_weights
 
-__all__ = ["WAYS", "STAGES", "StepTimer", "main"]
+__all__ = ["WAYS", "STAGES", "StepTimer", "cpu_description", "main"]
 
 # way → (channels-last, bf16 autocast, the refiner compiled with torch.compile)
 WAYS = {"fp32": (False, False, False), "channels-last": (True, False, False), "bf16": (False, True, False),
@@ -45,6 +50,19 @@ def _inputs(model: GenRe, batch: int, gen: torch.Generator) -> dict[str, torch.T
             "partial": partial, "full": torch.rand(batch, 1, p, p, generator=gen),
             "vox": (torch.rand(batch, 2, n, n, n, generator=gen) > 0.97).float(),
             "target": torch.rand(batch, 1, n, n, n, generator=gen)}
+
+
+def cpu_description() -> str:
+    """The processor's model name, torch's CPU capability and whether oneDNN runs bf16 natively here."""
+    name = "unknown processor"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            name = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), name)
+    except OSError:
+        pass
+    cap = torch.backends.cpu.get_cpu_capability()
+    bf16 = torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    return f"{name}, torch CPU capability {cap}, oneDNN bf16 {'native' if bf16 else 'emulated (slow)'}"
 
 
 def _forward(model: GenRe, stage: str, x: dict, channels_last: bool, bf16: bool) -> torch.Tensor:
@@ -123,7 +141,7 @@ def _maker_seconds(pack: str, weights: str, batch: int, steps: int, voxels: bool
 def main(argv: list[str] | None = None, prog: str = "genre bench train") -> int:
     ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     add_weights(ap, default="default")
-    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--batch", default="4", help="batch size, or several separated by commas (default 4)")
     ap.add_argument("--steps", type=int, default=3, help="timed steps per round (default 3)")
     ap.add_argument("--rounds", type=int, default=3, help="rounds, each running every way once (default 3)")
     ap.add_argument("--stages", default=",".join(STAGES))
@@ -135,37 +153,46 @@ def main(argv: list[str] | None = None, prog: str = "genre bench train") -> int:
     import os
 
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    try:
+        batches = [int(b) for b in str(args.batch).split(",") if b]
+    except ValueError:
+        ap.error(f"--batch: whole numbers separated by commas, got {args.batch!r}")
+    if not batches or min(batches) < 1:
+        ap.error("--batch: at least one batch size of 1 or more")
     stages = [s for s in args.stages.split(",") if s]
     ways = [w for w in args.ways.split(",") if w]
     for name in stages + ways:
         if name not in STAGES and name not in WAYS:
             ap.error(f"unknown stage or way {name!r}")
-    print(f"device: cpu, {torch.get_num_threads()} threads, torch {torch.__version__}; batch {args.batch}; "
-          f"median of {args.rounds} rounds × {args.steps} steps", flush=True)
+    print(f"device: cpu ({cpu_description()}), {torch.get_num_threads()} threads, torch {torch.__version__}; "
+          f"batch {','.join(map(str, batches))}; median of {args.rounds} rounds × {args.steps} steps", flush=True)
     timers, warm = {}, {}
     for stage in stages:
-        for way in ways:
-            t = time.perf_counter()
-            timers[(stage, way)] = timer = StepTimer(args.weights, stage, way, args.batch)
-            timer.seconds(0, warmup=2)  # (a compiled refiner compiles here)
-            warm[(stage, way)] = time.perf_counter() - t
-    results: dict[tuple[str, str], list[float]] = {}
+        for batch in batches:
+            for way in ways:
+                t = time.perf_counter()
+                timers[(stage, batch, way)] = timer = StepTimer(args.weights, stage, way, batch)
+                timer.seconds(0, warmup=2)  # (a compiled refiner compiles here)
+                warm[(stage, batch, way)] = time.perf_counter() - t
+    results: dict[tuple[str, int, str], list[float]] = {}
     for _ in range(args.rounds):
         for key, timer in timers.items():
             results.setdefault(key, []).extend(timer.seconds(args.steps))
-    print(f"\n| stage | {' | '.join(ways)} |\n| --- |{' --- |' * len(ways)}")
+    # samples/s, and its ratio to the first way at the first batch size (the plain path as 'genre train' ran it)
+    print(f"\n| stage, batch | {' | '.join(ways)} |\n| --- |{' --- |' * len(ways)}")
     for stage in stages:
-        plain = statistics.median(results[(stage, ways[0])])
-        cells = []
-        for way in ways:
-            med = statistics.median(results[(stage, way)])
-            cells.append(f"{args.batch / med:.2f}/s ({plain / med:.2f}×)")
-        print(f"| {stage} | {' | '.join(cells)} |")
-    print("set-up and two warm-up steps (s): " + "; ".join(f"{s}/{w} {v:.0f}" for (s, w), v in warm.items()))
+        plain = batches[0] / statistics.median(results[(stage, batches[0], ways[0])])
+        for batch in batches:
+            cells = []
+            for way in ways:
+                rate = batch / statistics.median(results[(stage, batch, way)])
+                cells.append(f"{rate:.2f}/s ({rate / plain:.2f}×)")
+            print(f"| {stage}, {batch} | {' | '.join(cells)} |")
+    print("set-up and two warm-up steps (s): " + "; ".join(f"{s}/{b}/{w} {v:.0f}" for (s, b, w), v in warm.items()))
     if args.pack:
         for voxels in (False, True):
-            t = _maker_seconds(args.pack, args.weights, args.batch, args.rounds * args.steps, voxels, args.pack_shapes)
-            print(f"sample maker ({'with' if voxels else 'without'} voxel targets): {args.batch / statistics.median(t):.1f} samples/s")
+            t = _maker_seconds(args.pack, args.weights, batches[0], args.rounds * args.steps, voxels, args.pack_shapes)
+            print(f"sample maker ({'with' if voxels else 'without'} voxel targets): {batches[0] / statistics.median(t):.1f} samples/s")
     return 0
 
 
