@@ -10,8 +10,8 @@ count and, on the CPU, the same numbers: the batch of step k and its
 augmentation depend only on (seed, k) (:mod:`.batches`).
 
 Data-parallel under ``torchrun`` (``RANK``/``WORLD_SIZE`` set): gloo on the
-CPU, NCCL on CUDA; each process takes its share of every global batch, rank 0
-writes the files.
+CPU, NCCL on CUDA; each process takes ``batch_size`` samples of every step's
+global batch (``batch_size`` × processes); rank 0 writes the files.
 """
 
 from __future__ import annotations
