@@ -18,7 +18,7 @@ snapshots a few thousand low-lr steps apart they barely differ, and a
 re-estimate would need the training views.
 
     genre train average RUN/snap/step_*.safetensors --out W.safetensors
-    genre train average A.safetensors B.safetensors --weights 0.5 0.5 --out W.safetensors
+    genre train average A.safetensors B.safetensors --mix 0.7 0.3 --out W.safetensors
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from pathlib import Path
 
 import torch
 
+from genre_backend.arguments import add_out
 from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.weights_file import WeightsError
 
@@ -73,19 +74,19 @@ def average_models(models: list[GenRe], weights: list[float] | None = None) -> G
 def main(argv: list[str] | None = None, prog: str = "genre train average") -> int:
     ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="+", help="GenRe weights files of one model (same nets; the first one's config is kept)")
-    ap.add_argument("--weights", type=float, nargs="+", default=None, help="one weight per file (default: equal)")
-    ap.add_argument("--out", required=True, help="the averaged weights file (.safetensors; a .json beside it)")
+    ap.add_argument("--mix", type=float, nargs="+", default=None, help="each file's share, one number per file (default: equal)")
+    add_out(ap, required=True, help="the averaged weights file (.safetensors; a .json beside it)")
     ap.add_argument("--fp16", action="store_true", help="store the weights as float16 (batch-norm statistics stay float32)")
     args = ap.parse_args(argv)
     if Path(args.out).resolve() in {Path(f).resolve() for f in args.files}:
         ap.error("--out is one of the input files")
     try:
         models = [load_model(f) for f in args.files]
-        model = average_models(models, args.weights)
+        model = average_models(models, args.mix)
     except (WeightsError, ValueError) as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
-    extra = {"averaged": [str(f) for f in args.files], "weights": args.weights or [1.0] * len(args.files)}
+    extra = {"averaged": [str(f) for f in args.files], "mix": args.mix or [1.0] * len(args.files)}
     save_model(model, args.out, extra, half=args.fp16)
     print(f"{len(models)} files averaged -> {args.out}")
     return 0
