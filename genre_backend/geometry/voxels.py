@@ -23,7 +23,7 @@ from ..validation import check_mask, check_positive_int, check_tensor
 
 __all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_ramp", "silhouette_ramp_reference",
            "voxel_centres", "mirror_voxels", "ray_first_hit",
-           "ray_first_hit_reference"]
+           "ray_first_hit_reference", "ray_max", "ray_max_reference"]
 
 
 def voxel_centres(resolution: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -173,6 +173,79 @@ def silhouette_ramp_reference(mask: torch.Tensor, camera, resolution: int, width
     return out.float()
 
 
+def _ray_samples(camera, n: int, image_size: int, step: float, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The samples along every pixel's ray through an N-voxel grid: ``(depths (K,), coords (K, S, S, 3))``.
+
+    Planar depths every ``step`` voxels across the cube's reach from the camera, and their points
+    (:func:`genre_backend.frame.depth_to_points`) as ``grid_sample``'s coordinates (x, y, z) = (iz, iy, ix),
+    float32 on ``device``.
+    """
+    from ..frame import depth_to_points
+
+    check_positive_int("image_size", image_size)
+    if not (math.isfinite(step) and step > 0):
+        raise ValueError(f"step: expected a positive number of voxels, got {step!r}")
+    half = math.sqrt(3.0) / 2.0
+    k = int(math.ceil(2.0 * half * n / step)) + 1
+    depths = torch.linspace(camera.distance - half, camera.distance + half, k, device=device)
+    pts = depth_to_points(depths.view(k, 1, 1).expand(k, image_size, image_size).contiguous(), camera)  # (K, S, S, 3)
+    return depths, (2.0 * pts)[..., [2, 1, 0]].float()
+
+
+def ray_max(grid: torch.Tensor, camera, image_size: int, step: float = 1.0) -> torch.Tensor:
+    """The largest value along each pixel's ray: (B, S, S), differentiable (the grid's soft silhouette).
+
+    grid: (B, 1, N, N, N) float (a probability grid), indexed and interpolated as for :func:`ray_first_hit`;
+    each ray is sampled every ``step`` voxels of planar depth across the cube.  The gradient reaches the
+    voxels around each ray's largest sample.  Of a binary grid it is the mask of the pixels whose ray meets
+    the solid (to within the sampling); of a refiner's probabilities, how surely some part stands on that
+    pixel's ray: the mesh at level ``t`` covers the pixel where it exceeds ``t``.
+    """
+    check_tensor("grid", grid, ("B", 1, "N", "N", "N"))
+    _, coords = _ray_samples(camera, grid.shape[-1], image_size, step, device=grid.device)
+    b, k = grid.shape[0], coords.shape[0]
+    coords = coords.reshape(1, k, image_size * image_size, 3).expand(b, -1, -1, -1)
+    grid = grid.float()
+    with torch.no_grad():  # which sample is each ray's largest: the maximum's gradient reaches that sample only
+        vals = torch.nn.functional.grid_sample(grid.detach(), coords[:, :, :, None], mode="bilinear", padding_mode="zeros",
+                                               align_corners=False)
+        first = vals.view(b, k, -1).argmax(dim=1)  # (B, S·S)
+    chosen = torch.gather(coords, 1, first[:, None, :, None].expand(-1, -1, -1, 3))  # (B, 1, S·S, 3)
+    vals = torch.nn.functional.grid_sample(grid, chosen[:, :, :, None], mode="bilinear", padding_mode="zeros",
+                                           align_corners=False)  # (B, 1, 1, S·S, 1): the same values, with their gradient
+    return vals.view(b, image_size, image_size)
+
+
+def ray_max_reference(grid: torch.Tensor, camera, image_size: int, step: float = 1.0) -> np.ndarray:
+    """Plain-loop reference of :func:`ray_max` for one grid (N, N, N) (slow; tests): (S, S) float64, each pixel's
+    planar depths sampled as :func:`ray_max` samples them, the pinhole and the trilinear interpolation written out."""
+    g = grid.detach().double().cpu().numpy()
+    n = g.shape[0]
+    f = camera.lens_mm / camera.sensor_mm * image_size
+    half = math.sqrt(3.0) / 2.0
+    k = int(math.ceil(2.0 * half * n / step)) + 1
+    depths = np.linspace(camera.distance - half, camera.distance + half, k)
+    out = np.zeros((image_size, image_size))
+    for r in range(image_size):
+        for c in range(image_size):
+            best = 0.0
+            for d in depths:
+                p = ((c + 0.5 - image_size / 2.0) / f * d, -(r + 0.5 - image_size / 2.0) / f * d, camera.distance - d)
+                u = [(x + 0.5) * n - 0.5 for x in p]  # continuous voxel index
+                i0 = [math.floor(x) for x in u]
+                total = 0.0
+                for corner in range(8):
+                    idx = [i0[a] + ((corner >> a) & 1) for a in range(3)]
+                    if all(0 <= i < n for i in idx):
+                        w = 1.0
+                        for a in range(3):
+                            w *= (u[a] - i0[a]) if (corner >> a) & 1 else (1.0 - u[a] + i0[a])
+                        total += w * g[idx[0], idx[1], idx[2]]
+                best = max(best, total)
+            out[r, c] = best
+    return out
+
+
 def ray_first_hit(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.5) -> torch.Tensor:
     """Where each pixel's ray first meets the grid: (S, S) float32 planar depth, ``inf`` where it meets nothing.
 
@@ -183,21 +256,12 @@ def ray_first_hit(grid: torch.Tensor, level: float, camera, image_size: int, ste
     the result is the first sample above ``level`` (so within ``step`` voxels behind the crossing),
     and a region above ``level`` thicker than ``step`` voxels along the ray is never missed.
     """
-    from ..frame import depth_to_points
     from ..validation import check_threshold
 
     check_tensor("grid", grid, ("N", "N", "N"))
     check_threshold("level", level)
-    check_positive_int("image_size", image_size)
-    if not (math.isfinite(step) and step > 0):
-        raise ValueError(f"step: expected a positive number of voxels, got {step!r}")
-    n = grid.shape[0]
-    half = math.sqrt(3.0) / 2.0
-    k = int(math.ceil(2.0 * half * n / step)) + 1
-    depths = torch.linspace(camera.distance - half, camera.distance + half, k)
-    pts = depth_to_points(depths.view(k, 1, 1).expand(k, image_size, image_size).contiguous(), camera)  # (K, S, S, 3)
-    coords = (2.0 * pts)[..., [2, 1, 0]]  # grid_sample's (x, y, z) index (W, H, D) = (iz, iy, ix)
-    vals = torch.nn.functional.grid_sample(grid.detach().float().cpu()[None, None], coords[None].float(), mode="bilinear",
+    depths, coords = _ray_samples(camera, grid.shape[0], image_size, step, device=torch.device("cpu"))
+    vals = torch.nn.functional.grid_sample(grid.detach().float().cpu()[None, None], coords[None], mode="bilinear",
                                            padding_mode="zeros", align_corners=False)[0, 0]  # (K, S, S)
     above = vals > level
     first = above.float().argmax(dim=0)  # the first sample above the level (0 where none: masked below)

@@ -212,7 +212,7 @@ def _start(tcfg: TrainConfig, model_config: GenreConfig | None) -> _Run:
     torch.manual_seed(tcfg.seed)
     model = build_model(tcfg, model_config)
     module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight,
-                         tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight).to(device)
+                         tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight, tcfg.outline_weight).to(device)
     # the nets in the memory format measured fastest on this device (channels-last on the CPU: genre bench train)
     apply_speed(model, Speed.for_device(device))
     params = [p for p in module.parameters() if p.requires_grad]

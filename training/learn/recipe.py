@@ -72,6 +72,9 @@ class StageRecipe:
     # the depth net's loss (depth stage, and joint's depth term): this weight times the multi-scale gradient
     # matching term (training.learn.losses.depth_gradient_loss) added to the depth's MSE; 0 = the MSE alone
     depth_gradient_weight: float = 0.0
+    # refine, joint: this weight times the BCE between the predicted and the true grid's silhouettes through the
+    # view's camera (training.learn.losses.outline_loss), added to the grid's loss; 0 = the grid's loss alone
+    outline_weight: float = 0.0
     lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
     sph_teacher: float = 0.0
     depth_dropout: float = 0.0
@@ -95,7 +98,7 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
             raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
-        for name in ("depth_weight", "depth_gradient_weight"):
+        for name in ("depth_weight", "depth_gradient_weight", "outline_weight"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")

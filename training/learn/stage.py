@@ -11,7 +11,7 @@ from torch import nn
 from genre_backend.geometry.spherical import crop_sph, pad_sph
 from genre_backend.nets.model import GenRe, save_model
 
-from .losses import depth_gradient_loss, sph_loss, voxel_loss
+from .losses import depth_gradient_loss, outline_loss, sph_loss, voxel_loss
 
 __all__ = ["BASELINE_STAGES", "StageModule"]
 
@@ -22,11 +22,15 @@ class StageModule(nn.Module):
     """The model with one stage's trainable parts; ``forward(batch)`` returns (loss, logged terms)."""
 
     def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
-                 sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0):
+                 sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0,
+                 outline_weight: float = 0.0):
         super().__init__()
         self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
         self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
         self.depth_gradient_weight = depth_gradient_weight  # the depth loss's gradient matching term
+        self.outline_weight = outline_weight  # refine, joint: the grid's silhouette through the camera (losses.outline_loss)
+        if outline_weight > 0 and stage not in ("refine", "joint"):
+            raise ValueError(f"outline_weight: only the refine and joint stages train GenRe's grid (stage {stage!r})")
         if sph_teacher > 0 and stage != "refine":
             raise ValueError(f"sph_teacher: only the refine stage feeds the true map (stage {stage!r})")
         if depth_dropout > 0 and stage not in ("refine", "joint"):
@@ -131,6 +135,9 @@ class StageModule(nn.Module):
             vox_depth = vox_depth * keep.view(-1, *([1] * (vox_depth.dim() - 1)))
         logits = m.refine(vox_sph, vox_depth)
         loss, terms = self.voxel_loss(logits, batch)
+        if self.outline_weight > 0:
+            terms["outline_bce"] = outline_loss(logits, batch["voxels"], m.config.camera)
+            loss = loss + self.outline_weight * terms["outline_bce"]
         if self.stage == "joint":
             l_sph, sph_terms = self.sph_loss(sph_parts, batch)
             terms.update(sph_terms)

@@ -32,6 +32,7 @@ class TrainConfig:
     sph_loss: str | None = None
     depth_weight: float | None = None
     depth_gradient_weight: float | None = None  # depth, joint: the depth error's gradient matching term's weight
+    outline_weight: float | None = None  # refine, joint: the silhouettes' term's weight (losses.outline_loss)
     lr_halflife: int | None = None
     sph_teacher: float | None = None  # refine: the share of samples fed the true full map (teacher forcing)
     depth_dropout: float | None = None  # refine, joint: the share of samples whose depth voxels are emptied
@@ -75,6 +76,8 @@ class TrainConfig:
             raise ValueError(f"sph_teacher: only the refine stage feeds the true map, not {self.stage!r}")
         if self.depth_dropout > 0 and self.stage not in ("refine", "joint"):
             raise ValueError(f"depth_dropout: only the refine and joint stages have depth voxels to empty, not {self.stage!r}")
+        if self.outline_weight > 0 and self.stage not in ("refine", "joint"):
+            raise ValueError(f"outline_weight: only the refine and joint stages train GenRe's grid, not {self.stage!r}")
         if isinstance(self.data, (list, tuple)):
             if not self.data:
                 raise ValueError("data: expected at least one views folder")

@@ -164,6 +164,43 @@ def test_first_hits_match_the_marched_reference_the_sphere_and_the_marching_cube
         ray_first_hit(sphere, 1.5, camera, 128)
 
 
+
+def test_ray_max_matches_its_reference_and_a_ball_s_disc_and_carries_gradient():
+    import numpy as np
+
+    from genre_backend.config import get_preset
+    from genre_backend.geometry.analytic import sphere_depth
+    from genre_backend.geometry.voxels import ray_max, ray_max_reference
+
+    camera = get_preset("default").camera
+    g = torch.Generator().manual_seed(5)
+    n, size = 10, 14
+    grid = (_sphere_distance_grid(n, 0.25) * torch.rand(n, n, n, generator=g)).clamp(0.0, 1.0)
+    fast = ray_max(grid[None, None], camera, size).numpy()[0]
+    assert np.abs(fast - ray_max_reference(grid, camera, size)).max() < 1e-5
+    assert 0 < (fast > 0.5).sum() < size * size
+    # a solid ball (a voxel is in when its centre is): its silhouette is the sphere's disc through the same camera,
+    # up to the pixels along the rim, where the interpolated edge falls between voxel centres
+    n, size, radius = 48, 64, 0.3
+    c = (torch.arange(n, dtype=torch.float64) + 0.5) / n - 0.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    ball = ((x * x + y * y + z * z).sqrt() <= radius).float()
+    shown = ray_max(torch.stack([ball, torch.zeros_like(ball)])[:, None], camera, size)
+    disc = sphere_depth(camera, size, radius, dtype=torch.float64)[0] > 0
+    pool = torch.nn.functional.avg_pool2d(disc.double()[None], 5, 1, 2)[0]
+    inside, outside = pool == 1, pool == 0  # two pixels or more from the rim
+    assert int(inside.sum()) > 400 and bool((shown[0][inside] > 0.99).all()) and bool((shown[0][outside] < 0.01).all())
+    assert float((shown[0] > 0.5).float().sub(disc.float()).abs().sum()) <= 0.1 * float(disc.sum())
+    assert float(shown[1].abs().max()) == 0.0  # an empty grid shows nothing
+    # the gradient of a pixel's value reaches the voxels on its ray only
+    probe = grid.clone().requires_grad_(True)
+    ray_max(probe[None, None], camera, 14)[0, 7, 7].backward()
+    touched = probe.grad.abs() > 0
+    assert 0 < int(touched.sum()) <= 8  # the corners of the one sample the maximum took
+    with pytest.raises(ValueError, match="grid"):
+        ray_max(grid, camera, 14)
+
+
 def test_separable_dilation_equals_repeated_cube_dilation():
     from genre_backend.geometry.mesh_voxels import dilate, dilate_reference
 

@@ -155,6 +155,50 @@ def test_the_depth_gradient_weight_adds_exactly_its_term(tiny_views):
     assert torch.allclose(weighted - plain, 3.0 * own, rtol=1e-5, atol=1e-6)
 
 
+
+def test_outline_loss_is_zero_at_the_truth_and_charges_a_part_left_out():
+    from genre_backend.config import get_preset
+    from training.learn.losses import outline_loss
+
+    camera = get_preset("default").camera
+    n = 32
+    c = (torch.arange(n, dtype=torch.float32) + 0.5) / n - 0.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    body = ((x * x + y * y + z * z).sqrt() <= 0.2).float()
+    leg = ((x - 0.1).abs() < 0.04) & ((z - 0.1).abs() < 0.04) & (y < -0.1) & (y > -0.4)  # a thin part below
+    truth = torch.maximum(body, leg.float())[None]
+    logit = lambda p: torch.logit(p.clamp(1e-4, 1 - 1e-4))  # noqa: E731
+    at_truth = float(outline_loss(logit(truth)[:, None], truth, camera))
+    assert abs(at_truth) < 1e-3
+    legless = logit(body[None])[:, None].requires_grad_(True)
+    missing = outline_loss(legless, truth, camera)
+    missing.backward()
+    assert float(missing.detach()) > 100 * max(at_truth, 1e-6)
+    # the voxels on the leg's rays are pushed up (a negative gradient), none pushed down there
+    grad_leg = legless.grad[0, 0][leg]
+    assert float(grad_leg.min()) < 0 and float(grad_leg.max()) <= 0
+    # the voxel BCE spreads the same omission over N³ voxels: the outline's share of it is larger
+    from training.learn.losses import voxel_loss
+
+    vox, _ = voxel_loss(legless.detach(), truth, 0.0)
+    assert float(missing.detach()) > float(vox)
+
+
+def test_the_outline_weight_adds_exactly_its_term(tiny_views):
+    from training.data.dataset import ViewDataset, find_views
+
+    data = ViewDataset(find_views(tiny_views), TINY)
+    batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
+    model = GenRe(TINY).eval()
+    with torch.no_grad():
+        plain, plain_terms = StageModule(model, "joint", 0.1).eval()(batch)
+        weighted, terms = StageModule(model, "joint", 0.1, outline_weight=2.0).eval()(batch)
+    assert "outline_bce" not in plain_terms and float(terms["outline_bce"]) > 0
+    assert torch.allclose(weighted - plain, 2.0 * terms["outline_bce"], rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="outline_weight"):
+        StageModule(model, "depth", 0.1, outline_weight=1.0)
+
+
 def test_refiner_input_choices_change_exactly_the_chosen_samples_in_training_only(tiny_views):
     """depth_dropout empties the depth voxels and sph_teacher feeds the true full map, per sample by its coin."""
     from genre_backend.geometry.spherical import crop_sph, pad_sph
