@@ -216,6 +216,23 @@ def ray_max(grid: torch.Tensor, camera, image_size: int, step: float = 1.0) -> t
     return vals.view(b, image_size, image_size)
 
 
+def _trilinear_reference(g: np.ndarray, p) -> float:
+    """The grid ``g`` (N, N, N) at the view-frame point ``p`` (x, y, z), interpolated trilinearly as
+    ``grid_sample`` does (voxel centres at ``(i + 0.5)/N − 0.5``, 0 outside the grid), written out (references)."""
+    n = g.shape[0]
+    u = [(c + 0.5) * n - 0.5 for c in p]  # continuous voxel index
+    i0 = [math.floor(c) for c in u]
+    total = 0.0
+    for corner in range(8):
+        idx = [i0[a] + ((corner >> a) & 1) for a in range(3)]
+        if all(0 <= i < n for i in idx):
+            w = 1.0
+            for a in range(3):
+                w *= (u[a] - i0[a]) if (corner >> a) & 1 else (1.0 - u[a] + i0[a])
+            total += w * g[idx[0], idx[1], idx[2]]
+    return total
+
+
 def ray_max_reference(grid: torch.Tensor, camera, image_size: int, step: float = 1.0) -> np.ndarray:
     """Plain-loop reference of :func:`ray_max` for one grid (N, N, N) (slow; tests): (S, S) float64, each pixel's
     planar depths sampled as :func:`ray_max` samples them, the pinhole and the trilinear interpolation written out."""
@@ -231,17 +248,7 @@ def ray_max_reference(grid: torch.Tensor, camera, image_size: int, step: float =
             best = 0.0
             for d in depths:
                 p = ((c + 0.5 - image_size / 2.0) / f * d, -(r + 0.5 - image_size / 2.0) / f * d, camera.distance - d)
-                u = [(x + 0.5) * n - 0.5 for x in p]  # continuous voxel index
-                i0 = [math.floor(x) for x in u]
-                total = 0.0
-                for corner in range(8):
-                    idx = [i0[a] + ((corner >> a) & 1) for a in range(3)]
-                    if all(0 <= i < n for i in idx):
-                        w = 1.0
-                        for a in range(3):
-                            w *= (u[a] - i0[a]) if (corner >> a) & 1 else (1.0 - u[a] + i0[a])
-                        total += w * g[idx[0], idx[1], idx[2]]
-                best = max(best, total)
+                best = max(best, _trilinear_reference(g, p))
             out[r, c] = best
     return out
 
@@ -279,20 +286,6 @@ def ray_first_hit_reference(grid: torch.Tensor, level: float, camera, image_size
     f = camera.lens_mm / camera.sensor_mm * image_size
     out = np.full((image_size, image_size), np.inf)
 
-    def value(x: float, y: float, z: float) -> float:
-        u = [(c + 0.5) * n - 0.5 for c in (x, y, z)]  # continuous voxel index
-        i0 = [math.floor(c) for c in u]
-        total = 0.0
-        for dx in (0, 1):
-            for dy in (0, 1):
-                for dz in (0, 1):
-                    i, j, k = i0[0] + dx, i0[1] + dy, i0[2] + dz
-                    if 0 <= i < n and 0 <= j < n and 0 <= k < n:
-                        w = ((u[0] - i0[0]) if dx else (1 - u[0] + i0[0])) * ((u[1] - i0[1]) if dy else (1 - u[1] + i0[1])) \
-                            * ((u[2] - i0[2]) if dz else (1 - u[2] + i0[2]))
-                        total += w * g[i, j, k]
-        return total
-
     for r in range(image_size if rows is None else min(rows, image_size)):
         for c in range(image_size):
             # the ray from the camera at (0, 0, distance) through the pixel centre, unit length
@@ -302,7 +295,7 @@ def ray_first_hit_reference(grid: torch.Tensor, level: float, camera, image_size
             t = camera.distance - 1.0
             while t < camera.distance + 1.0:
                 x, y, z = d[0] * t, d[1] * t, camera.distance + d[2] * t
-                if max(abs(x), abs(y), abs(z)) < 0.5 and value(x, y, z) > level:
+                if max(abs(x), abs(y), abs(z)) < 0.5 and _trilinear_reference(g, (x, y, z)) > level:
                     out[r, c] = camera.distance - z  # planar depth
                     break
                 t += step / n
