@@ -32,11 +32,10 @@ from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model
 from genre_backend.arguments import add_threads, add_weights
 
+from .burst import WAYS
+
 __all__ = ["WAYS", "STAGES", "StepTimer", "cpu_description", "main"]
 
-# way → (channels-last, bf16 autocast, the refiner compiled with torch.compile)
-WAYS = {"fp32": (False, False, False), "channels-last": (True, False, False), "bf16": (False, True, False),
-        "channels-last+bf16": (True, True, False), "channels-last+compile": (True, False, True)}
 STAGES = ("depth", "inpaint", "refine", "joint")
 
 

@@ -62,7 +62,7 @@ from ..data.pack import Pack, read_pack
 from .losses import sph_loss, voxel_loss
 from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
 
-__all__ = ["BurstSpec", "Speed", "ViewMaker", "cached_distance_grid", "object_distance_grid", "widen", "write_shards", "read_shards", "run_burst", "main"]
+__all__ = ["BurstSpec", "Speed", "WAYS", "ViewMaker", "cached_distance_grid", "object_distance_grid", "widen", "write_shards", "read_shards", "run_burst", "main"]
 
 SHARD_BYTES = 16 * 2**20 - 2**16  # a file from the device comes back if it is at most 16 MiB (64 KiB for the header)
 INDEX_FILE = "weights.index.json"
@@ -409,9 +409,9 @@ class Speed:
     """How each trained net runs: channels-last tensors and bf16 autocast, per net.
 
     Chosen per device by measurement (``genre bench train``): on CUDA every
-    switch is on; on this project's CPUs (Xeon with AVX-512-BF16 and AMX) only
-    those that measured faster (:data:`CPU_SPEED`: channels-last).  Every switch off is the
-    plain fp32 contiguous path, the reference the fast one is tested against.
+    switch is on; on a CPU (:data:`CPU_SPEED`) channels-last for every net, and bf16 autocast where oneDNN runs
+    bf16 natively (docs/lab/benchmarks.md).  Every switch off is the plain fp32 contiguous path, the reference the
+    fast one is tested against.  ``genre train --speed WAY`` picks another (:meth:`from_way`).
     """
 
     inpaint_channels_last: bool = False
@@ -421,17 +421,43 @@ class Speed:
     # torch.compile of the refiner (in place: its state_dict keys stay). Measured on the quiet 2-core Xeon: 1.06x in
     # the refine stage, 0.99x joint (docs/lab/benchmarks.md), so CPU_SPEED leaves it off
     refiner_compile: bool = False
+    depth_channels_last: bool = False  # the depth net (the stage trainer's depth and joint stages)
+    depth_bf16: bool = False
 
     @classmethod
     def for_device(cls, device: torch.device) -> Speed:
         return CUDA_SPEED if device.type == "cuda" else CPU_SPEED
 
+    @classmethod
+    def from_way(cls, way: str) -> Speed:
+        """Every net run one of ``genre bench train``'s ways (:data:`WAYS`)."""
+        if way not in WAYS:
+            raise ValueError(f"speed: one of {', '.join(WAYS)}, got {way!r}")
+        cl, bf16, compiled = WAYS[way]
+        return cls(cl, bf16, cl, bf16, compiled, cl, bf16)
+
+    def autocast(self, net: str, device: torch.device) -> torch.autocast:
+        """bf16 autocast for ``net`` ("depth", "inpaint" or "refiner") where this speed has it on."""
+        return torch.autocast(device.type, dtype=torch.bfloat16, enabled=getattr(self, f"{net}_bf16"))
+
+
+# way → (channels-last, bf16 autocast, the refiner compiled with torch.compile), for every net alike
+WAYS = {"fp32": (False, False, False), "channels-last": (True, False, False), "bf16": (False, True, False),
+        "channels-last+bf16": (True, True, False), "channels-last+compile": (True, False, True)}
+
+
+def _cpu_speed() -> Speed:
+    """The CPU's record (``genre bench train``, docs/lab/benchmarks.md). Channels-last wins for every net on every
+    CPU measured. bf16 autocast: on an AMD EPYC with native oneDNN bf16 (AVX-512-BF16), 2 threads, batch 16, each net
+    faster with it than without (joint 1.42x over channels-last alone); where oneDNN emulates bf16 (an AVX2 EPYC) it
+    is off. (On the AVX-512/AMX Xeon of the first sessions bf16 measured slower, but only on a loaded machine.)"""
+    native = bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    return Speed.from_way("channels-last+bf16" if native else "channels-last")
+
 
 REFERENCE_SPEED = Speed()
-CUDA_SPEED = Speed(True, True, True, True)
-# measured on the 2-core Xeon (genre bench train, docs/lab/benchmarks.md): channels-last wins for both nets; bf16
-# autocast loses 3-4x there (torch 2.13 CPU), so it stays off
-CPU_SPEED = Speed(inpaint_channels_last=True, inpaint_bf16=False, refiner_channels_last=True, refiner_bf16=False)
+CUDA_SPEED = Speed.from_way("channels-last+bf16")
+CPU_SPEED = _cpu_speed()
 
 
 def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None = None, channels_last: bool | None = None,
@@ -443,7 +469,6 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None
     loss, or the spherical loss alone without the refiner.  Returns (loss, {term: value})."""
     g = model.config.geometry
     device = sample["full_sph"].device
-    dev_type = device.type
     speed = speed or Speed.for_device(device)
     if amp is not None:
         speed = dataclasses.replace(speed, inpaint_bf16=amp, refiner_bf16=amp)
@@ -451,7 +476,7 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None
         speed = dataclasses.replace(speed, inpaint_channels_last=channels_last, refiner_channels_last=channels_last)
     with torch.no_grad():
         partial = sample["partial"] if "partial" in sample else model.partial_sph(sample["depth"])
-    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=speed.inpaint_bf16):
+    with speed.autocast("inpaint", device):
         padded = pad_sph(partial[:, None], g.sph_pad)
         if speed.inpaint_channels_last:
             padded = padded.contiguous(memory_format=torch.channels_last)
@@ -466,7 +491,7 @@ def _step_loss(model: GenRe, sample: dict, recipe: BurstRecipe, amp: bool | None
     if "teacher" in sample:  # (B,) bool: these samples feed the refiner the true full map
         full = torch.where(sample["teacher"][:, None, None], sample["full_sph"], full)
     vox_sph = model.sph_voxels(full)
-    with torch.autocast(dev_type, dtype=torch.bfloat16, enabled=speed.refiner_bf16):
+    with speed.autocast("refiner", device):
         x = torch.cat([vox_sph, vox_depth], dim=1)
         if speed.refiner_channels_last:
             x = x.contiguous(memory_format=torch.channels_last_3d)
@@ -483,6 +508,8 @@ def apply_speed(model: GenRe, speed: Speed) -> GenRe:
         model.inpaint_net.to(memory_format=torch.channels_last)
     if speed.refiner_channels_last:
         model.refiner.to(memory_format=torch.channels_last_3d)
+    if speed.depth_channels_last:
+        model.depth_net.to(memory_format=torch.channels_last)
     if speed.refiner_compile:
         model.refiner.compile()
     return model

@@ -211,16 +211,18 @@ def _start(tcfg: TrainConfig, model_config: GenreConfig | None) -> _Run:
     device = _device_and_group(tcfg, world)
     torch.manual_seed(tcfg.seed)
     model = build_model(tcfg, model_config)
+    # the nets run as measured fastest on this device (genre bench train), or as --speed says
+    speed = Speed.for_device(device) if tcfg.speed == "auto" else Speed.from_way(tcfg.speed)
     module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight,
-                         tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight, tcfg.outline_weight).to(device)
-    # the nets in the memory format measured fastest on this device (channels-last on the CPU: genre bench train)
-    apply_speed(model, Speed.for_device(device))
+                         tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight, tcfg.outline_weight,
+                         speed).to(device)
+    apply_speed(model, speed)
     params = [p for p in module.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
     stage_dir = Path(tcfg.out) / tcfg.stage
     if rank == 0:
         stage_dir.mkdir(parents=True, exist_ok=True)
-        resolved = {"train": dataclasses.asdict(tcfg), "model": model.config.to_dict()}
+        resolved = {"train": dataclasses.asdict(tcfg), "speed": dataclasses.asdict(speed), "model": model.config.to_dict()}
         (stage_dir / "config.json").write_text(json.dumps(resolved, indent=2))
     start, best, cpu_before = load_checkpoint(stage_dir, module, opt)
     cpu_start = cpu_seconds()

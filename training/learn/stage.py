@@ -11,6 +11,7 @@ from torch import nn
 from genre_backend.geometry.spherical import crop_sph, pad_sph
 from genre_backend.nets.model import GenRe, save_model
 
+from .burst import REFERENCE_SPEED, Speed
 from .losses import depth_gradient_loss, outline_loss, sph_loss, voxel_loss
 
 __all__ = ["BASELINE_STAGES", "StageModule"]
@@ -23,8 +24,10 @@ class StageModule(nn.Module):
 
     def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
                  sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0,
-                 outline_weight: float = 0.0):
+                 outline_weight: float = 0.0, speed: Speed = REFERENCE_SPEED):
         super().__init__()
+        # bf16 autocast per net as ``speed`` says (the nets' memory format is burst.apply_speed's); the losses in fp32
+        self.speed = speed
         self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
         self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
         self.depth_gradient_weight = depth_gradient_weight  # the depth loss's gradient matching term
@@ -104,10 +107,16 @@ class StageModule(nn.Module):
         """:func:`training.learn.losses.voxel_loss` of the refiner's logits against ``batch["voxels"]``."""
         return voxel_loss(logits, batch["voxels"], self.surface_weight)
 
+    def _net(self, name: str, net, x: torch.Tensor):
+        """``net(x)`` under the bf16 autocast ``self.speed`` gives ``name``; its tensors back in fp32."""
+        with self.speed.autocast(name, x.device):
+            out = net(x)
+        return {k: v.float() for k, v in out.items()} if isinstance(out, dict) else out.float()
+
     def forward(self, batch: dict[str, torch.Tensor]):
         m = self.model
         if self.stage == "depth":
-            return self.depth_loss(m.depth_net(batch["rgb"]), batch)
+            return self.depth_loss(self._net("depth", m.depth_net, batch["rgb"]), batch)
         if self.stage == "onestep":
             pad = m.config.geometry.sph_pad
             return self.sph_loss({"map": pad_sph(self.baseline(batch["rgb"])[:, None], pad)}, batch)
@@ -118,14 +127,14 @@ class StageModule(nn.Module):
                 vox_depth = b.depth_voxels(depth)
             return self.voxel_loss(b.complete(vox_depth), batch)
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
-            depth_out = m.depth_net(batch["rgb"])
+            depth_out = self._net("depth", m.depth_net, batch["rgb"])
             depth = m.masked_depth(depth_out["depth"], batch["mask"])
             partial = m.partial_sph(depth)
         pad = m.config.geometry.sph_pad
         if self.stage == "inpaint":
-            return self.sph_loss(m.inpaint_net.forward_parts(pad_sph(partial[:, None], pad)), batch)
+            return self.sph_loss(self._net("inpaint", m.inpaint_net.forward_parts, pad_sph(partial[:, None], pad)), batch)
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
-            sph_parts = m.inpaint_net.forward_parts(pad_sph(partial[:, None], pad))
+            sph_parts = self._net("inpaint", m.inpaint_net.forward_parts, pad_sph(partial[:, None], pad))
             full = crop_sph(sph_parts["map"], pad)[:, 0]
             if self.training and "coin" in batch and self.sph_teacher > 0:
                 full = torch.where((batch["coin"][:, 0] < self.sph_teacher)[:, None, None], batch["full_sph"], full)
@@ -133,7 +142,7 @@ class StageModule(nn.Module):
         if self.training and "coin" in batch and self.depth_dropout > 0:
             keep = (batch["coin"][:, 1] >= self.depth_dropout).to(vox_depth.dtype)
             vox_depth = vox_depth * keep.view(-1, *([1] * (vox_depth.dim() - 1)))
-        logits = m.refine(vox_sph, vox_depth)
+        logits = self._net("refiner", m.refiner, torch.cat([vox_sph, vox_depth], dim=1))
         loss, terms = self.voxel_loss(logits, batch)
         if self.outline_weight > 0:
             terms["outline_bce"] = outline_loss(logits, batch["voxels"], m.config.camera)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from genre_backend.config import INPAINT_HEADS, TARGETS
 
+from .burst import WAYS
 from .recipe import STAGES, StageRecipe, get_recipe
 
 __all__ = ["TrainConfig"]
@@ -58,11 +59,16 @@ class TrainConfig:
     seed: int = 0
     workers: int = 0
     device: str = "cpu"
+    # how the nets run: "auto" (the device's record, burst.Speed.for_device: on a CPU channels-last, with bf16
+    # autocast where oneDNN has it natively) or one of genre bench train's ways for every net (burst.WAYS)
+    speed: str = "auto"
     shapes: str | None = None  # optional file with one shape id per line (e.g. the seen-train split)
     augment: bool = True
     progress: bool = True
 
     def __post_init__(self):
+        if self.speed != "auto" and self.speed not in WAYS:
+            raise ValueError(f"speed must be 'auto' or one of {', '.join(WAYS)}, got {self.speed!r}")
         if self.stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
         recipe = get_recipe(self.recipe)

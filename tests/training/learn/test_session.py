@@ -93,23 +93,25 @@ def test_the_distance_grid_cache_returns_what_it_would_make(prim_pack, tmp_path)
     assert len({p.parent for p in tmp_path.rglob("*.npz")}) == 2
 
 
-@pytest.mark.parametrize("fast", ["cpu", pytest.param("compiled", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("fast", ["channels-last", "channels-last+bf16",
+                                  pytest.param("channels-last+compile", marks=pytest.mark.slow)])
 def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack, fast):
-    """The CPU's fast path (CPU_SPEED: channels-last; bf16 autocast where it is on; or with the refiner compiled)
-    against fp32 contiguous: the same losses over the first five steps of training from the same weights on the
-    same samples, within 3 %. Measured with channels-last alone: 2e-4 at the first step (other convolution
-    kernels, other rounding), 1.7 % by the fifth (Adam's steps amplify the difference in small gradients)."""
-    import dataclasses
-
+    """Each fast way of the CPU (burst.WAYS: channels-last; with bf16 autocast, as CPU_SPEED has it where oneDNN runs
+    bf16 natively; or with the refiner compiled) against fp32 contiguous: the same losses over the first five steps
+    of training from the same weights on the same samples, within 5 %. At the first step (the same weights, one
+    pass) within 1e-3 in fp32 (measured 2e-4 with channels-last: other convolution kernels, other rounding), 1e-2
+    under bf16 (measured 1.4e-3 on a native-bf16 EPYC: bf16 keeps 8 bits of mantissa); Adam's steps amplify the
+    difference in small gradients (by the fifth: 1.7 % channels-last on the Xeon, 3.3 % compiled on the AVX-512
+    EPYC)."""
     from training.data.pack import read_pack
-    from training.learn.burst import CPU_SPEED, REFERENCE_SPEED, ViewMaker, _step_loss, apply_speed
+    from training.learn.burst import REFERENCE_SPEED, Speed, ViewMaker, _step_loss, apply_speed
     from training.learn.recipe import get_burst_recipe
 
     recipe = get_burst_recipe("session")
     pack = read_pack(prim_pack[0])
     maker = ViewMaker(pack, TINY, torch.device("cpu"), grid_factor=2)
     curves = {}
-    fast_speed = CPU_SPEED if fast == "cpu" else dataclasses.replace(CPU_SPEED, refiner_compile=True)
+    fast_speed = Speed.from_way(fast)
     for name, speed in (("plain", REFERENCE_SPEED), ("fast", fast_speed)):
         model = apply_speed(load_model(prim_pack[1]), speed)
         model.train()
@@ -127,9 +129,10 @@ def test_the_fast_cpu_path_follows_the_plain_fp32_path(prim_pack, fast):
         curves[name] = losses
         assert not any("_orig_mod" in k for k in model.state_dict())  # a compiled net saves under its own names
     assert all(math.isfinite(x) for x in curves["fast"])
-    assert abs(curves["plain"][0] - curves["fast"][0]) <= 1e-3 * curves["plain"][0]  # the same weights, one pass
+    first = 1e-2 if fast_speed.refiner_bf16 else 1e-3
+    assert abs(curves["plain"][0] - curves["fast"][0]) <= first * curves["plain"][0]  # the same weights, one pass
     for a, b in zip(curves["plain"], curves["fast"]):
-        assert abs(a - b) <= 0.03 * abs(a), curves
+        assert abs(a - b) <= 0.05 * abs(a), curves
     assert curves["plain"][-1] < curves["plain"][0]  # and the steps do train
 
 
