@@ -78,12 +78,16 @@ TINY_FRAMED = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geomet
 def train_tiny_weights(views: Path, run: Path) -> Path:
     """The tiny model trained stage by stage on ``views`` (depth 60 steps, inpaint 30, refine 60) into ``run``, on
     one thread (tiny nets: one thread is faster, and 25× faster on a busy 2-core machine, measured); returns the
-    final refine weights.  The tests' shared model (conftest.py's ``trained``, made once per session)."""
+    final refine weights.  The tests' shared model (conftest.py's ``trained``, made once per session).  Its nets
+    run channels-last in fp32 whatever the processor (``speed``), so that every machine kind trains the same
+    weights: ``--speed auto`` would train under bf16 where oneDNN has it natively, and an inference test's 1e-6
+    agreement between two paths held for the fp32 weights only (1e-5 apart on 18 of 1,024 values under bf16)."""
     import torch
 
     from training.learn.train import TrainConfig, train
 
-    common = dict(data=str(views), out=str(run), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=50)
+    common = dict(data=str(views), out=str(run), batch_size=4, val_fraction=0.0, augment=False, progress=False, log_every=50,
+                  speed="channels-last")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
