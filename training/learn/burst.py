@@ -434,7 +434,8 @@ class Speed:
         if way not in WAYS:
             raise ValueError(f"speed: one of {', '.join(WAYS)}, got {way!r}")
         cl, bf16, compiled = WAYS[way]
-        return cls(cl, bf16, cl, bf16, compiled, cl, bf16)
+        return cls(inpaint_channels_last=cl, inpaint_bf16=bf16, refiner_channels_last=cl, refiner_bf16=bf16,
+                   refiner_compile=compiled, depth_channels_last=cl, depth_bf16=bf16)
 
     def autocast(self, net: str, device: torch.device) -> torch.autocast:
         """bf16 autocast for ``net`` ("depth", "inpaint" or "refiner") where this speed has it on."""
