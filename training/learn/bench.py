@@ -32,7 +32,7 @@ from genre_backend.weights_file import resolve_weights
 from genre_backend.nets.model import GenRe, load_model
 from genre_backend.arguments import add_threads, add_weights
 
-from .burst import WAYS
+from .burst import WAYS, Speed, apply_speed
 
 __all__ = ["WAYS", "STAGES", "StepTimer", "cpu_description", "main"]
 
@@ -92,14 +92,8 @@ class StepTimer:
     """One stage run one way: a model and its optimiser, built once (a compiled refiner compiles once), timed step by step."""
 
     def __init__(self, weights: str, stage: str, way: str, batch: int, seed: int = 0):
-        self.stage, (self.channels_last, self.bf16, compiled) = stage, WAYS[way]
-        self.model = load_model(resolve_weights(weights))
-        if self.channels_last:
-            self.model.depth_net.to(memory_format=torch.channels_last)
-            self.model.inpaint_net.to(memory_format=torch.channels_last)
-            self.model.refiner.to(memory_format=torch.channels_last_3d)
-        if compiled:
-            self.model.refiner.compile()
+        self.stage, (self.channels_last, self.bf16, _) = stage, WAYS[way]
+        self.model = apply_speed(load_model(resolve_weights(weights)), Speed.from_way(way))
         self.opt = torch.optim.Adam([p for n in _trained(self.model, stage) for p in n.parameters()], lr=1e-5)
         self.model.train()
         self.x = _inputs(self.model, batch, torch.Generator().manual_seed(seed))

@@ -696,7 +696,7 @@ def test_the_stage_trainer_runs_the_cpu_fast_path_and_matches_the_plain_one(tiny
 
 def test_the_cpu_speed_record_follows_the_processor():
     """auto on the CPU: every net channels-last; bf16 autocast exactly where oneDNN runs bf16 natively (genre bench
-    train measured it faster there, and 2-4x slower where it is emulated: docs/lab/benchmarks.md)."""
+    train measured it faster there, and 3-4x slower where it is emulated: docs/lab/benchmarks.md)."""
     from training.learn import burst
 
     cpu = burst.Speed.for_device(torch.device("cpu"))
