@@ -78,7 +78,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     """``genre train``'s options: the fixed ones, then one per :class:`TrainConfig` field (default: the recipe's)."""
     parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically; "
                                      "'genre train burst --help': a GPU burst from a training pack; 'genre train average --help': "
-                                     "the mean of several weights files).")
+                                     "the mean of several weights files; 'genre train batch-norm --help': a weights file's batch-norm statistics "
+                                     "re-estimated).")
     parser.add_argument("stage", choices=STAGES)
     parser.add_argument("--data", required=True, nargs="+",
                         help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets'); a folder "
@@ -156,6 +157,10 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
         from . import average
 
         return average.main(argv[1:], prog=f"{prog} average")
+    if argv[:1] == ["batch-norm"]:  # a weights file's batch-norm statistics re-estimated (training/learn/batchnorm.py)
+        from . import batchnorm
+
+        return batchnorm.main(argv[1:], prog=f"{prog} batch-norm")
     if argv[:1] == ["session"]:  # the background training of every session (training/learn/session.py)
         from . import session
 
