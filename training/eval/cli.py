@@ -87,6 +87,10 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                    help=f"score GenRe again with one mesh option at each value (rows 'GenRe [OPTION=V]', the networks run "
                         f"once; the others at the weights' setting); repeatable; options: {', '.join(SWEEPABLE)}; "
                         "booleans on/off")
+    p.add_argument("--levels", default=None, metavar="T1,T2",
+                   help="score only these isosurface levels (e.g. 0.45, the installed one) instead of the weights' sweep "
+                        "(threshold_min to threshold_max): a rule at one level needs no more, and each level costs a mesh "
+                        "a row a view")
     p.add_argument("--max-views", type=int, default=None, help="at most this many views per shape")
     p.add_argument("--thresholds-from", help="thresholds.json of a run on seen-test data (when this run has none)")
     add_device(p)
@@ -200,6 +204,19 @@ def _views(args: argparse.Namespace, groups: tuple[str, ...]) -> list:
     return views
 
 
+def _levels(text: str | None) -> tuple[float, ...]:
+    """``--levels``' isosurface levels, sorted and distinct, each strictly between 0 and 1 (empty: not given)."""
+    if text is None:
+        return ()
+    try:
+        levels = sorted({round(float(t), 6) for t in text.split(",")})
+    except ValueError:
+        levels = []
+    if not levels or not all(0.0 < t < 1.0 for t in levels):
+        raise _Refused(f"--levels: expected isosurface levels between 0 and 1, comma-separated (e.g. 0.45), got {text!r}")
+    return tuple(levels)
+
+
 def _models(args: argparse.Namespace, paths: dict[str, Path | None], need: dict[str, bool], rows_wanted: list[str]) -> Models:
     """GenRe and the baselines the rows need, loaded and checked."""
     try:
@@ -208,7 +225,8 @@ def _models(args: argparse.Namespace, paths: dict[str, Path | None], need: dict[
 
         completion = load_baseline(paths["completion"], "completion", args.device) if need["completion"] else None
         onestep = load_baseline(paths["onestep"], "onestep", args.device) if need["onestep"] else None
-        models = Models(genre, completion, onestep, wanted=tuple(rows_wanted), sweeps=parse_sweeps(args.sweep, genre.config.geometry))
+        models = Models(genre, completion, onestep, wanted=tuple(rows_wanted), sweeps=parse_sweeps(args.sweep, genre.config.geometry),
+                        levels=_levels(args.levels))
         models.check()
     except WeightsError as exc:
         raise _Refused(str(exc)) from None
@@ -228,7 +246,8 @@ def _out_folder(args: argparse.Namespace, paths: dict[str, Path | None], need: d
     out.mkdir(parents=True, exist_ok=True)
     ident = {"weights": {k: (str(v), _digest(v)) for k, v in paths.items() if need[k] and v is not None},
              "preset": models.genre.config.preset, "rows": rows_wanted, "train_views": [str(p) for p in args.train_views],
-             **({"sweeps": [list(s) for s in models.sweeps]} if models.sweeps else {})}
+             **({"sweeps": [list(s) for s in models.sweeps]} if models.sweeps else {}),
+             **({"levels": list(models.levels)} if models.levels else {})}
     ident = json.loads(json.dumps(ident))  # as it reads back (lists, not tuples)
     ident_path = out / "eval_config.json"
     if ident_path.is_file() and json.loads(ident_path.read_text()) != ident:
@@ -335,13 +354,13 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     spec = ModelSpec(str(paths["genre"]), str(paths["completion"]) if need["completion"] else None,
                      str(paths["onestep"]) if need["onestep"] else None,
                      str(out / "nearest_index.safetensors") if models.nearest is not None else None, tuple(rows_wanted), args.device,
-                     models.sweeps)
+                     models.sweeps, models.levels)
     t_views = time.perf_counter()
     records = evaluate_views(models, views, out, device=args.device, progress=not args.no_progress, save_grids=set(gallery_keys),
                              jobs=args.jobs, spec=spec)
     t_views = time.perf_counter() - t_views
     fixed = json.loads(Path(args.thresholds_from).read_text())["seen"] if args.thresholds_from else None
-    choice = choose_thresholds(records, genre.config.geometry.thresholds(), genre.config.geometry.default_threshold, fixed)
+    choice = choose_thresholds(records, models.thresholds(), genre.config.geometry.default_threshold, fixed)
     per_shape, per_class, group_means = aggregate(records, choice)
     (out / "thresholds.json").write_text(json.dumps(choice, indent=2))
     write_csv(out / "per_shape.csv", per_shape)
@@ -355,7 +374,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
               "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")
     table = format_table(per_class, group_means, choice, models.rows(), header) + _shipped_threshold_note(records, choice)
     table += flatness_table(records, choice, models.rows())
-    level = min(genre.config.geometry.thresholds(), key=lambda t: abs(t - genre.config.geometry.default_threshold))
+    level = min(models.thresholds(), key=lambda t: abs(t - genre.config.geometry.default_threshold))
     table += sweep_table(records, models.sweeps, level)
     table += _figures(args, out, per_class, models, views, choice, train_ids, gallery_keys)
     atomic_write_text(out / "table.md", table)

@@ -80,10 +80,16 @@ class Models:
     wanted: tuple[str, ...] = ROWS  # the rows to produce
     # GenRe again with one mesh option changed, per (name, value): rows sweep_row(name, value) (genre eval --sweep)
     sweeps: tuple[tuple[str, Any], ...] = ()
+    # the isosurface levels to score (genre eval --levels); empty: the weights' sweep (GeometryConfig.thresholds)
+    levels: tuple[float, ...] = ()
 
     @property
     def config(self) -> GenreConfig:
         return self.genre.config
+
+    def thresholds(self) -> list[float]:
+        """The levels every grid row is scored at: ``levels``, or the weights' sweep from threshold_min to threshold_max."""
+        return list(self.levels) if self.levels else self.config.geometry.thresholds()
 
     def rows(self) -> list[str]:
         rows = ["GenRe", "GenRe-Oracle", "GenRe-SphOracle", *DIAGNOSTIC_ROWS]

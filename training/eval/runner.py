@@ -172,6 +172,7 @@ class ModelSpec:
     wanted: tuple[str, ...]
     device: str = "cpu"
     sweeps: tuple[tuple[str, Any], ...] = ()  # Models.sweeps
+    levels: tuple[float, ...] = ()  # Models.levels
 
     def load(self) -> Models:
         from genre_backend.nets.model import load_model
@@ -181,7 +182,7 @@ class ModelSpec:
         models = Models(load_model(self.genre, self.device),
                         load_baseline(self.completion, "completion", self.device) if self.completion else None,
                         load_baseline(self.onestep, "onestep", self.device) if self.onestep else None,
-                        wanted=self.wanted, sweeps=self.sweeps)
+                        wanted=self.wanted, sweeps=self.sweeps, levels=self.levels)
         if self.nearest_index:
             models.nearest = NearestIndex.load(self.nearest_index)
         return models
@@ -189,7 +190,7 @@ class ModelSpec:
 
 def score_view(models: Models, view: EvalView, sample: dict, truth: Truth, device, grids_dir: Path | None = None) -> list[dict]:
     """Every row of one view at every threshold, as CSV records (strings); GenRe's grid saved when ``grids_dir`` is given."""
-    thresholds = models.config.geometry.thresholds()
+    thresholds = models.thresholds()
     gt_large, again_large = truth.posed(view)
     gt_small, again_small = gt_large[:POINTS_SMALL], again_large[:POINTS_SMALL]
     pred = predict(models, sample, device)
@@ -258,7 +259,7 @@ def evaluate_views(models: Models, views: list[EvalView], out_dir: Path, *, devi
     from ..data.dataset import ViewDataset
     from ..data.views import ViewRef
 
-    thresholds = models.config.geometry.thresholds()
+    thresholds = models.thresholds()
     columns = BASE_COLUMNS + metric_columns(thresholds)
     path = out_dir / "per_view.csv"
     records = _read_done(path, columns)

@@ -472,6 +472,28 @@ def test_parallel_workers_write_the_same_rows(tiny, tmp_path):
     assert main(_args(root, views, run, tmp_path / "bad", "--jobs", "0")) == 2
 
 
+def test_levels_score_only_those_levels_with_the_sweeps_figures_there(tiny, tmp_path, capsys):
+    root, views, run = tiny
+    rows = ("--no-figures", "--rows", "GenRe", "--sweep", "hole_closing=0")
+    assert main(_args(root, views, run, tmp_path / "all", *rows)) == 0
+    assert main(_args(root, views, run, tmp_path / "one", *rows, "--levels", "0.5,0.40")) == 0
+    full = {(r["key"], r["row"]): r for r in _read(tmp_path / "all" / "per_view.csv")}
+    some = _read(tmp_path / "one" / "per_view.csv")
+    assert len(some) == len(full) == 4 * 3  # GenRe, its sweep row, the floor
+    levels = sorted({k.split("@")[1] for k in some[0] if "@" in k})
+    assert levels == ["0.40", "0.50"] and len(TINY.geometry.thresholds()) > 2
+    for r in some:  # the same meshes, so the same figures, as the whole sweep's at those levels
+        for k, v in r.items():
+            assert v == full[(r["key"], r["row"])][k], (r["row"], k)
+    assert json.loads((tmp_path / "one" / "eval_config.json").read_text())["levels"] == [0.4, 0.5]
+    # a folder scored at other levels is refused rather than mixed; a bad list before anything runs
+    assert main(_args(root, views, run, tmp_path / "one", *rows)) == 2
+    for bad in ("x", "0", "1.2", ""):
+        assert main(_args(root, views, run, tmp_path / "bad", *rows, "--levels", bad)) == 2, bad
+        assert "--levels" in capsys.readouterr().err
+    assert not (tmp_path / "bad" / "per_view.csv").exists()
+
+
 @pytest.mark.slow
 def test_the_distance_target_is_nearer_the_truth_than_the_shell(tiny):
     """Truth through each representation, at its best threshold, against the resampling floor."""
