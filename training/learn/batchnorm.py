@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from genre_backend.arguments import add_out
+from genre_backend.arguments import add_out, add_seed
 from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.weights_file import WeightsError
 
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None, prog: str = "genre train batch-norm") ->
     ap.add_argument("--recipe", default="product", help="the recipe whose joint stage draws the batches (default: product)")
     ap.add_argument("--samples", type=int, default=1024, help="training samples to estimate from (default: 1024)")
     ap.add_argument("--batch-size", type=int, default=8, help="samples a batch, as one training process's (default: 8)")
-    ap.add_argument("--seed", type=int, default=0, help="which batches (default: 0)")
+    add_seed(ap, help="which batches (default: 0)")
     add_out(ap, required=True, help="the weights file with the new statistics (.safetensors; a .json beside it)")
     ap.add_argument("--fp16", action="store_true", help="store the weights as float16 (batch-norm statistics stay float32)")
     args = ap.parse_args(argv)
