@@ -34,7 +34,7 @@ from .batches import StepBatches
 from .stage import StageModule
 from .train_config import TrainConfig
 
-__all__ = ["batch_norms", "refresh_batch_norm", "main"]
+__all__ = ["batch_norms", "refresh_batch_norm", "training_batches", "main"]
 
 
 def batch_norms(model: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
