@@ -167,7 +167,7 @@ def gallery(rows: list[dict], path: Path, size: int, samples: int) -> None:
     for r in rows:
         meshes += [(r["auto"].vertices, r["auto"].faces), (r["hand"].vertices, r["hand"].faces)]
     renders = render_meshes(meshes, size=size, samples=samples, camera=rows[0]["auto"].config.camera)
-    cols = ["photo (green: hand mask)", "auto mask before (net)", "auto mask after (GrabCut)", "mesh (auto mask), photo's view", "the same from the right", "mesh (hand mask), from the right"]
+    cols = ["photo (green: hand mask)", "before: the depth net's silhouette", "after: the automatic mask", "mesh (auto mask), photo's view", "the same from the right", "mesh (hand mask), from the right"]
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 2.5 * len(rows)), squeeze=False)
     for i, r in enumerate(rows):
         rgb = r["rgb"]
@@ -285,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     seed_cols = [s for s in (*SEEDINGS, "auto*") if f"iou_{s}" in rows[0]]
-    header = ["photo", "IoU before (net)", "IoU after (GrabCut)", *(f"IoU {s}" for s in seed_cols), "cover before", "cover after", "doubtful after",
+    header = ["photo", "IoU before (depth net)", "IoU after (automatic)", *(f"IoU {s}" for s in seed_cols), "cover before", "cover after", "doubtful after",
               "depth/width (hand mask)", "judged true", "thinnest depth/width", "judged true", "tilt°", "roll°", "parts (hand mask)", "parts (auto mask)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     table = []
@@ -300,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join([
         f"# GenRe on {len(rows)} real photos (`scripts/eval_photos.py`, weights `{args.weights.name}`)",
         "",
-        "IoU of the automatic mask (no user mask) against the hand mask at the photo's pixels; cover = fraction of the photo the automatic mask covers; "
+        "IoU of the automatic mask (no user mask) against the hand mask at the photo's pixels, before = the depth net's own silhouette, after = the mask `genre reconstruct` uses (docs/masks.md); cover = fraction of the photo the automatic mask covers; "
         "depth/width = the side-view ratio of the mesh made with the hand mask; thinnest depth/width = its depth over width along its thinnest principal axis (a plate: ~0.1); tilt / roll = angle of its principal axis nearest the view's up from +y, "
         "seen from the side (+ = top toward the camera) / from the camera (+ = top to the right), ~ = ill-defined (round object); parts after clean-up (before it).",
         "",
