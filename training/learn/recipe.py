@@ -35,50 +35,47 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 
-__all__ = ["STAGES", "StageRecipe", "Recipe", "RECIPES", "get_recipe", "BurstRecipe", "BURST_RECIPES", "get_burst_recipe"]
+__all__ = ["STAGES", "documented", "StageRecipe", "Recipe", "RECIPES", "get_recipe", "BurstRecipe", "BURST_RECIPES", "get_burst_recipe"]
 
 STAGES = ("depth", "inpaint", "refine", "joint", "completion", "onestep")
+
+
+def documented(default, text: str):
+    """A field with its default and the one line ``genre train --help`` prints for it."""
+    return field(default=default, metadata={"help": text})
 
 
 @dataclass(frozen=True)
 class StageRecipe:
     """How one stage trains: Adam(lr, betas) on batches of ``batch_size`` for ``steps`` steps.
 
-    ``surface_weight``: the weight of the BCE averaged over the true shell's
-    voxels, added to the BCE over the whole grid (voxel stages only).
-    ``photo_fraction``: the share of samples composited over real photographs,
-    with a camera's faults on every sample (any stage: each feeds the image
-    to a net; the recipes set it for depth and joint; 0 = the renders as they
-    are; :mod:`training.data.dataset`).
-    ``sph_teacher`` (the refine stage): the share of training samples whose
-    spherical input is the true full map instead of the inpainted one.
-    ``depth_dropout`` (refine, joint): the share of training samples whose
-    depth voxels are emptied, so that the refiner must build them from the
-    spherical channel alone.  ``mirror`` (every stage): the share of training
-    samples reflected left to right, targets with them (an exact augmentation:
-    :func:`training.data.dataset.mirror_sample`).  None of the three touches
-    validation or inference.
+    Each field's ``help`` (its metadata) says what it does; ``genre train --help`` prints it.  Photo compositing:
+    :mod:`training.data.dataset`; ``mirror`` is an exact augmentation (:func:`training.data.dataset.mirror_sample`);
+    ``sph_teacher``, ``depth_dropout`` and ``mirror`` touch neither validation nor inference.
     """
 
-    lr: float
-    steps: int = 1000
-    batch_size: int = 4
-    beta1: float = 0.5
-    beta2: float = 0.9
-    surface_weight: float = 10.0
-    photo_fraction: float = 0.0
-    sph_loss: str = "mse"  # the spherical maps' loss (inpaint, joint, onestep): "mse" (the paper's) or "l1"
-    depth_weight: float = 0.0  # the joint stage: the depth net's own loss (depth + silhouette) added with this weight
-    # the depth net's loss (depth stage, and joint's depth term): this weight times the multi-scale gradient
-    # matching term (training.learn.losses.depth_gradient_loss) added to the depth's MSE; 0 = the MSE alone
-    depth_gradient_weight: float = 0.0
-    # refine, joint: this weight times the BCE between the predicted and the true grid's silhouettes through the
-    # view's camera (training.learn.losses.outline_loss), added to the grid's loss; 0 = the grid's loss alone
-    outline_weight: float = 0.0
-    lr_halflife: int = 0  # > 0: the learning rate halves every this many steps (counted from the stage's first step)
-    sph_teacher: float = 0.0
-    depth_dropout: float = 0.0
-    mirror: float = 0.0
+    lr: float = field(metadata={"help": "Adam's learning rate"})
+    steps: int = documented(1000, "the stage's step budget (a resumed run counts its steps so far)")
+    batch_size: int = documented(4, "samples a step, per process")
+    beta1: float = documented(0.5, "Adam's beta1")
+    beta2: float = documented(0.9, "Adam's beta2")
+    surface_weight: float = documented(10.0, "voxel stages: the weight of the BCE over the true shell's voxels, added to the "
+                                       "BCE over the whole grid")
+    photo_fraction: float = documented(0.0, "the share of samples composited over real photographs, with a camera's faults "
+                                      "(needs --backgrounds)")
+    sph_loss: str = documented("mse", "the spherical maps' loss (inpaint, joint, onestep): 'mse' (the paper's) or 'l1'")
+    depth_weight: float = documented(0.0, "joint: the depth net's own loss (depth and silhouette) added with this weight")
+    depth_gradient_weight: float = documented(0.0, "depth, joint: this weight times the multi-scale gradient matching term "
+                                             "added to the depth's MSE (0: the MSE alone)")
+    outline_weight: float = documented(0.0, "refine, joint: this weight times the BCE between the predicted and the true "
+                                      "grid's silhouettes through the view's camera (0: off)")
+    lr_halflife: int = documented(0, "the learning rate halves every this many steps, counted from the stage's first step "
+                               "(0: a constant rate)")
+    sph_teacher: float = documented(0.0, "refine: the share of training samples fed the true full map instead of the "
+                                   "inpainted one")
+    depth_dropout: float = documented(0.0, "refine, joint: the share of training samples whose depth voxels are emptied, so "
+                                     "that the refiner builds them from the spherical map alone")
+    mirror: float = documented(0.0, "the share of training samples reflected left to right, targets with them")
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):

@@ -61,6 +61,7 @@ from .train_config import TrainConfig
 __all__ = ["STAGES", "BASELINE_STAGES", "TrainConfig", "TrainSpec", "StageModule", "StepBatches", "CheckpointMismatch",
            "train", "weights_digest", "parse_args", "run", "main", "depth_gradient_loss", "DEPTH_GRADIENT_STRIDES"]
 
+_RECIPE_FIELDS = {f.name: f for f in dataclasses.fields(StageRecipe)}  # (their help texts)
 # TrainConfig's fields that are not plain --OPTION VALUE options of their own name
 _SPECIAL = ("stage", "data", "out", "recipe", "init", "preset", "shapes", "augment", "progress")
 
@@ -95,8 +96,11 @@ def _parser(prog: str) -> argparse.ArgumentParser:
         if f.name in _SPECIAL:
             continue
         kind = float if f.type in ("float", "float | None") else (int if f.type in ("int", "int | None") else str)
-        default = "the recipe's" if f.default is None and f.name in StageRecipe.keys() else f.default
-        parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default, help=f"default: {default}")
+        from_recipe = f.default is None and f.name in StageRecipe.keys()
+        what = _RECIPE_FIELDS[f.name].metadata["help"] if f.name in StageRecipe.keys() else f.metadata["help"]
+        if from_recipe or f.default is not None:  # (a None default's help says what none means)
+            what += " (default: the recipe's)" if from_recipe else f" (default: {f.default})"
+        parser.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default, help=what)
     parser.add_argument("--no-augment", action="store_true")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--dry-run", action="store_true", help="print the resolved settings as JSON and exit (nothing is read or written)")

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from genre_backend.config import INPAINT_HEADS, TARGETS
 
 from .burst import WAYS
-from .recipe import STAGES, StageRecipe, get_recipe
+from .recipe import STAGES, StageRecipe, documented, get_recipe
 
 __all__ = ["TrainConfig"]
 
@@ -23,8 +23,9 @@ class TrainConfig:
     recipe: str = "paper"  # training/learn/recipe.py: every None below comes from it
     preset: str | None = None  # used only when not starting from --init weights
     init: str | None = None  # weights to start from (the previous stage's best)
+    # the recipe's values (StageRecipe: their help texts); None: the named recipe's
     steps: int | None = None
-    batch_size: int | None = None  # per process
+    batch_size: int | None = None
     lr: float | None = None
     beta1: float | None = None
     beta2: float | None = None
@@ -32,36 +33,36 @@ class TrainConfig:
     photo_fraction: float | None = None
     sph_loss: str | None = None
     depth_weight: float | None = None
-    depth_gradient_weight: float | None = None  # depth, joint: the depth error's gradient matching term's weight
-    outline_weight: float | None = None  # refine, joint: the silhouettes' term's weight (losses.outline_loss)
+    depth_gradient_weight: float | None = None
+    outline_weight: float | None = None
     lr_halflife: int | None = None
-    sph_teacher: float | None = None  # refine: the share of samples fed the true full map (teacher forcing)
-    depth_dropout: float | None = None  # refine, joint: the share of samples whose depth voxels are emptied
-    mirror: float | None = None  # every stage: the share of training samples reflected left to right
-    target: str | None = None  # the voxel representation to train (GeometryConfig.target); None: the recipe's, else the model's
-    refiner_full_nf: int | None = None  # the refiner's full-resolution branch (NetworkConfig.refiner_full_nf); None: the recipe's, else the model's
-    # the inpainting net's head (NetworkConfig.inpaint_head) and its four widths ("32,64,128,256";
-    # NetworkConfig.inpaint_widths); None: the model's.  Another head or other widths than the model's give a
-    # fresh inpainting net at the inpaint stage (nets.model.with_inpaint_net); other stages refuse them.
-    inpaint_head: str | None = None
-    inpaint_widths: str | tuple[int, ...] | None = None
-    # weights whose trained inpainting net replaces --init's (nets.model.with_inpaint_net_of), e.g. a wider net
-    # trained in another run put under later weights' depth net and refiner (a resumed stage: the checkpoint wins, as for --init)
-    inpaint_from: str | None = None
-    backgrounds: str | None = None  # a 'genre data backgrounds' folder (needed when photo_fraction > 0)
-    val_fraction: float = 0.05
-    val_every: int = 200
-    val_samples: int = 48
-    checkpoint_minutes: float = 3.0
-    checkpoint_every: int = 0  # also every this many steps (0: off)
-    snapshot_every: int = 0  # keep the weights every this many steps in STAGE/snapshots/ (for 'genre train average'; 0: off)
-    log_every: int = 10
-    seed: int = 0
-    workers: int = 0
-    device: str = "cpu"
-    # how the nets run: "auto" (the device's record, burst.Speed.for_device: on a CPU channels-last, with bf16
-    # autocast where oneDNN has it natively) or one of genre bench train's ways for every net (burst.WAYS)
-    speed: str = "auto"
+    sph_teacher: float | None = None
+    depth_dropout: float | None = None
+    mirror: float | None = None
+    target: str | None = documented(None, f"the voxel representation to train (GeometryConfig.target: {' or '.join(TARGETS)}); "
+                                    "none: the recipe's, else the model's")
+    refiner_full_nf: int | None = documented(None, "the width of the refiner's full-resolution branch "
+                                             "(NetworkConfig.refiner_full_nf); none: the recipe's, else the model's")
+    inpaint_head: str | None = documented(None, f"the inpainting net's head (NetworkConfig.inpaint_head: {', '.join(INPAINT_HEADS)}); another than the "
+                                          "model's gives a fresh inpainting net at the inpaint stage, others refuse it")
+    inpaint_widths: str | tuple[int, ...] | None = documented(None, "the inpainting net's four widths, e.g. 32,64,128,256 "
+                                                              "(as --inpaint-head); none: the model's")
+    inpaint_from: str | None = documented(None, "weights whose trained inpainting net replaces --init's (a resumed stage: "
+                                          "the checkpoint wins)")
+    backgrounds: str | None = documented(None, "a 'genre data backgrounds' folder (needed when photo_fraction > 0)")
+    val_fraction: float = documented(0.05, "the share of shapes held out for validation")
+    val_every: int = documented(200, "validate every this many steps")
+    val_samples: int = documented(48, "validation samples each time")
+    checkpoint_minutes: float = documented(3.0, "write the resumable checkpoint every this many minutes")
+    checkpoint_every: int = documented(0, "also every this many steps (0: off)")
+    snapshot_every: int = documented(0, "keep the weights every this many steps in STAGE/snapshots/ (for 'genre train "
+                                  "average'; 0: off)")
+    log_every: int = documented(10, "a row of log.csv every this many steps")
+    seed: int = documented(0, "the seed of the initial weights and of every step's draws (views, augmentation, coins)")
+    workers: int = documented(0, "data-loader processes (0: in the training process)")
+    device: str = documented("cpu", "the torch device")
+    speed: str = documented("auto", "how the nets run: auto (the device's record: channels-last, bf16 autocast where "
+                              "oneDNN has it natively) or one of genre bench train's ways for every net")
     shapes: str | None = None  # optional file with one shape id per line (e.g. the seen-train split)
     augment: bool = True
     progress: bool = True

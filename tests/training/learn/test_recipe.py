@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -244,3 +245,21 @@ def test_a_recipe_grows_the_refiner_of_its_init_weights(tiny_views, tmp_path):
     before = load_model(init)
     for k, v in before.depth_net.state_dict().items():
         assert torch.equal(v, grown.depth_net.state_dict()[k]), k
+
+
+def test_every_train_option_says_what_it_does(capsys):
+    """``genre train --help`` is made from the fields' help texts: every option of a StageRecipe or TrainConfig
+    field has one, and the recipe's options say that the recipe gives their default."""
+    with pytest.raises(SystemExit):
+        main(["joint", "--help"])
+    text = " ".join(capsys.readouterr().out.split()).split(" options: ", 1)[1]  # (after the usage lines)
+    generated = [f.name for f in dataclasses.fields(TrainConfig)
+                 if f.name not in ("stage", "data", "out", "recipe", "init", "preset", "shapes", "augment", "progress")]
+    assert "steps" in generated and "seed" in generated and "backgrounds" in generated
+    for name in generated:
+        flag = "--" + name.replace("_", "-")
+        after = text.split(f"{flag} {name.upper()} ", 1)[1]
+        entry = re.split(r" --[a-z-]+( [A-Z_]+)? ", after, maxsplit=1)[0]
+        assert len(entry) > 12 and not entry.startswith("(default"), (flag, entry)
+        assert ("(default: the recipe's)" in entry) == (name in StageRecipe.keys()), (flag, entry)
+    assert all(f.metadata.get("help") for f in dataclasses.fields(StageRecipe))
