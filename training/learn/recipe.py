@@ -60,21 +60,21 @@ class StageRecipe:
     beta1: float = documented(0.5, "Adam's beta1")
     beta2: float = documented(0.9, "Adam's beta2")
     surface_weight: float = documented(10.0, "voxel stages: the weight of the BCE over the true shell's voxels, added to the "
-                                       "BCE over the whole grid")
+                                             "BCE over the whole grid")
     photo_fraction: float = documented(0.0, "the share of samples composited over real photographs, with a camera's faults "
-                                      "(needs --backgrounds)")
+                                            "(needs --backgrounds)")
     sph_loss: str = documented("mse", "the spherical maps' loss (inpaint, joint, onestep): 'mse' (the paper's) or 'l1'")
     depth_weight: float = documented(0.0, "joint: the depth net's own loss (depth and silhouette) added with this weight")
     depth_gradient_weight: float = documented(0.0, "depth, joint: this weight times the multi-scale gradient matching term "
-                                             "added to the depth's MSE (0: the MSE alone)")
+                                                   "added to the depth's MSE (0: the MSE alone)")
     outline_weight: float = documented(0.0, "refine, joint: this weight times the BCE between the predicted and the true "
-                                      "grid's silhouettes through the view's camera (0: off)")
+                                            "grid's silhouettes through the view's camera (0: off)")
     lr_halflife: int = documented(0, "the learning rate halves every this many steps, counted from the stage's first step "
-                               "(0: a constant rate)")
+                                     "(0: a constant rate)")
     sph_teacher: float = documented(0.0, "refine: the share of training samples fed the true full map instead of the "
-                                   "inpainted one")
+                                         "inpainted one")
     depth_dropout: float = documented(0.0, "refine, joint: the share of training samples whose depth voxels are emptied, so "
-                                     "that the refiner builds them from the spherical map alone")
+                                           "that the refiner builds them from the spherical map alone")
     mirror: float = documented(0.0, "the share of training samples reflected left to right, targets with them")
 
     def __post_init__(self):

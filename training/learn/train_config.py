@@ -40,15 +40,15 @@ class TrainConfig:
     depth_dropout: float | None = None
     mirror: float | None = None
     target: str | None = documented(None, f"the voxel representation to train (GeometryConfig.target: {' or '.join(TARGETS)}); "
-                                    "none: the recipe's, else the model's")
+                                          "none: the recipe's, else the model's")
     refiner_full_nf: int | None = documented(None, "the width of the refiner's full-resolution branch "
-                                             "(NetworkConfig.refiner_full_nf); none: the recipe's, else the model's")
+                                                   "(NetworkConfig.refiner_full_nf); none: the recipe's, else the model's")
     inpaint_head: str | None = documented(None, f"the inpainting net's head (NetworkConfig.inpaint_head: {', '.join(INPAINT_HEADS)}); another than the "
-                                          "model's gives a fresh inpainting net at the inpaint stage, others refuse it")
+                                                "model's gives a fresh inpainting net at the inpaint stage, others refuse it")
     inpaint_widths: str | tuple[int, ...] | None = documented(None, "the inpainting net's four widths, e.g. 32,64,128,256 "
-                                                              "(as --inpaint-head); none: the model's")
+                                                                    "(as --inpaint-head); none: the model's")
     inpaint_from: str | None = documented(None, "weights whose trained inpainting net replaces --init's (a resumed stage: "
-                                          "the checkpoint wins)")
+                                                "the checkpoint wins)")
     backgrounds: str | None = documented(None, "a 'genre data backgrounds' folder (needed when photo_fraction > 0)")
     val_fraction: float = documented(0.05, "the share of shapes held out for validation")
     val_every: int = documented(200, "validate every this many steps")
@@ -56,13 +56,13 @@ class TrainConfig:
     checkpoint_minutes: float = documented(3.0, "write the resumable checkpoint every this many minutes")
     checkpoint_every: int = documented(0, "also every this many steps (0: off)")
     snapshot_every: int = documented(0, "keep the weights every this many steps in STAGE/snapshots/ (for 'genre train "
-                                  "average'; 0: off)")
+                                        "average'; 0: off)")
     log_every: int = documented(10, "a row of log.csv every this many steps")
     seed: int = documented(0, "the seed of the initial weights and of every step's draws (views, augmentation, coins)")
     workers: int = documented(0, "data-loader processes (0: in the training process)")
     device: str = documented("cpu", "the torch device")
     speed: str = documented("auto", "how the nets run: auto (the device's record: channels-last, bf16 autocast where "
-                              "oneDNN has it natively) or one of genre bench train's ways for every net")
+                            "oneDNN has it natively) or one of genre bench train's ways for every net")
     shapes: str | None = None  # optional file with one shape id per line (e.g. the seen-train split)
     augment: bool = True
     progress: bool = True
