@@ -40,6 +40,7 @@ from .burst import Speed, apply_speed
 from .checkpoint import checkpoint_model_config, cpu_seconds, load_checkpoint, same_nets, save_checkpoint
 from .logs import LOG_FIELDS, plot_losses, trim_log
 from .stage import StageModule
+from .stop import StopSignals
 from .train_config import TrainConfig
 
 __all__ = ["train", "build_model", "weights_digest", "dist_info"]
@@ -186,6 +187,8 @@ class _Run:
     first_loss: float | None = None
     last_loss: float | None = None
     step_times: list[float] = field(default_factory=list)
+    stopped: int = 0  # the signal that stopped the run before its last step (0: none)
+    stopped_at: int = 0  # the step its checkpoint holds then
 
     def cpu_total(self) -> float:
         """This stage's processor seconds so far, over every run that resumed it (this process's)."""
@@ -274,34 +277,49 @@ def _run_steps(run: _Run) -> None:
     last_ckpt = time.monotonic()
     window_t, window_n = time.perf_counter(), 0
     run.module.train()
-    for step, batch in zip(range(run.start, tcfg.steps), loader):
-        t0 = time.perf_counter()
-        lv, terms, lr_now = _step(run, step, batch)
-        run.step_times.append(time.perf_counter() - t0)
-        window_n += 1
-        done = step + 1
-        if run.rank != 0:
-            continue
-        bar.update(1)
-        bar.set_postfix(loss=f"{lv:.4g}")
-        if done % tcfg.log_every == 0 or done == tcfg.steps:
-            dt = (time.perf_counter() - window_t) / window_n
-            log.train_row(done, lv, terms, lr_now, dt, tcfg.batch_size * run.world / dt)
-            window_t, window_n = time.perf_counter(), 0
-        if run.val_set is not None and (done % tcfg.val_every == 0 or done == tcfg.steps):
-            _validate_and_keep_best(run, log, done, lr_now)
-        if tcfg.snapshot_every and done % tcfg.snapshot_every == 0:  # weights to average later (training/learn/average.py)
-            extra = {"stage": tcfg.stage, "step": done, "cpu_s": round(run.cpu_total(), 1)}
-            (run.stage_dir / "snapshots").mkdir(exist_ok=True)
-            run.module.save_weights(run.stage_dir / "snapshots" / f"step_{done:07d}.safetensors", extra)
-        due = time.monotonic() - last_ckpt > 60 * tcfg.checkpoint_minutes
-        if due or (tcfg.checkpoint_every and done % tcfg.checkpoint_every == 0) or done == tcfg.steps:
-            save_checkpoint(run.stage_dir, run.module, run.opt, done, run.best, tcfg, run.cpu_total())
-            plot_losses(run.stage_dir / "log.csv", run.stage_dir / "loss.png", tcfg.stage)
-            last_ckpt = time.monotonic()
+    with StopSignals() as stop:
+        for step, batch in zip(range(run.start, tcfg.steps), loader):
+            t0 = time.perf_counter()
+            lv, terms, lr_now = _step(run, step, batch)
+            run.step_times.append(time.perf_counter() - t0)
+            window_n += 1
+            done = step + 1
+            signum = stop.agreed(run.world, run.device) if done < tcfg.steps else 0  # (every rank leaves at one step)
+            if signum:
+                run.stopped, run.stopped_at = signum, done
+            if run.rank == 0:
+                window_t, window_n, last_ckpt = _after_step(run, log, bar, done, lv, terms, lr_now, window_t, window_n,
+                                                            last_ckpt)
+            if signum:
+                break
     bar.close()
     if log is not None:
         log.close()
+
+
+def _after_step(run: _Run, log: _StageLog, bar, done: int, lv: float, terms: dict, lr_now: float, window_t: float,
+                window_n: int, last_ckpt: float) -> tuple[float, int, float]:
+    """Rank 0 after step ``done``: the progress bar, log.csv, validation, snapshots and the checkpoint (also when
+    a signal stops the run here).  Returns the new (window_t, window_n, last_ckpt)."""
+    tcfg = run.tcfg
+    bar.update(1)
+    bar.set_postfix(loss=f"{lv:.4g}")
+    if done % tcfg.log_every == 0 or done == tcfg.steps:
+        dt = (time.perf_counter() - window_t) / window_n
+        log.train_row(done, lv, terms, lr_now, dt, tcfg.batch_size * run.world / dt)
+        window_t, window_n = time.perf_counter(), 0
+    if run.val_set is not None and (done % tcfg.val_every == 0 or done == tcfg.steps):
+        _validate_and_keep_best(run, log, done, lr_now)
+    if tcfg.snapshot_every and done % tcfg.snapshot_every == 0:  # weights to average later (training/learn/average.py)
+        extra = {"stage": tcfg.stage, "step": done, "cpu_s": round(run.cpu_total(), 1)}
+        (run.stage_dir / "snapshots").mkdir(exist_ok=True)
+        run.module.save_weights(run.stage_dir / "snapshots" / f"step_{done:07d}.safetensors", extra)
+    due = time.monotonic() - last_ckpt > 60 * tcfg.checkpoint_minutes
+    if due or (tcfg.checkpoint_every and done % tcfg.checkpoint_every == 0) or done == tcfg.steps or run.stopped:
+        save_checkpoint(run.stage_dir, run.module, run.opt, done, run.best, tcfg, run.cpu_total())
+        plot_losses(run.stage_dir / "log.csv", run.stage_dir / "loss.png", tcfg.stage)
+        last_ckpt = time.monotonic()
+    return window_t, window_n, last_ckpt
 
 
 def _finish(run: _Run) -> dict:
@@ -350,9 +368,14 @@ def _agree_across_ranks(run: _Run, summary: dict) -> None:
 
 
 def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
-    """Run (or resume) one stage; returns a summary with timings and losses."""
+    """Run (or resume) one stage; returns a summary with timings and losses.  SIGINT or SIGTERM stops it after the
+    step in progress with a checkpoint of that step and no final weights; the summary then has ``stopped``."""
     run = _start(tcfg, model_config)
     _run_steps(run)
+    if run.stopped:  # SIGINT/SIGTERM: the checkpoint holds the last step; the same command resumes from it
+        return {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": run.start, "world_size": run.world,
+                "stopped": f"signal {run.stopped}", "signal": run.stopped, "checkpoint_step": run.stopped_at,
+                "cpu_s": round(run.cpu_total(), 1)}
     summary = _finish(run)
     if run.world > 1:
         _agree_across_ranks(run, summary)

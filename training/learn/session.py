@@ -44,7 +44,6 @@ import argparse
 import csv
 import math
 import os
-import signal
 import sys
 import time
 from collections import deque
@@ -64,6 +63,7 @@ from ..data.pack import read_pack
 from .burst import Speed, ViewMaker, _step_loss, apply_speed, run_command
 from .checkpoint import cpu_seconds, optimizer_state, optimizer_tensors, read_state, write_state
 from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
+from .stop import StopSignals
 from .view_bank import ViewBank, load_view_bank
 
 __all__ = ["SessionSpec", "SampleStream", "lr_at", "run_session", "main"]
@@ -263,8 +263,7 @@ def run_session(spec: SessionSpec, say=print) -> dict:
     batch = spec.batch_size or recipe.batch_size
     step, samples, cpu_before = int(meta0["step"]), int(meta0["samples"]), float(meta0["cpu_s"])
     rows = _trim_log(folder / LOG, step)
-    stop = {"signal": None}  # (a signal while the buffer is remade ends the run at its first step, state unchanged)
-    old = {s: signal.signal(s, lambda signum, _frame: stop.update(signal=signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop = StopSignals().install()  # (a signal while the buffer is remade ends the run at its first step, state unchanged)
     stream = SampleStream(maker, model, recipe, batch, spec.seed, spec.nets == "inpaint", bank)
     session_start, session_step0, last_ck = time.time(), step, time.time()
     deadline = None if spec.hours is None else session_start + spec.hours * 3600.0
@@ -288,7 +287,7 @@ def run_session(spec: SessionSpec, say=print) -> dict:
             f"{len(maker)} shapes, recipe {recipe.name}; set-up {time.time() - t0:.0f} s")
         session_start = last_ck = time.time()  # (the samples/s leave the set-up out)
         upcoming = pool.submit(stream.make, step)
-        while stop["signal"] is None and (deadline is None or time.time() < deadline) and \
+        while not stop.caught() and (deadline is None or time.time() < deadline) and \
                 (spec.max_steps is None or step < spec.max_steps):
             fresh = upcoming.result()
             upcoming = pool.submit(stream.make, step + 1)
@@ -313,10 +312,9 @@ def run_session(spec: SessionSpec, say=print) -> dict:
         upcoming.cancel()
     finally:
         pool.shutdown(wait=True)
-        for s, h in old.items():
-            signal.signal(s, h)
+        stop.restore()
     summary = checkpoint(True)
-    why = f"signal {stop['signal']}" if stop["signal"] else "budget"
+    why = f"signal {stop.caught()}" if stop.caught() else "budget"
     say(f"session: stopped ({why}) at step {step}; {summary['session_samples_per_s']:.1f} samples/s; state in {folder}")
     return summary
 

@@ -132,8 +132,8 @@ def parse_args(argv: list[str], prog: str = "genre train") -> TrainSpec:
 
 def run(spec: TrainSpec, prog: str = "genre train") -> int:
     """Train (or resume) the stage ``spec`` names and print its summary as JSON (rank 0); with ``dry_run``, print
-    the resolved settings instead.  Returns the exit status: 0, or 2 for a checkpoint that does not fit the
-    model (one line on stderr)."""
+    the resolved settings instead.  Returns the exit status: 0, 2 for a checkpoint that does not fit the model (one
+    line on stderr), or 128 + N when signal N (SIGINT, SIGTERM) stopped the run after a checkpoint."""
     if spec.dry_run:
         print(json.dumps(dataclasses.asdict(spec.config), sort_keys=True))
         return 0
@@ -144,6 +144,11 @@ def run(spec: TrainSpec, prog: str = "genre train") -> int:
         return 2
     if dist_info()[0] == 0:
         print(json.dumps(summary, indent=2))
+    if summary.get("stopped"):
+        if dist_info()[0] == 0:
+            print(f"{prog}: stopped by {summary['stopped']} after step {summary['checkpoint_step']} (checkpointed); "
+                  "the same command resumes", file=sys.stderr)
+        return 128 + summary["signal"]  # (the shell's status for a process its signal ended)
     return 0
 
 

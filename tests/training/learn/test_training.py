@@ -361,6 +361,55 @@ def test_kill_between_checkpoints_and_resume_gives_identical_weights_and_log(tin
     assert rows_b == rows_a
 
 
+@pytest.mark.slow
+def test_sigterm_checkpoints_the_last_step_and_the_same_command_resumes_it(tiny_views, tmp_path):
+    """SIGTERM in the middle of a run (checkpoints only every 100 steps): the process exits with 128 + 15 after
+    checkpointing the step it was on, writing no final weights; the same command again finishes with the weights
+    and log.csv of an uninterrupted run, nothing trained twice and nothing lost."""
+    cfg_json = tmp_path / "tiny.json"
+    cfg_json.write_text(json.dumps(TINY.to_dict()))
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    extra = ["--checkpoint-every", "100", "--checkpoint-minutes", "100"]
+    subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 30, extra), check=True, cwd=REPO, env=env, capture_output=True)
+    cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 30, extra)
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stage = tmp_path / "b" / "depth"
+    deadline = time.time() + 300
+    while _last_logged_step(stage / "log.csv") < 5 and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.002)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, err[-500:])
+    stopped_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
+    assert 5 <= stopped_at < 30 and stopped_at == _last_logged_step(stage / "log.csv")  # the step it was on, logged
+    assert not (stage / "final.safetensors").exists() and f"after step {stopped_at}" in err
+    summary = json.loads(out[out.index("{"):])
+    assert summary["stopped"] == f"signal {int(signal.SIGTERM)}" and summary["checkpoint_step"] == stopped_at
+    done = subprocess.run(cmd, check=True, cwd=REPO, env=env, capture_output=True, text=True)
+    assert json.loads(done.stdout[done.stdout.index("{"):])["resumed_from"] == stopped_at
+    a, b = _state(tmp_path / "a" / "depth" / "final.safetensors"), _state(stage / "final.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert _log_rows(stage / "log.csv") == _log_rows(tmp_path / "a" / "depth" / "log.csv")
+
+
+def test_stop_signals_flag_the_first_signal_and_hand_a_second_to_the_old_handler():
+    from training.learn.stop import StopSignals
+
+    seen = []
+    before = signal.signal(signal.SIGTERM, lambda signum, _frame: seen.append(signum))
+    try:
+        with StopSignals() as stop:
+            assert stop.caught() == 0 and stop.agreed(1) == 0
+            signal.raise_signal(signal.SIGTERM)
+            assert stop.caught() == signal.SIGTERM and stop.agreed(1) == signal.SIGTERM and seen == []
+            signal.raise_signal(signal.SIGTERM)  # a second one: the handler from before the block takes it
+            assert seen == [signal.SIGTERM]
+        signal.raise_signal(signal.SIGTERM)  # after the block: that handler again
+        assert seen == [signal.SIGTERM] * 2
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
 def test_trim_log_keeps_the_rows_up_to_the_checkpoint(tmp_path):
     from training.learn.logs import LOG_FIELDS, trim_log
 
@@ -413,6 +462,35 @@ def test_ddp_with_two_cpu_processes(tiny_views, tmp_path):
     assert len(set(summary["rank_param_digests"])) == 1  # all-reduced gradients keep parameters equal
     assert len(set(summary["rank_digests"])) == 1
     assert summary["rank_digests"][0] == weights_digest(load_model(tmp_path / "ddp" / "depth" / "final.safetensors"))
+
+
+@pytest.mark.slow
+def test_sigterm_to_torchrun_stops_both_processes_at_one_checkpointed_step(tiny_views, tmp_path):
+    """torchrun passes SIGTERM to its two processes; they agree on the step to stop at (neither is left waiting in
+    the next step's all-reduce), rank 0 checkpoints it, and the same command resumes from it."""
+    cfg_json = tmp_path / "tiny.json"
+    cfg_json.write_text(json.dumps(TINY.to_dict()))
+    torchrun = Path(sys.executable).with_name("torchrun")
+
+    def ddp(steps):
+        return [str(torchrun), "--standalone", "--nproc_per_node=2",
+                *_train_cmd(tiny_views, tmp_path / "ddp", cfg_json, steps, ["--checkpoint-minutes", "100"])[1:]]
+
+    cmd = ddp(400)
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    stage = tmp_path / "ddp" / "depth"
+    deadline = time.time() + 300
+    while _last_logged_step(stage / "log.csv") < 5 and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=120)
+    stopped_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
+    assert 5 <= stopped_at < 400 and stopped_at == _last_logged_step(stage / "log.csv")
+    assert not (stage / "final.safetensors").exists()
+    subprocess.run(ddp(stopped_at + 3), check=True, cwd=REPO, env=env, capture_output=True, timeout=300)
+    summary = json.loads((stage / "summary.json").read_text())
+    assert summary["resumed_from"] == stopped_at and len(set(summary["rank_param_digests"])) == 1
 
 
 def test_validation_shapes_come_from_the_training_split():
