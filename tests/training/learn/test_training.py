@@ -326,6 +326,16 @@ def _last_logged_step(log_csv) -> int:
     return max(steps, default=0)
 
 
+def _signal_when_logged(cmd, env, log_csv, step, signum, **popen):
+    """Start ``cmd`` and send it ``signum`` once ``log_csv`` has a row for ``step`` (or it ended); the process."""
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, **{"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, **popen})
+    deadline = time.time() + 300
+    while _last_logged_step(log_csv) < step and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.002)
+    proc.send_signal(signum)
+    return proc
+
+
 @pytest.mark.slow
 def test_kill_between_checkpoints_and_resume_gives_identical_weights_and_log(tiny_views, tmp_path):
     """Depth stage with augmentation and validation (the table's two views; val_fraction 0.5 puts it there),
@@ -337,13 +347,8 @@ def test_kill_between_checkpoints_and_resume_gives_identical_weights_and_log(tin
     extra = ["--val-fraction", "0.5", "--val-every", "3", "--checkpoint-every", "10"]
     subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 30, extra), check=True, cwd=REPO, env=env, capture_output=True)
     cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 30, extra)
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     stage = tmp_path / "b" / "depth"
-    deadline = time.time() + 300
-    while _last_logged_step(stage / "log.csv") < 13 and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.002)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    _signal_when_logged(cmd, env, stage / "log.csv", 13, signal.SIGKILL).wait()
     killed_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
     logged = _last_logged_step(stage / "log.csv")
     assert killed_at == 10 and 10 < logged < 20, (killed_at, logged)  # between the checkpoints of steps 10 and 20
@@ -372,12 +377,9 @@ def test_sigterm_checkpoints_the_last_step_and_the_same_command_resumes_it(tiny_
     extra = ["--checkpoint-every", "100", "--checkpoint-minutes", "100"]
     subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 30, extra), check=True, cwd=REPO, env=env, capture_output=True)
     cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 30, extra)
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stage = tmp_path / "b" / "depth"
-    deadline = time.time() + 300
-    while _last_logged_step(stage / "log.csv") < 5 and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.002)
-    proc.send_signal(signal.SIGTERM)
+    proc = _signal_when_logged(cmd, env, stage / "log.csv", 5, signal.SIGTERM, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, err[-500:])
     stopped_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
@@ -478,13 +480,8 @@ def test_sigterm_to_torchrun_stops_both_processes_at_one_checkpointed_step(tiny_
 
     cmd = ddp(400)
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     stage = tmp_path / "ddp" / "depth"
-    deadline = time.time() + 300
-    while _last_logged_step(stage / "log.csv") < 5 and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.005)
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(timeout=120)
+    _signal_when_logged(cmd, env, stage / "log.csv", 5, signal.SIGTERM).wait(timeout=120)
     stopped_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
     assert 5 <= stopped_at < 400 and stopped_at == _last_logged_step(stage / "log.csv")
     assert not (stage / "final.safetensors").exists()
