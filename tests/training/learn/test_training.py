@@ -375,15 +375,15 @@ def test_sigterm_checkpoints_the_last_step_and_the_same_command_resumes_it(tiny_
     cfg_json.write_text(json.dumps(TINY.to_dict()))
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     extra = ["--checkpoint-every", "100", "--checkpoint-minutes", "100"]
-    subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 30, extra), check=True, cwd=REPO, env=env, capture_output=True)
-    cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 30, extra)
+    subprocess.run(_train_cmd(tiny_views, tmp_path / "a", cfg_json, 200, extra), check=True, cwd=REPO, env=env, capture_output=True)
+    cmd = _train_cmd(tiny_views, tmp_path / "b", cfg_json, 200, extra)
     stage = tmp_path / "b" / "depth"
     proc = _signal_when_logged(cmd, env, stage / "log.csv", 5, signal.SIGTERM, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, err[-500:])
     stopped_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
-    assert 5 <= stopped_at < 30 and stopped_at == _last_logged_step(stage / "log.csv")  # the step it was on, logged
+    assert 5 <= stopped_at < 200 and stopped_at == _last_logged_step(stage / "log.csv")  # the step it was on, logged
     assert not (stage / "final.safetensors").exists() and f"after step {stopped_at}" in err
     summary = json.loads(out[out.index("{"):])
     assert summary["stopped"] == f"signal {int(signal.SIGTERM)}" and summary["checkpoint_step"] == stopped_at
