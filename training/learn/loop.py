@@ -322,12 +322,18 @@ def _after_step(run: _Run, log: _StageLog, bar, done: int, lv: float, terms: dic
     return window_t, window_n, last_ckpt
 
 
+def _summary_head(run: _Run) -> dict:
+    """What every stage summary starts with, finished or stopped."""
+    tcfg = run.tcfg
+    return {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": run.start, "world_size": run.world,
+            "cpu_s": round(run.cpu_total(), 1), "photo_fraction": run.photo}
+
+
 def _finish(run: _Run) -> dict:
     """Rank 0: ``final.safetensors`` (and ``best`` when nothing was held out), ``loss.png`` and ``summary.json``.
     Returns the summary (every rank)."""
     tcfg, stage_dir = run.tcfg, run.stage_dir
-    summary = {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": run.start, "world_size": run.world,
-               "cpu_s": round(run.cpu_total(), 1), "photo_fraction": run.photo}
+    summary = _summary_head(run)
     if run.rank != 0:
         return summary
     run.module.save_weights(stage_dir / "final.safetensors",
@@ -373,9 +379,8 @@ def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     run = _start(tcfg, model_config)
     _run_steps(run)
     if run.stopped:  # SIGINT/SIGTERM: the checkpoint holds the last step; the same command resumes from it
-        return {"stage": tcfg.stage, "steps": tcfg.steps, "resumed_from": run.start, "world_size": run.world,
-                "stopped": f"signal {run.stopped}", "signal": run.stopped, "checkpoint_step": run.stopped_at,
-                "cpu_s": round(run.cpu_total(), 1)}
+        return {**_summary_head(run), "stopped": f"signal {run.stopped}", "signal": run.stopped,
+                "checkpoint_step": run.stopped_at}
     summary = _finish(run)
     if run.world > 1:
         _agree_across_ranks(run, summary)

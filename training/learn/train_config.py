@@ -62,7 +62,7 @@ class TrainConfig:
     workers: int = documented(0, "data-loader processes (0: in the training process)")
     device: str = documented("cpu", "the torch device")
     speed: str = documented("auto", "how the nets run: auto (the device's record: channels-last, bf16 autocast where "
-                            "oneDNN has it natively) or one of genre bench train's ways for every net")
+                                    "oneDNN has it natively) or one of genre bench train's ways for every net")
     shapes: str | None = None  # optional file with one shape id per line (e.g. the seen-train split)
     augment: bool = True
     progress: bool = True
