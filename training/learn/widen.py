@@ -153,12 +153,12 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     from genre_backend.nets.model import load_model, save_model
-    from genre_backend.weights_file import weights_extra
+    from genre_backend.weights_file import resolve_weights, weights_extra
 
     parser = argparse.ArgumentParser(prog="python -m training.learn.widen", description=(
         "Write a copy of a weights file with wider nets that compute what the old ones did (Net2WiderNet-style, "
         "zero weights from the new channels to the old ones)."))
-    parser.add_argument("--weights", required=True, help="the weights file to widen")
+    parser.add_argument("--weights", required=True, help="the weights to widen: a shipped name ('default') or a file")
     parser.add_argument("--depth-widths", type=int, nargs=4, metavar="W", help="the depth net's four new widths")
     parser.add_argument("--refiner-nf", type=int, help="the refiner's new base width (network.refiner_nf)")
     parser.add_argument("--seed", type=int, default=0, help="the new channels' initialisation")
@@ -166,12 +166,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not (args.depth_widths or args.refiner_nf):
         parser.error("nothing to widen: give --depth-widths and/or --refiner-nf")
-    model = load_model(args.weights)
+    source = resolve_weights(args.weights)
+    model = load_model(source)
     if args.depth_widths:
         model = widen_depth_net(model, tuple(args.depth_widths), seed=args.seed)
     if args.refiner_nf:
         model = widen_refiner(model, args.refiner_nf, seed=args.seed)
-    save_model(model, args.out, extra={**weights_extra(args.weights), "widened_from": str(args.weights)})
+    save_model(model, args.out, extra={**weights_extra(source), "widened_from": str(args.weights)})
     print(f"wrote {args.out}: " + ", ".join(
         f"{name} {sum(p.numel() for p in getattr(model, name).parameters()) / 1e6:.2f} M parameters"
         for name in ("depth_net", "inpaint_net", "refiner")))
