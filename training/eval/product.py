@@ -164,21 +164,39 @@ def compare_table(product_dir: Path, protocol_dir: Path, manifest: dict, title: 
     return "\n".join(lines) + "\n"
 
 
+def _kind(entry: dict) -> str:
+    """A primitive's kind (cube, sphere, cone…), else the shape's class."""
+    return _primitive_kind(entry) or entry.get("class", "?")
+
+
+def _change(a: dict[str, dict], b: dict[str, dict], keys: list[str]) -> dict:
+    ma, mb = (float(np.mean([s[k]["cd"] for k in keys])) for s in (a, b))
+    return {"views": len(keys), "installed": ma, "candidate": mb, "change_percent": 100.0 * (mb / ma - 1.0),
+            "better": sum(b[k]["cd"] < a[k]["cd"] for k in keys)}
+
+
 def rule_figures(installed_dir: Path, candidate_dir: Path, threshold: float | None = None, row: str = "GenRe",
-                 candidate_row: str | None = None) -> dict:
+                 candidate_row: str | None = None, manifest: dict | None = None) -> dict:
     """The product rule's figures (``results/decisions.md``): the per-view mean CD of the installed weights' and a
     candidate's ``genre eval`` folders over the views both hold, the change in percent, and on how many views the
     candidate is lower, for ``row`` (e.g. GenRe-SphOracle).  Means over views, not over shapes (one view a shape on
     the product test split).  ``candidate_row``: the candidate's row when it is another (default ``row``): its
-    weights with a mesh option its rule changes, ``GenRe [visible_fusion=on]`` of ``genre eval --sweep``."""
+    weights with a mesh option its rule changes, ``GenRe [visible_fusion=on]`` of ``genre eval --sweep``.
+    ``manifest``: also the same figures per kind (a primitive's kind, else the class) under ``"by_kind"``, to show
+    where a change lands."""
     a = load_scores(installed_dir, row, threshold)
     b = load_scores(candidate_dir, candidate_row or row, threshold)
     keys = sorted(k for k in set(a) & set(b) if math.isfinite(a[k]["cd"]) and math.isfinite(b[k]["cd"]))
     if not keys:
         raise ValueError(f"{installed_dir} and {candidate_dir} share no scored view")
-    ma, mb = (float(np.mean([s[k]["cd"] for k in keys])) for s in (a, b))
-    return {"views": len(keys), "installed": ma, "candidate": mb, "change_percent": 100.0 * (mb / ma - 1.0),
-            "better": sum(b[k]["cd"] < a[k]["cd"] for k in keys)}
+    out = _change(a, b, keys)
+    if manifest is not None:
+        entries = {e["id"]: e for e in manifest["shapes"]}
+        by_kind = defaultdict(list)
+        for k in keys:
+            by_kind[_kind(entries.get(a[k]["shape"], {"class": a[k]["class"]}))].append(k)
+        out["by_kind"] = {kind: _change(a, b, ks) for kind, ks in sorted(by_kind.items())}
+    return out
 
 
 def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
@@ -318,6 +336,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--row", default="GenRe", help="the row compared (default GenRe; e.g. GenRe-SphOracle)")
     r.add_argument("--candidate-row", help="the candidate's row when it is another (e.g. 'GenRe [visible_fusion=on]' "
                    "of 'genre eval --sweep visible_fusion=on'); default --row")
+    r.add_argument("--by-kind", metavar="MANIFEST",
+                   help="the shapes' manifest: also a line per kind (a primitive's kind, else the class)")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
@@ -341,9 +361,12 @@ def main(argv: list[str] | None = None) -> int:
             atomic_write_text(Path(args.out), text)
             print(text)
         elif args.cmd == "rule":
-            f = rule_figures(Path(args.installed), Path(args.candidate), args.threshold, args.row, args.candidate_row)
-            print(f"{f['views']} views: candidate {f['candidate']:.5f} against installed {f['installed']:.5f} "
-                  f"({f['change_percent']:+.2f} %), lower on {f['better']}")
+            manifest = json.loads(Path(args.by_kind).read_text()) if args.by_kind else None
+            f = rule_figures(Path(args.installed), Path(args.candidate), args.threshold, args.row, args.candidate_row,
+                             manifest)
+            for label, g in [(None, f), *f.get("by_kind", {}).items()]:
+                print(f"{'  ' + label + ': ' if label else ''}{g['views']} views: candidate {g['candidate']:.5f} against "
+                      f"installed {g['installed']:.5f} ({g['change_percent']:+.2f} %), lower on {g['better']}")
         elif args.cmd == "fit":
             text = fit_table([(label, Path(tr), Path(te)) for label, tr, te in args.model], args.threshold)
             atomic_write_text(Path(args.out), text)

@@ -156,3 +156,22 @@ def test_rule_figures_are_per_view_means_over_the_shared_views(tmp_path, capsys)
     assert g["views"] == 5 and g["candidate"] == pytest.approx((0.16 + 0.14 + 0.24 + 0.09 + 0.10) / 10)
     with pytest.raises(ValueError, match="share no scored view"):
         product.rule_figures(c, a, threshold=0.45, candidate_row="GenRe [visible_fusion=on]")  # the installed lacks it
+
+
+def test_rule_figures_by_kind_show_where_a_change_lands(tmp_path, capsys):
+    a = _eval_dir(tmp_path / "a", 0.45, _rows({"plane": [0.10, 0.20], "lamp": [0.11], "procedural-primitive-000": [0.04],
+                                               "procedural-lathe-000": [0.10]}))
+    b = _eval_dir(tmp_path / "b", 0.45, _rows({"plane": [0.16, 0.14], "lamp": [0.11], "procedural-primitive-000": [0.06],
+                                               "procedural-lathe-000": [0.10]}))
+    f = product.rule_figures(a, b, manifest=MANIFEST)
+    kinds = f["by_kind"]
+    assert sorted(kinds) == ["airplane", "cube", "lamp", "lathe"]  # the primitive by its kind, the rest by class
+    assert kinds["airplane"]["views"] == 2 and kinds["airplane"]["better"] == 1
+    assert kinds["airplane"]["change_percent"] == pytest.approx(0.0)  # (0.16 + 0.14) / 2 = (0.10 + 0.20) / 2
+    assert kinds["cube"]["change_percent"] == pytest.approx(50.0) and kinds["lamp"]["change_percent"] == pytest.approx(0.0)
+    assert sum(g["views"] for g in kinds.values()) == f["views"] == 5
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text(json.dumps(MANIFEST))
+    assert product.main(["rule", "--installed", str(a), "--candidate", str(b), "--by-kind", str(manifest)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("5 views:") and "  cube: 1 views: candidate 0.06000 against installed 0.04000 (+50.00 %), lower on 0" in lines
