@@ -106,6 +106,19 @@ def _widen_module(old: nn.Module, new: nn.Module, concat_inputs: dict[str, torch
             raise ValueError(f"no widening rule for {name!r} ({type(n).__name__})")
 
 
+def _rebuilt(model: GenRe, network, net_name: str, seed: int) -> GenRe:
+    """A new model of ``network``'s sizes with every net but ``net_name`` copied from ``model`` (that one is left
+    initialised from ``seed``, for the caller to widen into)."""
+    torch.manual_seed(seed)
+    wide = GenRe(dataclasses.replace(model.config, network=network))
+    prefix = f"{net_name}."
+    missing, unexpected = wide.load_state_dict(
+        {k: v for k, v in model.state_dict().items() if not k.startswith(prefix)}, strict=False)
+    if unexpected or any(not k.startswith(prefix) for k in missing):
+        raise ValueError(f"the nets besides the {net_name} do not fit: {unexpected or missing}")
+    return wide
+
+
 def widen_depth_net(model: GenRe, widths: tuple[int, int, int, int], seed: int = 0) -> GenRe:
     """A copy of ``model`` whose depth net has ``widths`` (each ≥ the old one) and predicts what the old one did;
     the inpainting net and refiner are copied unchanged.  ``seed``: the new channels' initialisation."""
@@ -113,13 +126,7 @@ def widen_depth_net(model: GenRe, widths: tuple[int, int, int, int], seed: int =
     old_widths = model.config.network.depth_widths
     if len(widths) != 4 or any(w < o for w, o in zip(widths, old_widths)):
         raise ValueError(f"depth widths {widths}: expected four widths, each at least the old {old_widths}")
-    config = dataclasses.replace(model.config, network=dataclasses.replace(model.config.network, depth_widths=widths))
-    torch.manual_seed(seed)
-    wide = GenRe(config)
-    state = {k: v for k, v in model.state_dict().items() if not k.startswith("depth_net.")}
-    missing, unexpected = wide.load_state_dict(state, strict=False)
-    if unexpected or any(not k.startswith("depth_net.") for k in missing):
-        raise ValueError(f"the nets besides the depth net do not fit: {unexpected or missing}")
+    wide = _rebuilt(model, dataclasses.replace(model.config.network, depth_widths=widths), "depth_net", seed)
     _widen_module(model.depth_net, wide.depth_net)
     return wide.train(model.training)
 
@@ -133,14 +140,8 @@ def widen_refiner(model: GenRe, nf: int, seed: int = 0) -> GenRe:
     deep = old.deep
     if int(nf) < net.refiner_nf:
         raise ValueError(f"refiner width {nf}: expected at least the old {net.refiner_nf}")
-    config = dataclasses.replace(model.config, network=dataclasses.replace(
-        net, refiner_nf=int(nf), refiner_max_width=min(deep, net.refiner_max_width or deep)))
-    torch.manual_seed(seed)
-    wide = GenRe(config)
-    state = {k: v for k, v in model.state_dict().items() if not k.startswith("refiner.")}
-    missing, unexpected = wide.load_state_dict(state, strict=False)
-    if unexpected or any(not k.startswith("refiner.") for k in missing):
-        raise ValueError(f"the nets besides the refiner do not fit: {unexpected or missing}")
+    network = dataclasses.replace(net, refiner_nf=int(nf), refiner_max_width=min(deep, net.refiner_max_width or deep))
+    wide = _rebuilt(model, network, "refiner", seed)
     concat = {}
     for i, (up_old, up_new) in enumerate(zip(old.up, wide.refiner.up)):
         w_old, w_new = up_old[0].out_channels, up_new[0].out_channels

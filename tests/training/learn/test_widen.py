@@ -15,19 +15,24 @@ from training.learn.widen import widen_depth_net, widen_refiner
 CONFIG = dataclasses.replace(TINY, network=dataclasses.replace(TINY.network, depth_decoder_blocks=1))
 
 
-@pytest.fixture(scope="module")
-def narrow():
-    torch.manual_seed(0)
+def _model_with_norms_moved(seed: int) -> GenRe:
+    """A model whose batch-norm statistics and affine parameters are away from their defaults, so that copying them
+    is tested too."""
+    torch.manual_seed(seed)
     model = GenRe(CONFIG)
-    # batch-norm statistics and affine parameters away from their defaults, so that copying them is tested too
     with torch.no_grad():
-        for m in model.depth_net.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
+        for m in model.modules():
+            if isinstance(m, (torch.nn.BatchNorm2d, torch.nn.BatchNorm3d)):
                 m.running_mean.uniform_(-0.5, 0.5)
                 m.running_var.uniform_(0.5, 2.0)
                 m.weight.uniform_(0.5, 1.5)
                 m.bias.uniform_(-0.2, 0.2)
     return model
+
+
+@pytest.fixture(scope="module")
+def narrow():
+    return _model_with_norms_moved(0)
 
 
 @pytest.mark.parametrize("train_mode", [False, True])
@@ -76,16 +81,7 @@ def test_narrowing_is_refused(narrow):
 # the refiner: a 32³ grid has four levels (4, 8, 16, 32 channels in TINY); capped at the deepest one's 32
 @pytest.fixture(scope="module")
 def narrow_refiner():
-    torch.manual_seed(2)
-    model = GenRe(CONFIG)
-    with torch.no_grad():
-        for m in model.refiner.modules():
-            if isinstance(m, torch.nn.BatchNorm3d):
-                m.running_mean.uniform_(-0.5, 0.5)
-                m.running_var.uniform_(0.5, 2.0)
-                m.weight.uniform_(0.5, 1.5)
-                m.bias.uniform_(-0.2, 0.2)
-    return model
+    return _model_with_norms_moved(2)
 
 
 @pytest.mark.parametrize("train_mode", [False, True])
