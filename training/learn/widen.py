@@ -153,17 +153,18 @@ def widen_refiner(model: GenRe, nf: int, seed: int = 0) -> GenRe:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
+    from genre_backend.arguments import add_out, add_seed, add_weights
     from genre_backend.nets.model import load_model, save_model
     from genre_backend.weights_file import resolve_weights, weights_extra
 
     parser = argparse.ArgumentParser(prog="python -m training.learn.widen", description=(
         "Write a copy of a weights file with wider nets that compute what the old ones did (Net2WiderNet-style, "
         "zero weights from the new channels to the old ones)."))
-    parser.add_argument("--weights", required=True, help="the weights to widen: a shipped name ('default') or a file")
+    add_weights(parser, required=True, help="the weights to widen: a shipped name ('default') or a .safetensors file")
     parser.add_argument("--depth-widths", type=int, nargs=4, metavar="W", help="the depth net's four new widths")
     parser.add_argument("--refiner-nf", type=int, help="the refiner's new base width (network.refiner_nf)")
-    parser.add_argument("--seed", type=int, default=0, help="the new channels' initialisation")
-    parser.add_argument("--out", required=True, help="the widened weights file to write")
+    add_seed(parser, default=0, help="the new channels' initialisation (default 0)")
+    add_out(parser, required=True, help="the widened weights file to write")
     args = parser.parse_args(argv)
     if not (args.depth_widths or args.refiner_nf):
         parser.error("nothing to widen: give --depth-widths and/or --refiner-nf")
