@@ -48,7 +48,11 @@ __all__ = ["main", "output_paths"]
 def output_paths(images: list[Path], out: str | None, fmt: str) -> list[Path]:
     """The mesh path of every image; names that would collide get ``-2``, ``-3``… appended."""
     if len(images) == 1 and out is not None and not _is_dir(out) and not out.endswith(os.sep):
-        return [Path(out)]
+        path = Path(out)
+        # a new name without an extension gets the format's, so that what is written opens by its name (a path that
+        # is already there, a device or a pipe, is left as named for the output checks to judge)
+        keep = path.suffix or path.name in ("", ".", "..") or _lexists(path)
+        return [path if keep else path.with_name(f"{path.name}.{fmt}")]
     folder = Path(out) if out is not None else Path(".")
     seen: dict[str, int] = {}
     paths = []
@@ -58,6 +62,14 @@ def output_paths(images: list[Path], out: str | None, fmt: str) -> list[Path]:
         seen[stem] = n
         paths.append(folder / (f"{stem}.{fmt}" if n == 1 else f"{stem}-{n}.{fmt}"))
     return paths
+
+
+def _lexists(path: Path) -> bool:
+    """Whether anything (a dangling link too) is at ``path``; False for a name the OS refuses."""
+    try:
+        return os.path.lexists(path)
+    except (OSError, ValueError):
+        return False
 
 
 def _is_dir(path: str | os.PathLike) -> bool:
@@ -109,7 +121,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog=prog, description="Turn photos of objects into meshes (posed as seen, in the view frame).")
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (PNG, JPEG, …); RGBA images use their alpha as the mask")
-    parser.add_argument("-o", "--output", metavar="OUT", help="mesh file (one image) or folder (default: the current folder)")
+    parser.add_argument("-o", "--output", metavar="OUT", help="mesh file (one image; a name without an extension gets the format's) or folder "
+                                                         "(default: the current folder)")
     parser.add_argument("--mask", metavar="M", help="mask file for the (single) image: white object on black, same size")
     parser.add_argument("--box", metavar="X0,Y0,X1,Y1",
                         help="a box around the object in the (single) photo's pixels (left, top, right, bottom; x right, "

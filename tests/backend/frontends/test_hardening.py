@@ -255,3 +255,14 @@ def test_config_round_trip_and_checks():
     d["geometry"]["voxel_size"] = True  # a bool is not an int here
     with pytest.raises(ValueError, match="expected int"):
         GenreConfig.from_dict(d)
+
+
+def test_a_new_output_name_without_an_extension_gets_the_formats(tmp_path):
+    photo = [Path("photo.png")]
+    assert reconstruct_cli.output_paths(photo, str(tmp_path / "plate"), "obj") == [tmp_path / "plate.obj"]
+    assert reconstruct_cli.output_paths(photo, str(tmp_path / "plate"), "glb") == [tmp_path / "plate.glb"]
+    assert reconstruct_cli.output_paths(photo, str(tmp_path / "plate.v2"), "obj") == [tmp_path / "plate.v2"]  # named
+    (tmp_path / "there").write_text("a user's file")
+    assert reconstruct_cli.output_paths(photo, str(tmp_path / "there"), "obj") == [tmp_path / "there"]  # judged as named
+    (tmp_path / "folder").mkdir()
+    assert reconstruct_cli.output_paths(photo, str(tmp_path / "folder"), "ply") == [tmp_path / "folder" / "photo.ply"]
