@@ -12,7 +12,9 @@ is the **relief** error:
   > 1 too curved), median over views;
 * ``offset``: the removed offset's size, ``|median error|``, median over views (the whole shape's shift along the
   view direction, which the relief leaves out);
-* ``better``: on how many views the weights beat the first weights named (relief MAE).
+* ``better``: on how many views the weights beat the first weights named (relief MAE);
+* ``follows``: Spearman's rank correlation, over the folder's views, of the predicted relief's interquartile range
+  with the true one's: whether a view that is deeper gets a deeper relief (1: in the same order; 0: no relation).
 
 A last row per folder is the flat plane, a constant depth: its relief MAE is the true relief's own mean deviation,
 what a net that learned no relief at all would score.  With ``--silhouette-only``, each weights file gets a second
@@ -35,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.ndimage import binary_erosion
+from scipy.stats import spearmanr
 
 from genre_backend.arguments import add_out, add_weights
 from genre_backend.nets.model import load_model
@@ -53,8 +56,8 @@ def flat_coloured(view: dict) -> dict:
     return dict(view, rgb=np.clip(np.round(painted), 0, 255).astype(np.uint8))
 
 
-def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float] | None:
-    """(relief MAE, relief IQR ÷ the truth's, |offset|) of one view, or None when the eroded silhouette is too small.
+def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float, float] | None:
+    """(relief MAE, relief IQR ÷ the truth's, |offset|, the true relief's IQR) of one view, or None when the eroded silhouette is too small.
 
     ``net`` None: the flat plane, a constant depth (relief MAE: the true relief's mean deviation from its median;
     ratio 0; its offset is not a prediction, so NaN).
@@ -63,15 +66,15 @@ def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float] |
     if inner.sum() < 20:
         return None
     true = view["depth"][inner]
+    iqr = lambda x: float(np.subtract(*np.percentile(x, [75, 25])))  # noqa: E731
     if net is None:
-        return float(np.mean(np.abs(true - np.median(true)))), 0.0, float("nan")
+        return float(np.mean(np.abs(true - np.median(true)))), 0.0, float("nan"), iqr(true)
     rgb = torch.from_numpy(view["rgb"]).permute(2, 0, 1)[None].float() / 255.0
     with torch.no_grad():
         pred = net.depth_net(rgb)["depth"][0].numpy()[inner]
     err = pred - true
-    iqr = lambda x: float(np.subtract(*np.percentile(x, [75, 25])))  # noqa: E731
     offset = float(np.median(err))
-    return float(np.mean(np.abs(err - offset))), iqr(pred) / max(iqr(true), 1e-6), abs(offset)
+    return float(np.mean(np.abs(err - offset))), iqr(pred) / max(iqr(true), 1e-6), abs(offset), iqr(true)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         names += [f"{w}, object one colour (silhouette only)" for w in args.weights]
         nets, painted = nets + nets, painted + [True] * len(nets)
     lines = ["| views | weights | n | relief MAE median | relief MAE mean | relief ÷ truth (median) | offset (median) | "
-             "better than the first |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "better than the first | follows |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     rowed = nets + [None]  # None: the flat plane's row
     painted += [False]
     for folder in args.views:
@@ -105,10 +108,11 @@ def main(argv: list[str] | None = None) -> int:
                 rows[k].append(g)
         first = np.array([r[0] for r in rows[0]])
         for w, r in zip(names + [FLAT_PLANE], rows):
-            mae, ratio, offset = (np.array([x[i] for x in r]) for i in range(3))
+            mae, ratio, offset, true_iqr = (np.array([x[i] for x in r]) for i in range(4))
+            follows = "–" if w == FLAT_PLANE else f"{spearmanr(ratio * true_iqr, true_iqr).statistic:.2f}"
             lines.append(f"| {Path(folder).name} | {w} | {len(r)} | {np.median(mae):.4f} | {np.mean(mae):.4f} | "
                          f"{np.median(ratio):.2f} | {'–' if w == FLAT_PLANE else f'{np.median(offset):.4f}'} | "
-                         f"{int((mae < first).sum())} / {len(r)} |")
+                         f"{int((mae < first).sum())} / {len(r)} | {follows} |")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     if args.out:

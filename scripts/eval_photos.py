@@ -25,6 +25,8 @@ shipped weights (or ``--weights``):
   of ``genre_backend/frame.py``) next to our judgement of the true ratio
   (``truth.json`` beside the photos: ``{"NAME": {"depth_over_width": r,
   "why": "..."}}``);
+* the **seen side's depth/width**: the masked depth map alone, back-projected, its spread along the view over its
+  widest spread across it (the surface the depth net made, before any hidden side: :func:`seen_ratio`);
 * the **flatness** of that mesh: its depth ÷ width along its own thinnest principal axis
   (:func:`genre_backend.geometry.metrics.thinnest_depth_over_width`, frame-free: a plate seen from
   above should read about 0.1 whatever the camera's elevation) next to our judgement
@@ -94,6 +96,20 @@ def side_ratio(vertices: np.ndarray) -> float:
     """Extent along the view's z over extent along its x of (V, 3) view-frame vertices."""
     ext = vertices.max(axis=0) - vertices.min(axis=0)
     return float(ext[2] / max(ext[0], 1e-9))
+
+
+def seen_ratio(result, camera) -> float:
+    """The seen surface's depth ÷ width along the view: the masked depth map back-projected (only the side the photo
+    shows), its spread along the view's z over its widest spread across it (:func:`depth_over_width`, up = +z).
+    Beside the mesh's ratio it says how much of the mesh's depth the depth net made and how much the hidden side."""
+    import torch
+
+    from genre_backend.frame import depth_to_points
+    from genre_backend.geometry.metrics import depth_over_width
+
+    depth = result.intermediates["masked_depth"]
+    points = depth_to_points(depth[None], camera)[0][depth > 0]
+    return depth_over_width(points, torch.tensor([0.0, 0.0, 1.0]))
 
 
 def flatness(vertices: np.ndarray, faces: np.ndarray, points: int = 4000) -> float:
@@ -245,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
             "warning": auto.mask_warning,
             "warning_before": before.mask_warning,
             "ratio": side_ratio(hand.vertices),
+            "seen_ratio": seen_ratio(hand, rec.config.camera),
             "true_ratio": float(truth.get(name, {}).get("depth_over_width", float("nan"))),
             "flat": flatness(hand.vertices, hand.faces),
             "true_flat": float(truth.get(name, {}).get("thinnest_depth_over_width", float("nan"))),
@@ -265,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:10s} IoU before {row['iou_before']:.3f} after {row['iou_after']:.3f}"
               + "".join(f" {s} {row[f'iou_{s}']:.3f}" for s in (*SEEDINGS, "auto*") if f"iou_{s}" in row)
               + f" | cover {row['cover_before']:.2f}→{row['cover_after']:.2f}{' DOUBTFUL' if row['warning'] else ''}"
-              + f" | depth/width {row['ratio']:.2f} (true ~{row['true_ratio']:.2f})"
+              + f" | depth/width {row['ratio']:.2f} (seen side {row['seen_ratio']:.2f}; true ~{row['true_ratio']:.2f})"
               + f" | flat {row['flat']:.2f} (true ~{row['true_flat']:.2f})"
               + f" | tilt {row['tilt']:+.0f}° roll {row['roll']:+.0f}°{'' if defined else ' ~'}"
               + f" | parts hand {row['parts_hand']} ({row['parts_hand_before']}) auto {row['parts_auto']} ({row['parts_auto_before']})"
@@ -286,13 +303,13 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     seed_cols = [s for s in (*SEEDINGS, "auto*") if f"iou_{s}" in rows[0]]
     header = ["photo", "IoU before (depth net)", "IoU after (automatic)", *(f"IoU {s}" for s in seed_cols), "cover before", "cover after", "doubtful after",
-              "depth/width (hand mask)", "judged true", "thinnest depth/width", "judged true", "tilt°", "roll°", "parts (hand mask)", "parts (auto mask)"]
+              "depth/width (hand mask)", "seen side's depth/width", "judged true", "thinnest depth/width", "judged true", "tilt°", "roll°", "parts (hand mask)", "parts (auto mask)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     table = []
     for r in rows:
         cells = [r["name"], f"{r['iou_before']:.3f}", f"{r['iou_after']:.3f}", *(f"{r[f'iou_{s}']:.3f}" for s in seed_cols),
                  f"{r['cover_before']:.2f}", f"{r['cover_after']:.2f}", "yes" if r["warning"] else "no",
-                 f"{r['ratio']:.2f}", f"{r['true_ratio']:.2f}", f"{r['flat']:.2f}", f"{r['true_flat']:.2f}", f"{r['tilt']:+.0f}{'' if r['tilt_defined'] else ' ~'}", f"{r['roll']:+.0f}",
+                 f"{r['ratio']:.2f}", f"{r['seen_ratio']:.2f}", f"{r['true_ratio']:.2f}", f"{r['flat']:.2f}", f"{r['true_flat']:.2f}", f"{r['tilt']:+.0f}{'' if r['tilt_defined'] else ' ~'}", f"{r['roll']:+.0f}",
                  f"{r['parts_hand']} ({r['parts_hand_before']})", f"{r['parts_auto']} ({r['parts_auto_before']})"]
         table.append(cells)
         lines.append("| " + " | ".join(cells) + " |")
@@ -301,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
         f"# GenRe on {len(rows)} real photos (`scripts/eval_photos.py`, weights `{args.weights.name}`)",
         "",
         "IoU of the automatic mask (no user mask) against the hand mask at the photo's pixels, before = the depth net's own silhouette, after = the mask `genre reconstruct` uses (docs/masks.md); cover = fraction of the photo the automatic mask covers; "
-        "depth/width = the side-view ratio of the mesh made with the hand mask; thinnest depth/width = its depth over width along its thinnest principal axis (a plate: ~0.1); tilt / roll = angle of its principal axis nearest the view's up from +y, "
+        "depth/width = the side-view ratio of the mesh made with the hand mask; seen side's = its masked depth map alone, back-projected: the spread along the view over the widest spread across it (the surface the depth net made; the rest of the mesh's depth is the hidden side's); thinnest depth/width = its depth over width along its thinnest principal axis (a plate: ~0.1); tilt / roll = angle of its principal axis nearest the view's up from +y, "
         "seen from the side (+ = top toward the camera) / from the camera (+ = top to the right), ~ = ill-defined (round object); parts after clean-up (before it).",
         "",
         *lines,
