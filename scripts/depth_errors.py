@@ -77,6 +77,17 @@ def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float, f
     return float(np.mean(np.abs(err - offset))), iqr(pred) / max(iqr(true), 1e-6), abs(offset), iqr(true)
 
 
+def summary_cells(errors: list[tuple[float, float, float, float]], first: np.ndarray, flat_plane: bool = False) -> list[str]:
+    """One weights' row over a folder from its views' :func:`view_errors`: n, relief MAE median and mean, relief ÷
+    truth (median), offset (median; "–" for the flat plane), views better than ``first`` (the first weights' relief
+    MAEs), and *follows*: Spearman's correlation of the predicted relief's IQR with the true one's ("–" for the flat
+    plane, which has none)."""
+    mae, ratio, offset, true_iqr = (np.array([x[i] for x in errors]) for i in range(4))
+    follows = "–" if flat_plane else f"{spearmanr(ratio * true_iqr, true_iqr).statistic:.2f}"
+    return [f"{len(errors)}", f"{np.median(mae):.4f}", f"{np.mean(mae):.4f}", f"{np.median(ratio):.2f}",
+            "–" if flat_plane else f"{np.median(offset):.4f}", f"{int((mae < first).sum())} / {len(errors)}", follows]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--views", nargs="+", required=True, help="folders of rendered views")
@@ -108,11 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows[k].append(g)
         first = np.array([r[0] for r in rows[0]])
         for w, r in zip(names + [FLAT_PLANE], rows):
-            mae, ratio, offset, true_iqr = (np.array([x[i] for x in r]) for i in range(4))
-            follows = "–" if w == FLAT_PLANE else f"{spearmanr(ratio * true_iqr, true_iqr).statistic:.2f}"
-            lines.append(f"| {Path(folder).name} | {w} | {len(r)} | {np.median(mae):.4f} | {np.mean(mae):.4f} | "
-                         f"{np.median(ratio):.2f} | {'–' if w == FLAT_PLANE else f'{np.median(offset):.4f}'} | "
-                         f"{int((mae < first).sum())} / {len(r)} | {follows} |")
+            lines.append(f"| {Path(folder).name} | {w} | " + " | ".join(summary_cells(r, first, w == FLAT_PLANE)) + " |")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     if args.out:

@@ -32,13 +32,15 @@ def _ramp_view(size: int = 32):
 def test_a_shifted_truth_has_no_relief_error_and_the_flat_plane_scores_the_reliefs_own_spread():
     view = _ramp_view()
     inner = view["depth"][6:26, 6:26]  # the silhouette eroded by 2 px
-    mae, ratio, offset = depth_errors.view_errors(_Predicts(view["depth"] + 0.05), view)
+    mae, ratio, offset, true_iqr = depth_errors.view_errors(_Predicts(view["depth"] + 0.05), view)
     assert mae < 1e-6 and np.isclose(ratio, 1.0) and np.isclose(offset, 0.05, atol=1e-6)
-    mae, ratio, offset = depth_errors.view_errors(None, view)
+    # 20 columns 0.01 apart: the quartiles (linear between samples) at 4.75 and 14.25 steps, 0.095 apart
+    assert np.isclose(true_iqr, 0.095, atol=1e-5)
+    mae, ratio, offset, true_iqr = depth_errors.view_errors(None, view)
     assert np.isclose(mae, np.mean(np.abs(inner - np.median(inner))), atol=1e-6) and mae > 0.04
-    assert ratio == 0.0 and np.isnan(offset)
+    assert ratio == 0.0 and np.isnan(offset) and np.isclose(true_iqr, 0.095, atol=1e-5)
     halved = 2.0 + 0.5 * (view["depth"] - 2.0)  # the same ramp at half its relief: too flat by two
-    mae, ratio, _ = depth_errors.view_errors(_Predicts(halved), view)
+    mae, ratio, _, _ = depth_errors.view_errors(_Predicts(halved), view)
     assert np.isclose(ratio, 0.5, atol=0.02) and np.isclose(mae, 0.5 * np.mean(np.abs(inner - np.median(inner))), atol=1e-3)
 
 
@@ -61,7 +63,23 @@ def test_painting_the_object_one_colour_keeps_the_background_and_leaves_only_the
     assert np.ptp(flat["rgb"][inside].astype(int), axis=0).max() == 0  # one colour inside
     assert np.allclose(flat["rgb"][inside][0], rgb[inside].mean(0), atol=0.5)
     # the net that reads shading recovers the ramp from the picture, and nothing from the painted one
-    mae_rgb, ratio_rgb, _ = depth_errors.view_errors(_ReadsShading(), view)
-    mae_flat, ratio_flat, _ = depth_errors.view_errors(_ReadsShading(), flat)
+    mae_rgb, ratio_rgb, _, _ = depth_errors.view_errors(_ReadsShading(), view)
+    mae_flat, ratio_flat, _, _ = depth_errors.view_errors(_ReadsShading(), flat)
     assert mae_rgb < 2e-3 and np.isclose(ratio_rgb, 1.0, atol=0.02)
     assert ratio_flat == 0.0 and np.isclose(mae_flat, depth_errors.view_errors(None, view)[0], atol=1e-6)
+
+
+def test_follows_is_one_when_deeper_views_get_deeper_reliefs_and_minus_one_when_reversed():
+    steep = [0.01 * (k + 1) for k in range(6)]  # six views, their true relief IQRs rising
+    view = _ramp_view()
+    rows = {}
+    for name, scale in (("in order", lambda k: 0.5), ("reversed", lambda k: steep[5 - k] / steep[k])):
+        errors = []
+        for k, slope in enumerate(steep):  # each view a ramp of its own slope; the prediction the same ramp times scale(k)
+            v = dict(view, depth=np.where(view["mask"] > 0, 2.0 + slope * np.arange(32)[None, :].repeat(32, 0), 0.0).astype(np.float32))
+            errors.append(depth_errors.view_errors(_Predicts(2.0 + scale(k) * (v["depth"] - 2.0)), v))
+        rows[name] = depth_errors.summary_cells(errors, np.zeros(6))
+    assert rows["in order"][0] == "6" and rows["in order"][3] == "0.50" and rows["in order"][-1] == "1.00"
+    assert rows["reversed"][-1] == "-1.00"  # the steepest view predicted as the gentlest, and so on
+    flat = depth_errors.summary_cells([depth_errors.view_errors(None, view)] * 3, np.zeros(3), flat_plane=True)
+    assert flat[4] == "–" and flat[-1] == "–" and flat[3] == "0.00"
