@@ -35,7 +35,7 @@ import torch
 from ..config import CameraConfig
 from ..frame import depth_to_points, depth_valid_mask
 from ..validation import check_positive_int, check_tensor
-from .voxels import points_to_voxels
+from .voxels import points_to_voxels, voxel_centres
 
 __all__ = [
     "ray_triangles_reference",
@@ -53,6 +53,8 @@ __all__ = [
     "pad_sph",
     "crop_sph",
     "mirror_sph",
+    "sph_hull_ramp",
+    "sph_hull_ramp_reference",
 ]
 
 NO_HIT = 1.0
@@ -387,3 +389,78 @@ def mirror_sph(sph: torch.Tensor) -> torch.Tensor:
     """
     check_tensor("sph", sph, ("...", None, None), finite=False)
     return torch.roll(torch.flip(sph, dims=(-1,)), 1, dims=-1)
+
+
+def _hull_radius(sph: torch.Tensor, nohit_min: float, spread: int) -> torch.Tensor:
+    """The outermost radius (B, H, W) a map allows per pixel: ``1 − s`` at hits, 0 at no-hit pixels, the maximum over
+    the pixel's (2·spread + 1)² neighbourhood (periodic in azimuth, edge-replicated at the poles)."""
+    radius = torch.where(sph < nohit_min, 1.0 - sph, torch.zeros_like(sph))
+    if spread:
+        radius = torch.nn.functional.max_pool2d(pad_sph(radius[:, None], spread), 2 * spread + 1, stride=1)[:, 0]
+    return radius
+
+
+def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1e-4, spread: int = 1,
+                  width: float = 1.0) -> torch.Tensor:
+    """How far inside the radial hull of full spherical maps each voxel centre lies, as a ramp in [0, 1].
+
+    A full map's pixel of direction ``d`` holds ``s = 1 − r`` with ``r`` the *largest* radius at which the ray
+    ``t·d`` meets the surface (module doc), so no surface point lies beyond radius ``r`` in that direction: the
+    region ``|p| ≤ r(p / |p|)`` (the radial hull, star-shaped about the view frame's origin) holds the whole
+    object.  sph: (B, H, W) full maps; ``resolution``: N.  ``r`` is the pixel's hull radius, the largest of its
+    (2·spread + 1)² neighbours' (no-hit pixels: 0), read bilinearly at the centre's direction; returns (B, 1, N, N,
+    N) float32 ``clip(0.5 + (r − |c|)·N / width, 0, 1)``: 1 well inside, 0 beyond the hull by more than half a
+    ramp.  ``min(probability, ramp)`` empties what the refiner puts outside the map's own surface
+    (``GeometryConfig.sph_hull_carve``).  The centre voxel (|c| = 0) takes the map's mean direction's value.
+    """
+    check_tensor("sph", sph, ("B", None, None))
+    check_positive_int("resolution", resolution)
+    if isinstance(spread, bool) or not isinstance(spread, int) or not 0 <= spread <= min(sph.shape[-2:]) // 2:
+        raise ValueError(f"spread: expected an int in [0, {min(sph.shape[-2:]) // 2}], got {spread!r}")
+    if not (math.isfinite(width) and width > 0):
+        raise ValueError(f"width: expected a positive number of voxels, got {width!r}")
+    batch, height, wide = sph.shape
+    radius = _hull_radius(sph.float(), nohit_min, spread)
+    c = voxel_centres(resolution, device=sph.device)
+    centres = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1).reshape(-1, 3)
+    rho = torch.linalg.vector_norm(centres, dim=-1)
+    rc = directions_to_pixels(centres / rho.clamp(min=1e-12)[:, None], height, wide)
+    padded = pad_sph(radius[:, None], 1)  # (B, 1, H + 2, W + 2): row i ↦ i + 1, column j ↦ j + 1
+    # grid_sample's (x, y) in [-1, 1] over the padded map's pixel centres (align_corners=True)
+    x = (rc[:, 1] + 1.0) / (wide + 1) * 2.0 - 1.0
+    y = (rc[:, 0] + 1.0) / (height + 1) * 2.0 - 1.0
+    grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2).expand(batch, -1, -1, -1)
+    r = torch.nn.functional.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    ramp = (0.5 + (r.view(batch, -1) - rho) * resolution / width).clamp(0.0, 1.0)
+    return ramp.view(batch, 1, resolution, resolution, resolution)
+
+
+def sph_hull_ramp_reference(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1e-4, spread: int = 1,
+                            width: float = 1.0) -> torch.Tensor:
+    """Plain-loop reference of :func:`sph_hull_ramp`: the neighbourhood maximum, the direction's map coordinates and
+    the bilinear read written out per voxel (periodic columns, rows clamped to the poles' pixels)."""
+    check_tensor("sph", sph, ("B", None, None))
+    batch, height, wide = sph.shape
+    n = resolution
+    out = torch.zeros(batch, 1, n, n, n, dtype=torch.float64)
+    for b in range(batch):
+        s = sph[b].double().tolist()
+        hull = [[1.0 - s[i][j] if s[i][j] < nohit_min else 0.0 for j in range(wide)] for i in range(height)]
+        big = [[max(hull[min(max(i + di, 0), height - 1)][(j + dj) % wide]
+                    for di in range(-spread, spread + 1) for dj in range(-spread, spread + 1))
+                for j in range(wide)] for i in range(height)]
+        for ix in range(n):
+            for iy in range(n):
+                for iz in range(n):
+                    x, y, z = ((ix + 0.5) / n - 0.5, (iy + 0.5) / n - 0.5, (iz + 0.5) / n - 0.5)
+                    rho = math.sqrt(x * x + y * y + z * z)
+                    theta = math.acos(max(-1.0, min(1.0, y / rho)))
+                    phi = math.atan2(-x / rho, -z / rho) % (2.0 * math.pi)
+                    row = min(max(theta * height / math.pi - 0.5, 0.0), height - 1.0)
+                    col = phi * wide / (2.0 * math.pi)
+                    r0, c0 = min(int(math.floor(row)), height - 2), int(math.floor(col))
+                    a, bb = col - c0, row - r0
+                    r = ((1 - a) * (1 - bb) * big[r0][c0 % wide] + a * (1 - bb) * big[r0][(c0 + 1) % wide]
+                         + (1 - a) * bb * big[r0 + 1][c0 % wide] + a * bb * big[r0 + 1][(c0 + 1) % wide])
+                    out[b, 0, ix, iy, iz] = min(max(0.5 + (r - rho) * n / width, 0.0), 1.0)
+    return out.float()
