@@ -411,7 +411,7 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
     (2·spread + 1)² neighbours' (no-hit pixels: 0), read bilinearly at the centre's direction; returns (B, 1, N, N,
     N) float32 ``clip(0.5 + (r − |c|)·N / width, 0, 1)``: 1 well inside, 0 beyond the hull by more than half a
     ramp.  ``min(probability, ramp)`` empties what the refiner puts outside the map's own surface
-    (``GeometryConfig.sph_hull_carve``).  The centre voxel (|c| = 0) takes the map's mean direction's value.
+    (``GeometryConfig.sph_hull_carve``).  A voxel centred on the origin (odd N) reads the direction to the camera.
     """
     check_tensor("sph", sph, ("B", None, None))
     check_positive_int("resolution", resolution)
@@ -424,7 +424,8 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
     c = voxel_centres(resolution, device=sph.device)
     centres = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1).reshape(-1, 3)
     rho = torch.linalg.vector_norm(centres, dim=-1)
-    rc = directions_to_pixels(centres / rho.clamp(min=1e-12)[:, None], height, wide)
+    toward = torch.tensor([0.0, 0.0, 1.0], device=sph.device).expand_as(centres)  # the centre (odd N): the camera's
+    rc = directions_to_pixels(torch.where(rho[:, None] > 0, centres / rho.clamp(min=1e-12)[:, None], toward), height, wide)
     padded = pad_sph(radius[:, None], 1)  # (B, 1, H + 2, W + 2): row i ↦ i + 1, column j ↦ j + 1
     # grid_sample's (x, y) in [-1, 1] over the padded map's pixel centres (align_corners=True)
     x = (rc[:, 1] + 1.0) / (wide + 1) * 2.0 - 1.0
@@ -454,8 +455,9 @@ def sph_hull_ramp_reference(sph: torch.Tensor, resolution: int, nohit_min: float
                 for iz in range(n):
                     x, y, z = ((ix + 0.5) / n - 0.5, (iy + 0.5) / n - 0.5, (iz + 0.5) / n - 0.5)
                     rho = math.sqrt(x * x + y * y + z * z)
-                    theta = math.acos(max(-1.0, min(1.0, y / rho)))
-                    phi = math.atan2(-x / rho, -z / rho) % (2.0 * math.pi)
+                    dx, dy, dz = (x / rho, y / rho, z / rho) if rho > 0 else (0.0, 0.0, 1.0)
+                    theta = math.acos(max(-1.0, min(1.0, dy)))
+                    phi = math.atan2(-dx, -dz) % (2.0 * math.pi)
                     row = min(max(theta * height / math.pi - 0.5, 0.0), height - 1.0)
                     col = phi * wide / (2.0 * math.pi)
                     r0, c0 = min(int(math.floor(row)), height - 2), int(math.floor(col))

@@ -19,12 +19,14 @@ __all__ = ["NetOutputs", "View"]
 
 @dataclass(frozen=True)
 class View:
-    """One framed view (S = image size): ``mask`` (S, S) bool, ``depth`` (S, S) the masked depth (0 off the object),
-    ``camera`` the camera they are seen through."""
+    """One framed view (S = image size, H = spherical map size): ``mask`` (S, S) bool, ``depth`` (S, S) the masked
+    depth (0 off the object), ``camera`` the camera they are seen through, ``sph`` (H, H) the full spherical map the
+    refiner read (``None``: a row without one)."""
 
     mask: torch.Tensor
     depth: torch.Tensor
     camera: CameraConfig
+    sph: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -45,8 +47,8 @@ class NetOutputs:
     logits: torch.Tensor
 
     def view(self, camera: CameraConfig) -> View:
-        """The first photo's mask and masked depth (S, S), seen through ``camera``."""
-        return View(self.mask[0], self.masked_depth[0], camera)
+        """The first photo's mask, masked depth (S, S) and full spherical map (H, H), seen through ``camera``."""
+        return View(self.mask[0], self.masked_depth[0], camera, self.full_sph[0])
 
     def images(self) -> dict[str, torch.Tensor]:
         """Name → the first photo's output without its batch axis (and a grid's channel axis): (S, S), (H, H) or

@@ -126,28 +126,28 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     opts = MeshOptions().resolved(m.config.geometry)  # the weights' own options, as genre reconstruct takes them by default
     mirror = opts.test_time_mirror  # every learned row alike
     g = m(rgb, mask=mask, mirror=mirror)
-    out["GenRe"] = {"prob": torch.sigmoid(g.logits)[0, 0].cpu(), "depth": g.masked_depth[0].cpu()}
+    def row_of(n) -> dict:  # a pass's grid and what the steps after the networks read of it
+        return {"prob": torch.sigmoid(n.logits)[0, 0].cpu(), "depth": n.masked_depth[0].cpu(), "sph": n.full_sph[0].cpu()}
+
+    out["GenRe"] = row_of(g)
     for name, value in models.sweeps:  # the networks run again only where the option changes their pass (the mirror)
         swept = dataclasses.replace(opts, **{name: value})
         s = g if swept.test_time_mirror == mirror else m(rgb, mask=mask, mirror=swept.test_time_mirror)
-        out[sweep_row(name, value)] = {"prob": torch.sigmoid(s.logits)[0, 0].cpu(), "depth": s.masked_depth[0].cpu(),
-                                       "options": swept,  # and its surface made with the changed setting (hole_closing)
+        out[sweep_row(name, value)] = {**row_of(s), "options": swept,  # and its surface made with the changed setting (hole_closing)
                                        "geometry": dataclasses.replace(m.config.geometry, **{BY_NAME[name].weights: value})}
     pred_depth = g.masked_depth
     valid = mask & (depth > 0)
     err = float(((g.depth - depth).abs() * valid).sum() / valid.sum().clamp(min=1))
     out["depth_abs_err"] = err
     if "GenRe-Oracle" in models.wanted:
-        out["GenRe-Oracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, mirror=mirror).logits)[0, 0].cpu(), "depth": true_depth}
+        out["GenRe-Oracle"] = row_of(m(rgb, mask=mask, depth=depth, mirror=mirror))
     for name, moved in (("GenRe-OffsetOracle", g.depth), ("GenRe-ReliefOracle", depth)):
         if name in models.wanted:  # one depth map moved along the view to the other's median offset over the mask
             other = depth if moved is g.depth else g.depth
             shifted = moved + median_offset(other, moved, valid)
-            out[name] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=shifted, mirror=mirror).logits)[0, 0].cpu(),
-                         "depth": torch.where(mask, shifted, torch.zeros_like(shifted))[0].cpu()}
+            out[name] = row_of(m(rgb, mask=mask, depth=shifted, mirror=mirror))
     if "GenRe-SphOracle" in models.wanted:
-        out["GenRe-SphOracle"] = {"prob": torch.sigmoid(m(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror).logits)[0, 0].cpu(),
-                                  "depth": true_depth}
+        out["GenRe-SphOracle"] = row_of(m(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror))
     if models.completion is not None:
         def completion(r, k, d, s):
             return models.completion(r, mask=k, depth=d)["logits"]
@@ -164,11 +164,12 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
             return m.refine(m.sph_voxels(models.onestep(r).clamp(0.0, 1.0)), m.depth_voxels(own))
 
         logits = mirror_averaged(onestep, rgb, mask) if mirror else onestep(rgb, mask, None, None)
-        out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu()}
+        out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu(),
+                              "sph": models.onestep(rgb).clamp(0.0, 1.0)[0].cpu()}
     camera = m.config.camera
     for row in out.values():  # the steps after the networks, genre reconstruct's own (options.py), every learned row alike
         if isinstance(row, dict) and "depth" in row:  # (the depth maps go either way: no row after this point carries one)
-            view = View(mask[0], row.pop("depth"), camera)
+            view = View(mask[0], row.pop("depth"), camera, row.pop("sph", None))
             o, geometry = row.pop("options", opts), row.get("geometry", m.config.geometry)
             row["prob"] = o.shape_grid(row["prob"], view, geometry)
             if o.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level

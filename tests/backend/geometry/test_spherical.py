@@ -211,3 +211,52 @@ def test_mirror_sph_and_mirror_voxels_are_the_reflected_scene():
     assert torch.allclose(mirror_voxels(grid), points_to_voxels(points * flip, 16), atol=1e-9)
     with pytest.raises(ValueError, match="N, N, N"):
         mirror_voxels(torch.zeros(4, 4, 5))
+
+
+@pytest.mark.parametrize("spread", [0, 1, 2])
+def test_hull_ramp_matches_its_reference(spread):
+    gen = torch.Generator().manual_seed(spread)
+    s = torch.rand((2, 8, 12), generator=gen) * 0.6 + 0.3
+    s[0, 2, 3] = s[0, 0, 11] = s[0, 7, 0] = sph.NO_HIT  # no-hit pixels, one at each pole row and at the seam
+    s[1, :2] = sph.NO_HIT
+    fast = sph.sph_hull_ramp(s, 7, spread=spread, width=1.5)
+    assert fast.shape == (2, 1, 7, 7, 7) and fast.dtype == torch.float32
+    assert (fast - sph.sph_hull_ramp_reference(s, 7, spread=spread, width=1.5)).abs().max() < 1e-5
+
+
+def test_hull_of_a_sphere_map_is_the_ball():
+    n, r = 32, 0.3
+    s = sph.mesh_to_sph(*(torch.tensor(a) for a in (trimesh.creation.icosphere(5, radius=r).vertices,
+                                                   trimesh.creation.icosphere(5, radius=r).faces)), 64)[None]
+    ramp = sph.sph_hull_ramp(s, n, spread=0)[0, 0]
+    c = (torch.arange(n) + 0.5) / n - 0.5
+    rho = torch.linalg.vector_norm(torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1), dim=-1)
+    want = (0.5 + (r - rho) * n).clamp(0, 1)  # one voxel wide, 0.5 on the sphere
+    assert (ramp - want).abs().max() < 0.02
+    assert sph.sph_hull_ramp(torch.full((1, 16, 16), sph.NO_HIT), 8).abs().max() == 0  # no surface: nothing kept
+
+
+def test_hull_of_a_lying_plate_trims_a_slab_to_the_plate():
+    """The true map of a thin box (a plate lying in the view's x–z plane) bounds it: a slab ten times thicker around
+    it, capped by the map's hull, keeps the plate and loses what lies more than a few voxels above or below it."""
+    n = 64
+    plate = trimesh.creation.box(extents=(0.6, 0.03, 0.5))
+    s = sph.mesh_to_sph(torch.tensor(plate.vertices), torch.tensor(plate.faces), 64)[None]
+    c = (torch.arange(n) + 0.5) / n - 0.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    slab = ((x.abs() < 0.3) & (y.abs() < 0.15) & (z.abs() < 0.25)).float()
+    for spread in (0, 1):
+        kept = torch.minimum(slab, sph.sph_hull_ramp(s, n, spread=spread)[0, 0])
+        inside = (x.abs() < 0.27) & (y.abs() < 0.01) & (z.abs() < 0.22)  # the plate, a voxel in from its faces
+        assert float(kept[inside].min()) > 0.5
+        far = y.abs() > 0.015 + (2 + 3 * spread) / n  # a few voxels off the plate's faces (more with the spread)
+        assert float(slab[far].sum()) > 5e3 and float(kept[far].max()) < 0.5
+
+
+def test_hull_ramp_rejects_bad_inputs():
+    s = torch.full((1, 8, 8), 0.5)
+    for kwargs in ({"spread": -1}, {"spread": 5}, {"spread": True}, {"width": 0.0}, {"width": math.nan}):
+        with pytest.raises(ValueError):
+            sph.sph_hull_ramp(s, 4, **kwargs)
+    with pytest.raises(ValueError):
+        sph.sph_hull_ramp(torch.full((8, 8), 0.5), 4)

@@ -470,6 +470,28 @@ def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_p
     assert code == 0 and (tmp_path / "c.obj").is_file(), err
 
 
+def test_sph_hull_carve_empties_what_lies_beyond_the_full_map_s_surface(rec, photos, tmp_path, capsys, trained):
+    from genre_backend.config import SPH_HULL_SPREAD
+    from genre_backend.geometry.mesh_voxels import fill_enclosed
+    from genre_backend.geometry.spherical import sph_hull_ramp
+
+    g = rec.config.geometry
+    assert g.sph_hull_carve is False  # weights stored without the key: off
+    plain = rec.run(photos["rgba"], threshold=0.3)
+    trimmed = rec.run(photos["rgba"], threshold=0.3, sph_hull_carve=True)
+    assert (plain.options.sph_hull_carve, trimmed.options.sph_hull_carve) == (False, True)
+    assert torch.equal(trimmed.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
+    hull = sph_hull_ramp(trimmed.intermediates["full_sph"][None], g.voxel_size, g.sph_nohit_min, SPH_HULL_SPREAD)[0, 0]
+    expected = torch.minimum(torch.sigmoid(trimmed.intermediates["logits"]), hull)
+    if g.target == "distance":  # then the enclosed voxels are filled, as without the trim
+        expected = torch.from_numpy(fill_enclosed(expected, 0.3, trimmed.options.hole_closing))
+    p0, p1 = plain.intermediates["probability"], trimmed.intermediates["probability"]
+    assert torch.allclose(p1, expected) and bool((p1[hull == 0] == 0).all())
+    assert float(p0[hull == 0].max()) > 0.3  # the tiny refiner spills past its map, so the trim removes something
+    code, out, err = _cli(capsys, photos["rgba"], "-o", tmp_path / "h.obj", "--weights", trained[0], "--sph-hull-carve")
+    assert code == 0 and (tmp_path / "h.obj").is_file(), err
+
+
 _EXIT_SCRIPT = """
 import atexit, sys, threading
 from pathlib import Path

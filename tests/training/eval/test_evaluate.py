@@ -193,6 +193,32 @@ def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_no
     assert torch.equal(carved[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])
 
 
+def test_weights_that_trim_to_the_map_s_hull_trim_each_row_to_the_map_its_refiner_read(tiny):
+    import dataclasses
+
+    from genre_backend.config import SPH_HULL_SPREAD
+    from genre_backend.geometry.spherical import sph_hull_ramp
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    plain = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    g = genre.config.geometry
+    assert not (g.silhouette_carve or g.visible_fusion or g.pit_sealing)  # the trim is the only step after the nets here
+    genre.config = dataclasses.replace(genre.config, geometry=dataclasses.replace(g, sph_hull_carve=True))
+    trimmed = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    rgb, mask, depth = sample["rgb"][None], sample["mask"][None], sample["depth"][None]
+    with torch.no_grad():
+        maps = {"GenRe": genre(rgb, mask=mask).full_sph, "GenRe-Oracle": genre(rgb, mask=mask, depth=depth).full_sph,
+                "GenRe-SphOracle": sample["full_sph"][None]}
+    for row, sph in maps.items():
+        hull = sph_hull_ramp(sph, g.voxel_size, g.sph_nohit_min, SPH_HULL_SPREAD)[0, 0]
+        assert torch.equal(trimmed[row]["prob"], torch.minimum(plain[row]["prob"], hull)), row
+        assert float(plain[row]["prob"][hull == 0].max()) > 0.1, row  # something was there to trim
+    for row in ("3D Completion", "3D Completion-Oracle", REPRESENTATION):  # no map: untouched
+        assert torch.equal(trimmed[row]["prob"], plain[row]["prob"]), row
+
+
 def test_weights_that_fuse_the_visible_surface_fill_every_depth_row_from_its_own_depth(tiny):
     import dataclasses
 

@@ -1,0 +1,132 @@
+#!/usr/bin/env python3
+"""What trimming the refiner's grid to its spherical map's hull does: ``geometry.sph_hull_carve``.
+
+A full spherical map's pixel of direction ``d`` holds the *largest* radius at
+which the ray ``t·d`` from the view frame's origin meets the surface, so no
+surface point lies beyond it: the map bounds the object (its radial hull,
+:func:`genre_backend.geometry.spherical.sph_hull_ramp`).  The refiner does not
+always stay inside it: given the *true* map of a plate lying flat it still
+makes a slab several times too thick (GenRe-SphOracle on the flat-from-above
+group, ``results/flat_from_above.md``).  ``min(probability, ramp)`` trims what
+the refiner puts beyond its own map's surface.
+
+For each view this script runs the weights once (their mirror setting) and
+scores the mesh at the weights' level without the trim and with it at each
+``--spreads`` (how many map pixels the hull is widened by), the steps after it
+as ``genre reconstruct`` takes them (outline carve, visible fusion, pit
+sealing; hole closing): mean CD (1,024 points, ``genre eval``'s metric) and,
+where the views know the object's up (the flat group), the median ratio of
+the mesh's depth ÷ width to the truth's.  ``--oracle`` scores
+GenRe-SphOracle too (the true depth and the true full map in, the hull of
+the true map).
+
+The rule (``results/decisions.md``, 2026-11-30 17:29 UTC, fixed before any
+measure): the spread with the lowest mean CD on the training shapes' views
+(``views/product_train_eval``); the setting on when, on the product test, the
+mean CD with it is no higher than without and the primitives' not higher by
+more than 1 % (``genre eval --sweep sph_hull_carve=...``).
+
+    .venv/bin/python scripts/sph_hull.py --weights default --views $GENRE_HOME/views/product_train_eval \
+        --groups product-train --spreads 0,1,2
+    .venv/bin/python scripts/sph_hull.py --weights default --views $GENRE_HOME/views/flat_eval \
+        --groups flat-from-above --manifest $GENRE_HOME/flat_test/manifest.json --oracle
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from genre_backend.arguments import add_weights  # noqa: E402
+from genre_backend.geometry.metrics import CloudScorer  # noqa: E402
+from genre_backend.geometry.spherical import sph_hull_ramp  # noqa: E402
+from genre_backend.inference.options import MeshOptions  # noqa: E402
+from genre_backend.nets.outputs import View  # noqa: E402
+from genre_backend.weights_file import resolve_weights  # noqa: E402
+from training.eval.protocol import POINTS_SMALL, load_setting_views  # noqa: E402
+from training.eval.runner import Truth, score_grid  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_weights(p, default="default")
+    p.add_argument("--views", required=True, help="evaluation views (genre data render + targets)")
+    p.add_argument("--manifest", default=None, help="the corpus manifest (default: $GENRE_HOME/corpus/manifest.json)")
+    p.add_argument("--groups", default="product-test", help="manifest groups of the views to score (comma-separated)")
+    p.add_argument("--max-views", type=int, default=None, help="at most this many views of each shape (default: all)")
+    p.add_argument("--level", type=float, default=None, help="isosurface level (default: the weights')")
+    p.add_argument("--spreads", default="0,1,2", help="the hull's widenings to score, in map pixels (comma-separated)")
+    p.add_argument("--oracle", action="store_true", help="also GenRe-SphOracle (the true depth and full map)")
+    p.add_argument("--json", default=None, help="also write the figures here")
+    args = p.parse_args(argv)
+    try:
+        weights = resolve_weights(args.weights)
+        spreads = [int(s) for s in args.spreads.split(",")]
+        model, views, data, _ = load_setting_views(weights, args.views, args.manifest, tuple(args.groups.split(",")),
+                                                  args.max_views)
+    except ValueError as exc:
+        p.error(str(exc))
+    geometry, camera = model.config.geometry, model.config.camera
+    opts = MeshOptions(sph_hull_carve=False).resolved(geometry)
+    level = opts.threshold if args.level is None else args.level
+    opts = dataclasses.replace(opts, threshold=level)
+    rows = ["GenRe"] + (["GenRe-SphOracle"] if args.oracle else [])
+    names = ["off"] + [f"spread {s}" for s in spreads]
+    truth = Truth()
+    cd: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    ratio: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    with torch.no_grad():
+        for i, view in enumerate(views):
+            s = data.sample(i, None)
+            gt, _ = truth.posed(view)
+            target = CloudScorer(gt[:POINTS_SMALL], gt, up=truth.up(view))
+            mask = s["mask"][None]
+            runs = {"GenRe": model(s["rgb"][None], mask=mask, mirror=opts.test_time_mirror)}
+            if args.oracle:
+                runs["GenRe-SphOracle"] = model(s["rgb"][None], mask=mask, depth=s["depth"][None],
+                                                full_sph=s["full_sph"][None], mirror=opts.test_time_mirror)
+            for row, out in runs.items():
+                prob = torch.sigmoid(out.logits)[0, 0]
+                v = View(out.mask[0], out.masked_depth[0], camera)
+                for name in names:
+                    grid = prob
+                    if name != "off":
+                        spread = int(name.split()[1])
+                        grid = torch.minimum(prob, sph_hull_ramp(out.full_sph, prob.shape[-1], geometry.sph_nohit_min,
+                                                                 spread=spread)[0, 0])
+                    m = score_grid(opts.shape_grid(grid, v, geometry), [level], target, geometry)[level]
+                    cd[row][name].append(m["cd1k"])
+                    if math.isfinite(target.dw_true) and math.isfinite(m.get("dw", math.nan)):
+                        ratio[row][name].append(m["dw"] / target.dw_true)
+            if (i + 1) % 25 == 0:
+                print(f"  {i + 1}/{len(views)} views", file=sys.stderr)
+    print(f"{len(views)} views of {args.views} ({args.groups}); weights {weights}; level {level:.2f}; "
+          f"fusion {opts.visible_fusion}; pits {opts.pit_sealing}; mirror {opts.test_time_mirror}")
+    print("| row | trim | CD (mean) | change | lower on | depth ÷ width over the truth's (median) |")
+    print("| --- | --- | ---: | ---: | ---: | ---: |")
+    result = {"weights": str(weights), "views": len(views), "level": level, "rows": {}}
+    for row in rows:
+        base = np.array(cd[row]["off"])
+        for name in names:
+            c = np.array(cd[row][name])
+            r = np.median(ratio[row][name]) if ratio[row][name] else math.nan
+            result["rows"].setdefault(row, {})[name] = {"cd": float(c.mean()), "ratio": float(r)}
+            print(f"| {row} | {name} | {c.mean():.5f} | {100 * (c.mean() / base.mean() - 1):+.2f} % | "
+                  f"{int((c < base).sum())}/{len(c)} | {r:.2f} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
