@@ -54,7 +54,7 @@ MIN_THRESHOLD_STEP = 0.001
 MIN_OBJECT_FRACTION = 0.05
 MAX_NET_WIDTH = 2048  # each of depth_widths, inpaint_widths
 MAX_DECODER_BLOCKS = 8
-SPH_HULL_SPREAD = 1  # map pixels the spherical map's hull is widened by (sph_hull_carve; scripts/sph_hull.py)
+SPH_HULL_SPREAD = 2  # map pixels the spherical map's hull is widened by (sph_hull_carve; scripts/sph_hull.py)
 MAX_REFINER_NF = 64
 MAX_REFINER_FC = 8192
 MAX_REFINER_FULL_NF = 256
@@ -212,8 +212,8 @@ class GeometryConfig:
     # stored without the key: off.
     sph_hull_carve: bool = _setting(
         False, kind="bool", label="Trim to Shape Map",
-        help="cut away what lies beyond the surface the spherical map (the networks' all-round guess) bounds, "
-             "before the mesh is made", chosen="scripts/sph_hull.py (results/decisions.md)")
+        help="cut away what lies beyond the surface the spherical map (the networks' all-round guess) bounds: "
+             "for flat things (a plate, a card); it flattens round ones too", chosen="scripts/sph_hull.py (results/decisions.md)")
     # Holes in the face the camera sees (geometry.visible_front.fuse_visible_surface): the object's pixels
     # whose ray meets nothing above the level get the masked depth map's own surface (its distance
     # target, max with the refiner's) before the mesh is made, in reconstruction and in evaluation
