@@ -207,13 +207,18 @@ class GeometryConfig:
     # The full spherical map's radial hull (geometry.spherical.sph_hull_ramp): a map's pixel holds the largest
     # radius at which its ray meets the surface, so nothing lies beyond it; the refiner's output is capped by a
     # ramp that falls from 1 to 0 across the hull of the map it read (one voxel wide, the hull widened by
-    # SPH_HULL_SPREAD map pixels) before the mesh is made, in reconstruction and in evaluation (every row with a
-    # map alike; never in training).  Chosen by scripts/sph_hull.py's rule (results/decisions.md).  Weights
-    # stored without the key: off.
+    # SPH_HULL_SPREAD map pixels and moved sph_hull_offset voxels outward) before the mesh is made, in
+    # reconstruction and in evaluation (every row with a map alike).  Weights that store it on are also trained
+    # so: the refine and joint stages cap the refiner's logits by the same ramp (training/learn/stage.py), and
+    # the inpainting net learns, through it, not to cut away what the object has.  Chosen by
+    # scripts/sph_hull.py's rule (results/decisions.md).  Weights stored without the key: off.
     sph_hull_carve: bool = _setting(
         False, kind="bool", label="Trim to Shape Map",
         help="cut away what lies beyond the surface the spherical map (the networks' all-round guess) bounds: "
              "for flat things (a plate, a card); it flattens round ones too", chosen="scripts/sph_hull.py (results/decisions.md)")
+    # How far outward (voxels) the map's hull is moved before the trim above: the distance target's band lies up
+    # to distance_band voxels outside the surface, so a refiner trained with the trim needs the band's room.
+    sph_hull_offset: float = 0.0
     # Holes in the face the camera sees (geometry.visible_front.fuse_visible_surface): the object's pixels
     # whose ray meets nothing above the level get the masked depth map's own surface (its distance
     # target, max with the refiner's) before the mesh is made, in reconstruction and in evaluation
@@ -293,6 +298,7 @@ class GeometryConfig:
             check_setting(spec, getattr(self, spec.weights), self.target, f"geometry.{spec.weights}")
         if not isinstance(self.sph_keep_seen, bool):
             raise ValueError(f"geometry.sph_keep_seen: expected true or false, got {self.sph_keep_seen!r}")
+        _check_float("geometry.sph_hull_offset", self.sph_hull_offset, 0.0, 8.0)
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")
         for name in ("threshold_min", "threshold_max"):

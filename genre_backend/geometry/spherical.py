@@ -54,6 +54,7 @@ __all__ = [
     "crop_sph",
     "mirror_sph",
     "sph_hull_ramp",
+    "hull_ramp",
     "sph_hull_ramp_reference",
 ]
 
@@ -401,7 +402,7 @@ def _hull_radius(sph: torch.Tensor, nohit_min: float, spread: int) -> torch.Tens
 
 
 def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1e-4, spread: int = 1,
-                  width: float = 1.0) -> torch.Tensor:
+                  width: float = 1.0, offset: float = 0.0) -> torch.Tensor:
     """How far inside the radial hull of full spherical maps each voxel centre lies, as a ramp in [0, 1].
 
     A full map's pixel of direction ``d`` holds ``s = 1 − r`` with ``r`` the *largest* radius at which the ray
@@ -409,8 +410,8 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
     region ``|p| ≤ r(p / |p|)`` (the radial hull, star-shaped about the view frame's origin) holds the whole
     object.  sph: (B, H, W) full maps; ``resolution``: N.  ``r`` is the pixel's hull radius, the largest of its
     (2·spread + 1)² neighbours' (no-hit pixels: 0), read bilinearly at the centre's direction; returns (B, 1, N, N,
-    N) float32 ``clip(0.5 + (r − |c|)·N / width, 0, 1)``: 1 well inside, 0 beyond the hull by more than half a
-    ramp.  ``min(probability, ramp)`` empties what the refiner puts outside the map's own surface
+    N) float32 ``clip(0.5 + ((r − |c|)·N + offset) / width, 0, 1)``: 1 well inside, 0 beyond the hull (moved
+    ``offset`` voxels outward) by more than half a ramp.  Differentiable with respect to ``sph``.  ``min(probability, ramp)`` empties what the refiner puts outside the map's own surface
     (``GeometryConfig.sph_hull_carve``).  A voxel centred on the origin (odd N) reads the direction to the camera.
     """
     check_tensor("sph", sph, ("B", None, None))
@@ -419,6 +420,8 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
         raise ValueError(f"spread: expected an int in [0, {min(sph.shape[-2:]) // 2}], got {spread!r}")
     if not (math.isfinite(width) and width > 0):
         raise ValueError(f"width: expected a positive number of voxels, got {width!r}")
+    if not (math.isfinite(offset) and offset >= 0):
+        raise ValueError(f"offset: expected voxels >= 0, got {offset!r}")
     batch, height, wide = sph.shape
     radius = _hull_radius(sph.float(), nohit_min, spread)
     c = voxel_centres(resolution, device=sph.device)
@@ -432,12 +435,22 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
     y = (rc[:, 0] + 1.0) / (height + 1) * 2.0 - 1.0
     grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2).expand(batch, -1, -1, -1)
     r = torch.nn.functional.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    ramp = (0.5 + (r.view(batch, -1) - rho) * resolution / width).clamp(0.0, 1.0)
+    ramp = (0.5 + ((r.view(batch, -1) - rho) * resolution + offset) / width).clamp(0.0, 1.0)
     return ramp.view(batch, 1, resolution, resolution, resolution)
 
 
+def hull_ramp(sph: torch.Tensor, geometry) -> torch.Tensor:
+    """:func:`sph_hull_ramp` of full maps (B, H, H) as a model's ``GeometryConfig`` sets it: its grid, its no-hit
+    level, its ``sph_hull_offset``, the spread ``config.SPH_HULL_SPREAD``; the one call inference (the mesh option
+    ``sph_hull_carve``) and training (a refiner trained with the trim) share."""
+    from ..config import SPH_HULL_SPREAD
+
+    return sph_hull_ramp(sph, geometry.voxel_size, geometry.sph_nohit_min, SPH_HULL_SPREAD,
+                         offset=geometry.sph_hull_offset)
+
+
 def sph_hull_ramp_reference(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1e-4, spread: int = 1,
-                            width: float = 1.0) -> torch.Tensor:
+                            width: float = 1.0, offset: float = 0.0) -> torch.Tensor:
     """Plain-loop reference of :func:`sph_hull_ramp`: the neighbourhood maximum, the direction's map coordinates and
     the bilinear read written out per voxel (periodic columns, rows clamped to the poles' pixels)."""
     check_tensor("sph", sph, ("B", None, None))
@@ -464,5 +477,5 @@ def sph_hull_ramp_reference(sph: torch.Tensor, resolution: int, nohit_min: float
                     a, bb = col - c0, row - r0
                     r = ((1 - a) * (1 - bb) * big[r0][c0 % wide] + a * (1 - bb) * big[r0][(c0 + 1) % wide]
                          + (1 - a) * bb * big[r0 + 1][c0 % wide] + a * bb * big[r0 + 1][(c0 + 1) % wide])
-                    out[b, 0, ix, iy, iz] = min(max(0.5 + (r - rho) * n / width, 0.0), 1.0)
+                    out[b, 0, ix, iy, iz] = min(max(0.5 + ((r - rho) * n + offset) / width, 0.0), 1.0)
     return out.float()

@@ -159,16 +159,14 @@ class _Record:
         the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*); the
         last two at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`genre_backend.nets.outputs.View`).
         """
-        from ..config import SPH_HULL_SPREAD
-        from ..geometry.spherical import sph_hull_ramp
+        from ..geometry.spherical import hull_ramp
         from ..geometry.visible_front import fuse_visible_surface, seal_pits
         from ..geometry.voxels import silhouette_ramp
 
         if self.silhouette_carve:
             prob = torch.minimum(prob, silhouette_ramp(view.mask[None].cpu(), view.camera, prob.shape[-1])[0, 0])
         if self.sph_hull_carve and view.sph is not None:
-            ramp = sph_hull_ramp(view.sph[None].float().cpu(), prob.shape[-1], geometry.sph_nohit_min, SPH_HULL_SPREAD)
-            prob = torch.minimum(prob, ramp[0, 0])
+            prob = torch.minimum(prob, hull_ramp(view.sph[None].float().cpu(), geometry)[0, 0])
         if self.visible_fusion:
             prob = fuse_visible_surface(prob, view.depth, view.camera, geometry, self.threshold)
         pits = self.pit_sealing

@@ -8,15 +8,25 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from genre_backend.geometry.spherical import crop_sph, pad_sph
+from genre_backend.geometry.spherical import crop_sph, hull_ramp, pad_sph
 from genre_backend.nets.model import GenRe, save_model
 
 from .burst import REFERENCE_SPEED, Speed
 from .losses import depth_gradient_loss, outline_loss, sph_loss, voxel_loss
 
-__all__ = ["BASELINE_STAGES", "StageModule"]
+__all__ = ["BASELINE_STAGES", "StageModule", "hull_trimmed"]
 
 BASELINE_STAGES = ("completion", "onestep")
+RAMP_EPS = 1e-4  # the hull ramp's 0 and 1 as logits: ±9.2
+
+
+def hull_trimmed(logits: torch.Tensor, sph: torch.Tensor, geometry) -> torch.Tensor:
+    """The refiner's logits (B, 1, N, N, N) capped by the hull of the full maps (B, H, H) it read, as the mesh
+    option ``sph_hull_carve`` caps its probabilities (``min(p, ramp)`` is ``sigmoid(min(logit, logit(ramp)))``);
+    differentiable with respect to both, so the voxel loss also teaches the inpainting net where its map cuts the
+    object."""
+    ramp = hull_ramp(sph, geometry).clamp(RAMP_EPS, 1.0 - RAMP_EPS)
+    return torch.minimum(logits, torch.log(ramp) - torch.log1p(-ramp))
 
 
 class StageModule(nn.Module):
@@ -143,6 +153,8 @@ class StageModule(nn.Module):
             keep = (batch["coin"][:, 1] >= self.depth_dropout).to(vox_depth.dtype)
             vox_depth = vox_depth * keep.view(-1, *([1] * (vox_depth.dim() - 1)))
         logits = self._net("refiner", m.refiner, torch.cat([vox_sph, vox_depth], dim=1))
+        if m.config.geometry.sph_hull_carve:  # trained as the weights are used: trimmed to the map's hull
+            logits = hull_trimmed(logits, full, m.config.geometry)
         loss, terms = self.voxel_loss(logits, batch)
         if self.outline_weight > 0:
             terms["outline_bce"] = outline_loss(logits, batch["voxels"], m.config.camera)

@@ -213,15 +213,15 @@ def test_mirror_sph_and_mirror_voxels_are_the_reflected_scene():
         mirror_voxels(torch.zeros(4, 4, 5))
 
 
-@pytest.mark.parametrize("spread", [0, 1, 2])
-def test_hull_ramp_matches_its_reference(spread):
+@pytest.mark.parametrize("spread,offset", [(0, 0.0), (1, 0.7), (2, 2.0)])
+def test_hull_ramp_matches_its_reference(spread, offset):
     gen = torch.Generator().manual_seed(spread)
     s = torch.rand((2, 8, 12), generator=gen) * 0.6 + 0.3
     s[0, 2, 3] = s[0, 0, 11] = s[0, 7, 0] = sph.NO_HIT  # no-hit pixels, one at each pole row and at the seam
     s[1, :2] = sph.NO_HIT
-    fast = sph.sph_hull_ramp(s, 7, spread=spread, width=1.5)
+    fast = sph.sph_hull_ramp(s, 7, spread=spread, width=1.5, offset=offset)
     assert fast.shape == (2, 1, 7, 7, 7) and fast.dtype == torch.float32
-    assert (fast - sph.sph_hull_ramp_reference(s, 7, spread=spread, width=1.5)).abs().max() < 1e-5
+    assert (fast - sph.sph_hull_ramp_reference(s, 7, spread=spread, width=1.5, offset=offset)).abs().max() < 1e-5
 
 
 def test_hull_of_a_sphere_map_is_the_ball():
@@ -233,6 +233,8 @@ def test_hull_of_a_sphere_map_is_the_ball():
     rho = torch.linalg.vector_norm(torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1), dim=-1)
     want = (0.5 + (r - rho) * n).clamp(0, 1)  # one voxel wide, 0.5 on the sphere
     assert (ramp - want).abs().max() < 0.02
+    moved = sph.sph_hull_ramp(s, n, spread=0, offset=2.0)[0, 0]  # the ball two voxels larger
+    assert (moved - (0.5 + (r + 2.0 / n - rho) * n).clamp(0, 1)).abs().max() < 0.02
     assert sph.sph_hull_ramp(torch.full((1, 16, 16), sph.NO_HIT), 8).abs().max() == 0  # no surface: nothing kept
 
 
@@ -253,9 +255,19 @@ def test_hull_of_a_lying_plate_trims_a_slab_to_the_plate():
         assert float(slab[far].sum()) > 5e3 and float(kept[far].max()) < 0.5
 
 
+def test_hull_ramp_carries_gradients_to_the_map():
+    """A refiner trained with the trim (training/learn/stage.py: hull_trimmed) teaches the inpainting net through it."""
+    s = torch.full((1, 16, 16), 0.7, requires_grad=True)
+    ramp = sph.sph_hull_ramp(s, 16, spread=1)
+    ramp.sum().backward()
+    assert s.grad is not None and float(s.grad.abs().sum()) > 0 and bool((s.grad <= 0).all())  # a smaller s (a larger
+    # radius) keeps more
+
+
 def test_hull_ramp_rejects_bad_inputs():
     s = torch.full((1, 8, 8), 0.5)
-    for kwargs in ({"spread": -1}, {"spread": 5}, {"spread": True}, {"width": 0.0}, {"width": math.nan}):
+    for kwargs in ({"spread": -1}, {"spread": 5}, {"spread": True}, {"width": 0.0}, {"width": math.nan},
+                   {"offset": -0.5}, {"offset": math.inf}):
         with pytest.raises(ValueError):
             sph.sph_hull_ramp(s, 4, **kwargs)
     with pytest.raises(ValueError):

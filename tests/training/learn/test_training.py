@@ -85,6 +85,33 @@ def test_joint_depth_weight_adds_exactly_the_depth_loss(tiny_views):
     assert torch.allclose(weighted - plain, 2.5 * own, rtol=1e-5, atol=1e-6)
 
 
+def test_weights_that_trim_to_the_map_s_hull_are_trained_trimmed(tiny_views):
+    """With ``geometry.sph_hull_carve`` the refine and joint stages score the refiner's logits capped by the hull of
+    the map it read (as inference caps its probabilities), and the voxel loss reaches the inpainting net through it."""
+    from genre_backend.geometry.spherical import hull_ramp, pad_sph
+    from training.data.dataset import ViewDataset, find_views
+    from training.learn.stage import hull_trimmed
+
+    data = ViewDataset(find_views(tiny_views), TINY)
+    batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
+    geometry = dataclasses.replace(TINY.geometry, sph_hull_carve=True, sph_hull_offset=2.0)
+    model = GenRe(dataclasses.replace(TINY, geometry=geometry)).eval()
+    module = StageModule(model, "joint", 0.1).eval()
+    loss, _ = module(batch)
+    out = model(batch["rgb"], mask=batch["mask"])
+    trimmed = hull_trimmed(out.logits, out.full_sph, geometry)
+    want, _ = module.voxel_loss(trimmed, batch)
+    parts = model.inpaint_net.forward_parts(pad_sph(out.partial_sph[:, None], geometry.sph_pad))
+    assert torch.allclose(loss, want + module.sph_loss(parts, batch)[0], rtol=1e-5)
+    ramp = hull_ramp(out.full_sph, geometry)
+    assert torch.allclose(torch.sigmoid(trimmed), torch.minimum(torch.sigmoid(out.logits), ramp), atol=2e-4)
+    assert bool((ramp < 0.5).any()) and bool((ramp > 0.5).any())  # it trims something and keeps something
+    # the voxel loss reaches the map through the trim, not only through the map's voxels
+    full = out.full_sph.detach().requires_grad_()
+    module.voxel_loss(hull_trimmed(out.logits.detach(), full, geometry), batch)[0].backward()
+    assert full.grad is not None and float(full.grad.abs().sum()) > 0
+
+
 def _depth_gradient_reference(pred, true, valid, strides):
     """depth_gradient_loss written out pixel pair by pixel pair."""
     err = (pred - true).double().numpy()
