@@ -401,6 +401,22 @@ def _hull_radius(sph: torch.Tensor, nohit_min: float, spread: int) -> torch.Tens
     return radius
 
 
+@lru_cache(maxsize=8)
+def _hull_lookup(resolution: int, height: int, wide: int, device: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each voxel centre reads an (H + 2, W + 2) padded map (:func:`pad_sph` by 1) — ``grid_sample``'s (x, y)
+    in [-1, 1] over its pixel centres, (1, N³, 1, 2) — and the centres' radii (N³,); cached, never an inference tensor
+    (see :func:`_directions`)."""
+    with torch.inference_mode(False):
+        c = voxel_centres(resolution, device=device)
+        centres = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1).reshape(-1, 3)
+        rho = torch.linalg.vector_norm(centres, dim=-1)
+        toward = torch.tensor([0.0, 0.0, 1.0], device=device).expand_as(centres)  # the centre (odd N): the camera's
+        rc = directions_to_pixels(torch.where(rho[:, None] > 0, centres / rho.clamp(min=1e-12)[:, None], toward), height, wide)
+        x = (rc[:, 1] + 1.0) / (wide + 1) * 2.0 - 1.0  # padded column j + 1 at x = -1 + 2 (j + 1) / (W + 1)
+        y = (rc[:, 0] + 1.0) / (height + 1) * 2.0 - 1.0
+        return torch.stack([x, y], dim=-1).view(1, -1, 1, 2), rho
+
+
 def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1e-4, spread: int = 1,
                   width: float = 1.0, offset: float = 0.0) -> torch.Tensor:
     """How far inside the radial hull of full spherical maps each voxel centre lies, as a ramp in [0, 1].
@@ -424,17 +440,10 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
         raise ValueError(f"offset: expected voxels >= 0, got {offset!r}")
     batch, height, wide = sph.shape
     radius = _hull_radius(sph.float(), nohit_min, spread)
-    c = voxel_centres(resolution, device=sph.device)
-    centres = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1).reshape(-1, 3)
-    rho = torch.linalg.vector_norm(centres, dim=-1)
-    toward = torch.tensor([0.0, 0.0, 1.0], device=sph.device).expand_as(centres)  # the centre (odd N): the camera's
-    rc = directions_to_pixels(torch.where(rho[:, None] > 0, centres / rho.clamp(min=1e-12)[:, None], toward), height, wide)
+    grid, rho = _hull_lookup(resolution, height, wide, str(sph.device))
     padded = pad_sph(radius[:, None], 1)  # (B, 1, H + 2, W + 2): row i ↦ i + 1, column j ↦ j + 1
-    # grid_sample's (x, y) in [-1, 1] over the padded map's pixel centres (align_corners=True)
-    x = (rc[:, 1] + 1.0) / (wide + 1) * 2.0 - 1.0
-    y = (rc[:, 0] + 1.0) / (height + 1) * 2.0 - 1.0
-    grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2).expand(batch, -1, -1, -1)
-    r = torch.nn.functional.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    r = torch.nn.functional.grid_sample(padded, grid.expand(batch, -1, -1, -1), mode="bilinear", padding_mode="border",
+                                        align_corners=True)
     ramp = (0.5 + ((r.view(batch, -1) - rho) * resolution + offset) / width).clamp(0.0, 1.0)
     return ramp.view(batch, 1, resolution, resolution, resolution)
 
