@@ -66,7 +66,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from genre_backend.arguments import add_out, add_weights  # noqa: E402
-from genre_backend.photo.decode import load_image, load_mask  # noqa: E402
+from genre_backend.photo.decode import ImageError, load_image, load_mask  # noqa: E402
 from genre_backend.photo.preprocess import preprocess  # noqa: E402
 from genre_backend.inference.reconstruct import MaskGuidance, Reconstructor  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
@@ -241,7 +241,13 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         image = load_image(photo)
         hand_mask = load_mask(hand_path, image)
-        before = rec.run(photo, MaskGuidance(refine=False), visible_fusion=args.visible_fusion)
+        try:
+            before = rec.run(photo, MaskGuidance(refine=False), visible_fusion=args.visible_fusion)
+            before_mask, before_warning = before.photo_mask, before.mask_warning
+        except ImageError as exc:  # the depth net sees nothing here: its silhouette is empty (IoU 0, cover 0)
+            if exc.code != "no_object":
+                raise
+            before_mask, before_warning = np.zeros_like(hand_mask), "the depth net's silhouette is empty"
         auto = rec.run(photo, visible_fusion=args.visible_fusion)
         hand = rec.run(photo, MaskGuidance(mask=hand_path), visible_fusion=args.visible_fusion)
         tilt_deg, roll_deg, defined = tilt(hand.vertices, hand.faces)
@@ -249,17 +255,17 @@ def main(argv: list[str] | None = None) -> int:
             "name": name,
             "rgb": image.rgb,
             "hand_mask": hand_mask,
-            "before": before.photo_mask,
+            "before": before_mask,
             "after": auto.photo_mask,
             "auto": auto,
             "hand": hand,
-            "iou_before": iou(before.photo_mask, hand_mask),
+            "iou_before": iou(before_mask, hand_mask),
             "iou_after": iou(auto.photo_mask, hand_mask),
-            "cover_before": cover(before.photo_mask),
+            "cover_before": cover(before_mask),
             "cover_after": cover(auto.photo_mask),
             "touch_after": border_touch(auto.photo_mask),
             "warning": auto.mask_warning,
-            "warning_before": before.mask_warning,
+            "warning_before": before_warning,
             "ratio": side_ratio(hand.vertices),
             "seen_ratio": seen_ratio(hand, rec.config.camera),
             "true_ratio": float(truth.get(name, {}).get("depth_over_width", float("nan"))),
@@ -277,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.seedings:
             for s, m in auto_masks(rec, photo, SEEDINGS).items():
                 row[f"iou_{s}"] = iou(m, hand_mask)
-            row["iou_auto*"] = row["iou_border"] if before.mask_warning else row["iou_network"]
+            row["iou_auto*"] = row["iou_border"] if before_warning else row["iou_network"]
         rows.append(row)
         print(f"{name:10s} IoU before {row['iou_before']:.3f} after {row['iou_after']:.3f}"
               + "".join(f" {s} {row[f'iou_{s}']:.3f}" for s in (*SEEDINGS, "auto*") if f"iou_{s}" in row)
