@@ -54,7 +54,6 @@ MIN_THRESHOLD_STEP = 0.001
 MIN_OBJECT_FRACTION = 0.05
 MAX_NET_WIDTH = 2048  # each of depth_widths, inpaint_widths
 MAX_DECODER_BLOCKS = 8
-SPH_HULL_SPREAD = 2  # map pixels the spherical map's hull is widened by (sph_hull_carve; scripts/sph_hull.py)
 MAX_REFINER_NF = 64
 MAX_REFINER_FC = 8192
 MAX_REFINER_FULL_NF = 256
@@ -207,7 +206,7 @@ class GeometryConfig:
     # The full spherical map's radial hull (geometry.spherical.sph_hull_ramp): a map's pixel holds the largest
     # radius at which its ray meets the surface, so nothing lies beyond it; the refiner's output is capped by a
     # ramp that falls from 1 to 0 across the hull of the map it read (one voxel wide, the hull widened by
-    # SPH_HULL_SPREAD map pixels and moved sph_hull_offset voxels outward) before the mesh is made, in
+    # sph_hull_spread map pixels and moved sph_hull_offset voxels outward) before the mesh is made, in
     # reconstruction and in evaluation (every row with a map alike).  Weights that store it on are also trained
     # so: the refine and joint stages cap the refiner's logits by the same ramp (training/learn/stage.py), and
     # the inpainting net learns, through it, not to cut away what the object has.  Chosen by
@@ -216,8 +215,12 @@ class GeometryConfig:
         False, kind="bool", label="Trim to Shape Map",
         help="cut away what lies beyond the surface the spherical map (the networks' all-round guess) bounds: "
              "for flat things (a plate, a card); it flattens round ones too", chosen="scripts/sph_hull.py (results/decisions.md)")
-    # How far outward (voxels) the map's hull is moved before the trim above: the distance target's band lies up
-    # to distance_band voxels outside the surface, so a refiner trained with the trim needs the band's room.
+    # How many map pixels the hull is widened by (the largest radius of each pixel's (2·spread + 1)² neighbours;
+    # 2 by scripts/sph_hull.py's rule), and how far outward (voxels) it is moved: the distance target's band lies up
+    # to distance_band voxels outside the surface, so a refiner trained with the trim needs the band's room.  A
+    # trim trained through a widened hull teaches only each neighbourhood's largest pixel, which grows spikes
+    # (joint-40, results/decisions.md): trained weights store spread 0.
+    sph_hull_spread: int = 2
     sph_hull_offset: float = 0.0
     # Holes in the face the camera sees (geometry.visible_front.fuse_visible_surface): the object's pixels
     # whose ray meets nothing above the level get the masked depth map's own surface (its distance
@@ -298,6 +301,7 @@ class GeometryConfig:
             check_setting(spec, getattr(self, spec.weights), self.target, f"geometry.{spec.weights}")
         if not isinstance(self.sph_keep_seen, bool):
             raise ValueError(f"geometry.sph_keep_seen: expected true or false, got {self.sph_keep_seen!r}")
+        _check_int("geometry.sph_hull_spread", self.sph_hull_spread, 0, 8)
         _check_float("geometry.sph_hull_offset", self.sph_hull_offset, 0.0, 8.0)
         if not (math.isfinite(self.surface_margin) and 0.0 <= self.surface_margin <= self.distance_band):
             raise ValueError(f"geometry.surface_margin: expected voxels in [0, distance_band], got {self.surface_margin!r}")

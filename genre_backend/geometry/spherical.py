@@ -450,11 +450,9 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
 
 def hull_ramp(sph: torch.Tensor, geometry) -> torch.Tensor:
     """:func:`sph_hull_ramp` of full maps (B, H, H) as a model's ``GeometryConfig`` sets it: its grid, its no-hit
-    level, its ``sph_hull_offset``, the spread ``config.SPH_HULL_SPREAD``; the one call inference (the mesh option
+    level, its ``sph_hull_spread`` and ``sph_hull_offset``; the one call inference (the mesh option
     ``sph_hull_carve``) and training (a refiner trained with the trim) share."""
-    from ..config import SPH_HULL_SPREAD
-
-    return sph_hull_ramp(sph, geometry.voxel_size, geometry.sph_nohit_min, SPH_HULL_SPREAD,
+    return sph_hull_ramp(sph, geometry.voxel_size, geometry.sph_nohit_min, geometry.sph_hull_spread,
                          offset=geometry.sph_hull_offset)
 
 

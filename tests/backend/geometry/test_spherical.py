@@ -264,6 +264,18 @@ def test_hull_ramp_carries_gradients_to_the_map():
     # radius) keeps more
 
 
+def test_a_widened_hull_passes_gradient_to_few_pixels():
+    """Why weights trained with the trim store spread 0: through a widened hull only each neighbourhood's largest
+    radius gets a gradient (joint-40 grew a lattice of spikes in its maps), through the plain one nearly every pixel."""
+    gen = torch.Generator().manual_seed(0)
+    share = {}
+    for spread in (0, 2):
+        s = (torch.rand((1, 32, 32), generator=gen) * 0.3 + 0.55).requires_grad_()
+        sph.sph_hull_ramp(s, 32, spread=spread).sum().backward()
+        share[spread] = float((s.grad != 0).float().mean())
+    assert share[0] > 0.8 and share[2] < 0.2
+
+
 def test_hull_ramp_rejects_bad_inputs():
     s = torch.full((1, 8, 8), 0.5)
     for kwargs in ({"spread": -1}, {"spread": 5}, {"spread": True}, {"width": 0.0}, {"width": math.nan},

@@ -130,7 +130,6 @@ def test_the_steps_run_in_their_one_order():
     """Carves (the outline's, the map's hull), then fusion, then pit sealing: each step sees the grid the one before made."""
     from genre_backend.config import CameraConfig
     from genre_backend.geometry.visible_front import fuse_visible_surface, seal_pits
-    from genre_backend.config import SPH_HULL_SPREAD
     from genre_backend.geometry.spherical import sph_hull_ramp
     from genre_backend.geometry.voxels import silhouette_ramp
     from genre_backend.nets.outputs import View
@@ -145,7 +144,7 @@ def test_the_steps_run_in_their_one_order():
     sph = torch.full((16, 16), 0.75)  # a ball of radius 0.25
     opts = MeshOptions(threshold=0.5, silhouette_carve=True, sph_hull_carve=True, visible_fusion=True, pit_sealing=2).resolved(g)
     want = torch.minimum(prob, silhouette_ramp(mask[None], cam, 16)[0, 0])
-    hull = sph_hull_ramp(sph[None], 16, g.sph_nohit_min, SPH_HULL_SPREAD)[0, 0]
+    hull = sph_hull_ramp(sph[None], 16, g.sph_nohit_min, g.sph_hull_spread)[0, 0]
     assert 0 < int((hull < 1).sum()) < hull.numel() - 100  # it trims the corners and keeps the ball
     with_hull = torch.minimum(want, hull)
     want = seal_pits(fuse_visible_surface(with_hull, depth, cam, g, 0.5), mask, cam, g, 0.5, 2)

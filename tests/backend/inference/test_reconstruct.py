@@ -471,7 +471,6 @@ def test_silhouette_carve_empties_what_falls_outside_the_mask(rec, photos, tmp_p
 
 
 def test_sph_hull_carve_empties_what_lies_beyond_the_full_map_s_surface(rec, photos, tmp_path, capsys, trained):
-    from genre_backend.config import SPH_HULL_SPREAD
     from genre_backend.geometry.mesh_voxels import fill_enclosed
     from genre_backend.geometry.spherical import sph_hull_ramp
 
@@ -481,7 +480,7 @@ def test_sph_hull_carve_empties_what_lies_beyond_the_full_map_s_surface(rec, pho
     trimmed = rec.run(photos["rgba"], threshold=0.3, sph_hull_carve=True)
     assert (plain.options.sph_hull_carve, trimmed.options.sph_hull_carve) == (False, True)
     assert torch.equal(trimmed.intermediates["logits"], plain.intermediates["logits"])  # the nets are untouched
-    hull = sph_hull_ramp(trimmed.intermediates["full_sph"][None], g.voxel_size, g.sph_nohit_min, SPH_HULL_SPREAD)[0, 0]
+    hull = sph_hull_ramp(trimmed.intermediates["full_sph"][None], g.voxel_size, g.sph_nohit_min, g.sph_hull_spread)[0, 0]
     expected = torch.minimum(torch.sigmoid(trimmed.intermediates["logits"]), hull)
     if g.target == "distance":  # then the enclosed voxels are filled, as without the trim
         expected = torch.from_numpy(fill_enclosed(expected, 0.3, trimmed.options.hole_closing))

@@ -196,7 +196,6 @@ def test_weights_that_carve_to_the_silhouette_carve_every_voxel_row_alike_but_no
 def test_weights_that_trim_to_the_map_s_hull_trim_each_row_to_the_map_its_refiner_read(tiny):
     import dataclasses
 
-    from genre_backend.config import SPH_HULL_SPREAD
     from genre_backend.geometry.spherical import sph_hull_ramp
     from training.eval.protocol import REPRESENTATION
     from training.eval.rows import Models, predict
@@ -212,7 +211,7 @@ def test_weights_that_trim_to_the_map_s_hull_trim_each_row_to_the_map_its_refine
         maps = {"GenRe": genre(rgb, mask=mask).full_sph, "GenRe-Oracle": genre(rgb, mask=mask, depth=depth).full_sph,
                 "GenRe-SphOracle": sample["full_sph"][None]}
     for row, sph in maps.items():
-        hull = sph_hull_ramp(sph, g.voxel_size, g.sph_nohit_min, SPH_HULL_SPREAD)[0, 0]
+        hull = sph_hull_ramp(sph, g.voxel_size, g.sph_nohit_min, g.sph_hull_spread)[0, 0]
         assert torch.equal(trimmed[row]["prob"], torch.minimum(plain[row]["prob"], hull)), row
         assert float(plain[row]["prob"][hull == 0].max()) > 0.1, row  # something was there to trim
     for row in ("3D Completion", "3D Completion-Oracle", REPRESENTATION):  # no map: untouched
