@@ -203,23 +203,17 @@ class GeometryConfig:
         False, kind="bool", label="Trim to Outline",
         help="cut away what would stick out past the object's outline (the mask) before the mesh is made",
         chosen="chosen on seen-test views (results/decisions.md)")
-    # The full spherical map's radial hull (geometry.spherical.sph_hull_ramp): a map's pixel holds the largest
-    # radius at which its ray meets the surface, so nothing lies beyond it; the refiner's output is capped by a
-    # ramp that falls from 1 to 0 across the hull of the map it read (one voxel wide, the hull widened by
-    # sph_hull_spread map pixels and moved sph_hull_offset voxels outward) before the mesh is made, in
-    # reconstruction and in evaluation (every row with a map alike).  Weights that store it on are also trained
-    # so: the refine and joint stages cap the refiner's logits by the same ramp (training/learn/stage.py), and
-    # the inpainting net learns, through it, not to cut away what the object has.  Chosen by
-    # scripts/sph_hull.py's rule (results/decisions.md).  Weights stored without the key: off.
+    # The full map's radial hull (geometry.spherical.sph_hull_ramp: a pixel holds the largest radius its ray meets):
+    # the refiner's output capped by a one-voxel ramp across the hull of the map it read, before the mesh is made,
+    # in reconstruction and evaluation; weights that store it on are also trained so (training/learn/stage.py).
+    # Chosen by scripts/sph_hull.py's rule (results/decisions.md).  Weights stored without the key: off.
     sph_hull_carve: bool = _setting(
         False, kind="bool", label="Trim to Shape Map",
         help="cut away what lies beyond the surface the spherical map (the networks' all-round guess) bounds: "
              "for flat things (a plate, a card); it flattens round ones too", chosen="scripts/sph_hull.py (results/decisions.md)")
-    # How many map pixels the hull is widened by (the largest radius of each pixel's (2·spread + 1)² neighbours;
-    # 2 by scripts/sph_hull.py's rule), and how far outward (voxels) it is moved: the distance target's band lies up
-    # to distance_band voxels outside the surface, so a refiner trained with the trim needs the band's room.  A
-    # trim trained through a widened hull teaches only each neighbourhood's largest pixel, which grows spikes
-    # (joint-40, results/decisions.md): trained weights store spread 0.
+    # Map pixels the hull is widened by (2 by that rule; a trim trained through a widened hull teaches only each
+    # window's largest pixel and grows spikes, so trained weights store 0) and voxels it is moved outward (the
+    # distance target's band, up to distance_band voxels outside the surface, needs the room in training).
     sph_hull_spread: int = 2
     sph_hull_offset: float = 0.0
     # Holes in the face the camera sees (geometry.visible_front.fuse_visible_surface): the object's pixels
