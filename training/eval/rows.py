@@ -159,13 +159,16 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
             logits = mirror_averaged(completion, rgb, mask, depth) if mirror else completion(rgb, mask, depth, None)
             out["3D Completion-Oracle"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": true_depth}
     if models.onestep is not None:
+        own_map = models.onestep(rgb).clamp(0.0, 1.0)  # the view's own map: the refiner's input and the hull trim's
+
         def onestep(r, k, d, s):  # the depth channel from GenRe's depth net, as in the view's own pass
-            own = pred_depth if r is rgb else m.masked_depth(m.depth_net(r)["depth"], k)
+            if r is rgb:
+                return m.refine(m.sph_voxels(own_map), m.depth_voxels(pred_depth))
+            own = m.masked_depth(m.depth_net(r)["depth"], k)
             return m.refine(m.sph_voxels(models.onestep(r).clamp(0.0, 1.0)), m.depth_voxels(own))
 
         logits = mirror_averaged(onestep, rgb, mask) if mirror else onestep(rgb, mask, None, None)
-        out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu(),
-                              "sph": models.onestep(rgb).clamp(0.0, 1.0)[0].cpu()}
+        out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu(), "sph": own_map[0].cpu()}
     camera = m.config.camera
     for row in out.values():  # the steps after the networks, genre reconstruct's own (options.py), every learned row alike
         if isinstance(row, dict) and "depth" in row:  # (the depth maps go either way: no row after this point carries one)
