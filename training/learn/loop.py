@@ -218,7 +218,7 @@ def _start(tcfg: TrainConfig, model_config: GenreConfig | None) -> _Run:
     speed = Speed.for_device(device) if tcfg.speed == "auto" else Speed.from_way(tcfg.speed)
     module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight,
                          tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight, tcfg.outline_weight,
-                         speed).to(device)
+                         speed, tcfg.hull_grad_width).to(device)
     apply_speed(model, speed)
     params = [p for p in module.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))

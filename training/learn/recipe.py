@@ -76,6 +76,9 @@ class StageRecipe:
     depth_dropout: float = documented(0.0, "refine, joint: the share of training samples whose depth voxels are emptied, so "
                                            "that the refiner builds them from the spherical map alone")
     mirror: float = documented(0.0, "the share of training samples reflected left to right, targets with them")
+    hull_grad_width: float = documented(1.0, "refine, joint, for weights that store sph_hull_carve: the trim's gradient "
+                                             "reaches voxels within half this many voxels of the map's hull (a ramp this "
+                                             "wide, straight through; the forward pass stays the mesh option's)")
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -99,6 +102,9 @@ class StageRecipe:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+        if isinstance(self.hull_grad_width, bool) or not isinstance(self.hull_grad_width, (int, float)) or not (
+                math.isfinite(self.hull_grad_width) and self.hull_grad_width >= 1.0):
+            raise ValueError(f"hull_grad_width: expected a finite number of voxels >= 1, got {self.hull_grad_width!r}")
         if self.sph_loss not in ("mse", "l1"):
             raise ValueError(f"sph_loss: expected 'mse' or 'l1', got {self.sph_loss!r}")
 

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from genre_backend.geometry.spherical import crop_sph, hull_ramp, pad_sph
+from genre_backend.geometry.spherical import crop_sph, hull_ramp, pad_sph, sph_hull_ramp
 from genre_backend.nets.model import GenRe, save_model
 
 from .burst import REFERENCE_SPEED, Speed
@@ -20,13 +20,21 @@ BASELINE_STAGES = ("completion", "onestep")
 RAMP_EPS = 1e-4  # the hull ramp's 0 and 1 as logits: ±9.2
 
 
-def hull_trimmed(logits: torch.Tensor, sph: torch.Tensor, geometry) -> torch.Tensor:
+def hull_trimmed(logits: torch.Tensor, sph: torch.Tensor, geometry, grad_width: float = 1.0) -> torch.Tensor:
     """The refiner's logits (B, 1, N, N, N) capped by the hull of the full maps (B, H, H) it read, as the mesh
     option ``sph_hull_carve`` caps its probabilities (``min(p, ramp)`` is ``sigmoid(min(logit, logit(ramp)))``);
     differentiable with respect to both, so the voxel loss also teaches the inpainting net where its map cuts the
-    object."""
+    object.  The mesh option's ramp is one voxel wide, so only voxels within half a voxel of the hull pass a
+    gradient to the map.  ``grad_width`` > 1 keeps the values and takes the cap's gradient from a ramp that many
+    voxels wide instead (straight through), at the one-voxel ramp's mid slope (4 logits a voxel), so a map that cuts
+    the object deeper also learns to open."""
     ramp = hull_ramp(sph, geometry).clamp(RAMP_EPS, 1.0 - RAMP_EPS)
-    return torch.minimum(logits, torch.log(ramp) - torch.log1p(-ramp))
+    cap = torch.log(ramp) - torch.log1p(-ramp)
+    if grad_width != 1.0:
+        wide = sph_hull_ramp(sph, geometry.voxel_size, geometry.sph_nohit_min, geometry.sph_hull_spread,
+                             width=grad_width, offset=geometry.sph_hull_offset)
+        cap = cap.detach() + 4.0 * grad_width * (wide - wide.detach())
+    return torch.minimum(logits, cap)
 
 
 class StageModule(nn.Module):
@@ -34,13 +42,14 @@ class StageModule(nn.Module):
 
     def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
                  sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0,
-                 outline_weight: float = 0.0, speed: Speed = REFERENCE_SPEED):
+                 outline_weight: float = 0.0, speed: Speed = REFERENCE_SPEED, hull_grad_width: float = 1.0):
         super().__init__()
         # bf16 autocast per net as ``speed`` says (the nets' memory format is burst.apply_speed's); the losses in fp32
         self.speed = speed
         self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
         self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
         self.depth_gradient_weight = depth_gradient_weight  # the depth loss's gradient matching term
+        self.hull_grad_width = hull_grad_width  # the trim's gradient ramp (hull_trimmed), for weights storing sph_hull_carve
         self.outline_weight = outline_weight  # refine, joint: the grid's silhouette through the camera (losses.outline_loss)
         if outline_weight > 0 and stage not in ("refine", "joint"):
             raise ValueError(f"outline_weight: only the refine and joint stages train GenRe's grid (stage {stage!r})")
@@ -154,7 +163,7 @@ class StageModule(nn.Module):
             vox_depth = vox_depth * keep.view(-1, *([1] * (vox_depth.dim() - 1)))
         logits = self._net("refiner", m.refiner, torch.cat([vox_sph, vox_depth], dim=1))
         if m.config.geometry.sph_hull_carve:  # trained as the weights are used: trimmed to the map's hull
-            logits = hull_trimmed(logits, full, m.config.geometry)
+            logits = hull_trimmed(logits, full, m.config.geometry, self.hull_grad_width)
         loss, terms = self.voxel_loss(logits, batch)
         if self.outline_weight > 0:
             terms["outline_bce"] = outline_loss(logits, batch["voxels"], m.config.camera)

@@ -39,6 +39,7 @@ class TrainConfig:
     sph_teacher: float | None = None
     depth_dropout: float | None = None
     mirror: float | None = None
+    hull_grad_width: float | None = None
     target: str | None = documented(None, f"the voxel representation to train (GeometryConfig.target: {' or '.join(TARGETS)}); "
                                           "none: the recipe's, else the model's")
     refiner_full_nf: int | None = documented(None, "the width of the refiner's full-resolution branch "

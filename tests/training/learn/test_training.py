@@ -112,6 +112,32 @@ def test_weights_that_trim_to_the_map_s_hull_are_trained_trimmed(tiny_views):
     assert full.grad is not None and float(full.grad.abs().sum()) > 0
 
 
+def test_a_wider_trim_gradient_keeps_the_values_and_reaches_deeper_cuts():
+    """``hull_grad_width``: the trimmed logits are the same; where a map cuts a ball by 3 voxels and the refiner
+    fills the ball beyond the one-voxel ramp, that ramp passes the map no gradient and a 9-voxel one a push
+    outward (the loss falls as the radius grows)."""
+    from training.learn.stage import hull_trimmed
+
+    geometry = dataclasses.replace(TINY.geometry, sph_hull_carve=True, sph_hull_spread=0, sph_hull_offset=0.0)
+    n, size = geometry.voxel_size, TINY.geometry.sph_size
+    axis = (torch.arange(n, dtype=torch.float32) + 0.5) / n - 0.5
+    rho = torch.sqrt(axis[:, None, None] ** 2 + axis[None, :, None] ** 2 + axis[None, None, :] ** 2)
+    truth = (rho <= 0.4).float()[None, None]  # a ball of radius 0.4: its full map's radius
+    cut = 0.4 - 3.0 / n  # the map says 3 voxels less
+    # the refiner fills only what lies beyond the one-voxel ramp: there the trim decides alone
+    logits = torch.where(rho > cut + 1.5 / n, 6.0, -6.0)[None, None]
+    grads = {}
+    for width in (1.0, 9.0):
+        sph = torch.full((1, size, size), 1.0 - cut, requires_grad=True)  # s = 1 - r
+        capped = hull_trimmed(logits, sph, geometry, width)
+        assert torch.allclose(capped, hull_trimmed(logits, sph.detach(), geometry)), "the values are the trim's"
+        torch.nn.functional.binary_cross_entropy_with_logits(capped, truth).backward()
+        grads[width] = sph.grad
+    assert float(grads[1.0].abs().max()) == 0.0  # those voxels lie beyond the one-voxel ramp
+    assert float(grads[9.0].sum()) > 0  # a larger s is a smaller radius: the loss wants the radius up
+    assert 1.0 - cut < geometry.sph_nohit_min  # the map hits everywhere
+
+
 def _depth_gradient_reference(pred, true, valid, strides):
     """depth_gradient_loss written out pixel pair by pixel pair."""
     err = (pred - true).double().numpy()
