@@ -448,11 +448,11 @@ def sph_hull_ramp(sph: torch.Tensor, resolution: int, nohit_min: float = 1.0 - 1
     return ramp.view(batch, 1, resolution, resolution, resolution)
 
 
-def hull_ramp(sph: torch.Tensor, geometry) -> torch.Tensor:
+def hull_ramp(sph: torch.Tensor, geometry, width: float = 1.0) -> torch.Tensor:
     """:func:`sph_hull_ramp` of full maps (B, H, H) as a model's ``GeometryConfig`` sets it: its grid, its no-hit
     level, its ``sph_hull_spread`` and ``sph_hull_offset``; the one call inference (the mesh option
-    ``sph_hull_carve``) and training (a refiner trained with the trim) share."""
-    return sph_hull_ramp(sph, geometry.voxel_size, geometry.sph_nohit_min, geometry.sph_hull_spread,
+    ``sph_hull_carve``) and training (a refiner trained with the trim; ``width`` > 1 for its gradient) share."""
+    return sph_hull_ramp(sph, geometry.voxel_size, geometry.sph_nohit_min, geometry.sph_hull_spread, width=width,
                          offset=geometry.sph_hull_offset)
 
 

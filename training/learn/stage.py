@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from genre_backend.geometry.spherical import crop_sph, hull_ramp, pad_sph, sph_hull_ramp
+from genre_backend.geometry.spherical import crop_sph, hull_ramp, pad_sph
 from genre_backend.nets.model import GenRe, save_model
 
 from .burst import REFERENCE_SPEED, Speed
@@ -31,8 +31,7 @@ def hull_trimmed(logits: torch.Tensor, sph: torch.Tensor, geometry, grad_width: 
     ramp = hull_ramp(sph, geometry).clamp(RAMP_EPS, 1.0 - RAMP_EPS)
     cap = torch.log(ramp) - torch.log1p(-ramp)
     if grad_width != 1.0:
-        wide = sph_hull_ramp(sph, geometry.voxel_size, geometry.sph_nohit_min, geometry.sph_hull_spread,
-                             width=grad_width, offset=geometry.sph_hull_offset)
+        wide = hull_ramp(sph, geometry, grad_width)
         cap = cap.detach() + 4.0 * grad_width * (wide - wide.detach())
     return torch.minimum(logits, cap)
 
