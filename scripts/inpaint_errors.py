@@ -9,6 +9,8 @@ method the table gives, on the **hidden side** (the pixels the partial map does 
 * ``hit IoU``: the predicted hits against the true hits;
 * ``RMSE``: the map value's error (s = 1 − r, no hit = 1) over the pixels where either says "hit";
 * ``RMSE hits``: the same over the true hits only (a miss there costs its radius);
+* ``radius bias``: the mean of the predicted radius less the true one over those true hits (a miss counts radius
+  0): above 0 the map is inflated, below 0 it cuts into the object;
 
 and on the **visible side** (the seen pixels) the map's RMSE against the true map.
 
@@ -129,7 +131,9 @@ def scores(pred: torch.Tensor, true: torch.Tensor, seen: torch.Tensor, nohit_min
     inter, union = (ph & th & hid).sum().item(), ((ph | th) & hid).sum().item()
     either = (ph | th) & hid
     err = (pred - true) ** 2
+    grown = (true - pred)[th & hid]  # radius predicted − true radius (s = 1 − r)
     return {"hit_iou": inter / union if union else 1.0,
+            "grown": float(grown.mean()) if grown.numel() else 0.0,
             "rmse": float(err[either].mean().sqrt()) if either.any() else 0.0,
             "rmse_hits": float(err[th & hid].mean().sqrt()) if (th & hid).any() else 0.0,
             "visible": float(err[seen].mean().sqrt()) if seen.any() else 0.0}
@@ -208,13 +212,15 @@ def main(argv=None) -> int:
     lines = [f"Inpainting stage on the product test split: {len(tpack)} shapes × {args.views} views, elevation "
              f"{el_lo:g}°…{el_hi:g}°, depth error σ {recipe.depth_noise}; retrieval bank {len(bank_keys)} training views. "
              f"Hidden side = pixels the partial map does not see. Weights: {', '.join(weights)}.", "",
-             "| method | hidden hit IoU | hidden RMSE | hidden RMSE (true hits) | visible RMSE | beats sphere (views) |",
-             "| --- | --- | --- | --- | --- | --- |"]
+             "| method | hidden hit IoU | hidden RMSE | hidden RMSE (true hits) | hidden radius bias (true hits) "
+             "| visible RMSE | beats sphere (views) |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for m in methods:
         rs = [r for r in rows if r["method"] == m]
         wins = sum(r["rmse"] < base[(r["shape"], r["view"])] for r in rs)
         lines.append(f"| {m} | {np.mean([r['hit_iou'] for r in rs]):.3f} | {np.mean([r['rmse'] for r in rs]):.4f} | "
-                     f"{np.mean([r['rmse_hits'] for r in rs]):.4f} | {np.mean([r['visible'] for r in rs]):.4f} | "
+                     f"{np.mean([r['rmse_hits'] for r in rs]):.4f} | {np.mean([r['grown'] for r in rs]):+.4f} | "
+                     f"{np.mean([r['visible'] for r in rs]):.4f} | "
                      f"{wins} / {len(rs)} |")
     lines += ["", f"Made by `python scripts/inpaint_errors.py {' '.join(argv if argv is not None else sys.argv[1:])}` "
               f"in {time.time() - t0:.0f} s."]
