@@ -349,14 +349,19 @@ class Server:
         is left), says ``bye`` with ``reason`` ``SIGINT``/``SIGTERM``, and
         returns 128 + the signal's number (130, 143).
         """
+        # The worker starts before `ready`, while a signal still ends the process at once: a Stop raised inside
+        # Thread.start (waiting for the new thread to run) would leave a thread half started, which a second start
+        # or a join then breaks (the process died of SIGABRT at exit, 1 in ~30 SIGTERMs sent right after `ready`).
+        self.worker.start()
         try:
             take_stops()  # (from here a signal raises Stop: the jobs to cancel, a write to finish, then `bye`)
             self.emit(Ready(**self.info()))
             if self.broken.is_set():  # a stdout whose reader has gone (a closed pipe): nobody to answer
                 stops_quiet()
                 log.error("stdout is closed: nobody to answer; stopping")
+                self.jobs.put(None)
+                self.worker.join()
                 return 1
-            self.worker.start()
             for raw in stdin if stdin is not None else ():  # (None: started with stdin closed, an empty input)
                 line = raw.strip()
                 if not line:
@@ -370,8 +375,6 @@ class Server:
             return 0
         except Stop as stop:
             log.info("%s: cancelling the jobs; a write in progress is finished first", stop.reason)
-            if not self.worker.is_alive() and self.worker.ident is None:
-                self.worker.start()  # (so that shutdown's join has a thread to join)
             self.shutdown(None, cancel=True, reason=stop.reason)
             return stop.status
 
