@@ -252,34 +252,6 @@ def test_serve_sigterm_when_idle(trained, tmp_path):
     assert listing(tmp_path) == before
 
 
-# serve whose worker thread is slow to begin: $GENRE_TEST_MARK is written as the new thread starts, which then
-# waits 3 s before Thread.start may return (the window in which a signal once left the worker half started)
-_SLOW_WORKER_START = """
-import os, sys, time, threading
-_orig = threading.Thread._bootstrap_inner
-def _slow(self):
-    if self.name == "genre-serve-worker":
-        open(os.environ["GENRE_TEST_MARK"], "w").write("starting\\n")
-        time.sleep(3)
-    _orig(self)
-threading.Thread._bootstrap_inner = _slow
-from genre_backend.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-def test_serve_signal_while_the_worker_starts_says_bye_only(trained, tmp_path, sig, status):
-    mark = tmp_path / "mark"
-    s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=_SLOW_WORKER_START)
-    _wait_for_mark(mark, s.proc)
-    s.proc.send_signal(sig)
-    assert s.proc.wait(timeout=60) == status, s.proc.stderr.read()
-    assert _all_lines(s) == [{"type": "bye", "id": None, "reason": signal.Signals(sig).name}]  # no `ready` before its worker runs
-    assert "Traceback" not in s.proc.stderr.read()
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("at", [1, 2, 3])
 def test_serve_sigkill_during_a_write_then_the_next_job_cleans_up(trained, photo, tmp_path, at):
@@ -314,16 +286,33 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+# serve whose worker thread is slow to begin: $GENRE_TEST_MARK is written as the new thread starts, which then
+# waits 3 s before Thread.start may return (the window in which a signal once left the worker half started)
+_SLOW_WORKER_START = """
+import os, sys, time, threading
+_orig = threading.Thread._bootstrap_inner
+def _slow(self):
+    if self.name == "genre-serve-worker":
+        open(os.environ["GENRE_TEST_MARK"], "w").write("starting\\n")
+        time.sleep(3)
+    _orig(self)
+threading.Thread._bootstrap_inner = _slow
+from genre_backend.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
 @pytest.mark.slow
+@pytest.mark.parametrize("script", [_SLOW_LOAD, _SLOW_WORKER_START], ids=["weights_load", "worker_start"])
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-def test_serve_signal_while_the_weights_load_says_bye_only(trained, tmp_path, sig, status):
+def test_serve_signal_before_ready_says_bye_only(trained, tmp_path, script, sig, status):
     mark = tmp_path / "mark"
     before = listing(tmp_path)
-    s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=_SLOW_LOAD)
+    s = _server_with_env(trained, tmp_path, _env(GENRE_TEST_MARK=str(mark)), script=script)
     _wait_for_mark(mark, s.proc)
     s.proc.send_signal(sig)
     assert s.proc.wait(timeout=60) == status, s.proc.stderr.read()
-    assert _all_lines(s) == [{"type": "bye", "id": None, "reason": signal.Signals(sig).name}]
+    assert _all_lines(s) == [{"type": "bye", "id": None, "reason": signal.Signals(sig).name}]  # no `ready` before its worker runs
     assert "Traceback" not in s.proc.stderr.read()
     assert listing(tmp_path) == before | {"mark"}
 
