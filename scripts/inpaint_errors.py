@@ -131,9 +131,9 @@ def scores(pred: torch.Tensor, true: torch.Tensor, seen: torch.Tensor, nohit_min
     inter, union = (ph & th & hid).sum().item(), ((ph | th) & hid).sum().item()
     either = (ph | th) & hid
     err = (pred - true) ** 2
-    grown = (true - pred)[th & hid]  # radius predicted − true radius (s = 1 − r)
+    radius_bias = (true - pred)[th & hid]  # radius predicted − true radius (s = 1 − r)
     return {"hit_iou": inter / union if union else 1.0,
-            "grown": float(grown.mean()) if grown.numel() else 0.0,
+            "radius_bias": float(radius_bias.mean()) if radius_bias.numel() else 0.0,
             "rmse": float(err[either].mean().sqrt()) if either.any() else 0.0,
             "rmse_hits": float(err[th & hid].mean().sqrt()) if (th & hid).any() else 0.0,
             "visible": float(err[seen].mean().sqrt()) if seen.any() else 0.0}
@@ -219,7 +219,7 @@ def main(argv=None) -> int:
         rs = [r for r in rows if r["method"] == m]
         wins = sum(r["rmse"] < base[(r["shape"], r["view"])] for r in rs)
         lines.append(f"| {m} | {np.mean([r['hit_iou'] for r in rs]):.3f} | {np.mean([r['rmse'] for r in rs]):.4f} | "
-                     f"{np.mean([r['rmse_hits'] for r in rs]):.4f} | {np.mean([r['grown'] for r in rs]):+.4f} | "
+                     f"{np.mean([r['rmse_hits'] for r in rs]):.4f} | {np.mean([r['radius_bias'] for r in rs]):+.4f} | "
                      f"{np.mean([r['visible'] for r in rs]):.4f} | "
                      f"{wins} / {len(rs)} |")
     lines += ["", f"Made by `python scripts/inpaint_errors.py {' '.join(argv if argv is not None else sys.argv[1:])}` "

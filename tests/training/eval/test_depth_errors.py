@@ -1,14 +1,11 @@
 """scripts/depth_errors.py: the relief errors of a depth prediction, and the flat plane's reference row."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import torch
 
-_SPEC = importlib.util.spec_from_file_location("depth_errors", Path(__file__).parents[3] / "scripts" / "depth_errors.py")
-depth_errors = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(depth_errors)
+from support.scripts import load_script
+
+depth_errors = load_script("depth_errors")
 
 
 class _Predicts:

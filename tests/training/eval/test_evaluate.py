@@ -3,7 +3,6 @@
 import csv
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +11,7 @@ import trimesh
 
 from genre_backend import frame
 from genre_backend.geometry.metrics import chamfer_distance, fscore, fscore_reference, normalize_points
+from support.scripts import load_script
 from support.tiny_data import TINY, copy_tiny_views
 from genre_backend.geometry.metrics import CloudScorer
 from training.eval.cli import main
@@ -392,12 +392,8 @@ def test_missing_weights_or_data_give_a_clear_error(tiny, tmp_path, capsys):
 
 
 def test_stage_errors_scores_every_stage_on_seen_test_views(tiny, capsys):
-    import importlib.util
-
     root, views, run = tiny
-    spec = importlib.util.spec_from_file_location("stage_errors", Path(__file__).resolve().parents[3] / "scripts" / "stage_errors.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("stage_errors")
     assert mod.main(["--weights", str(run / "refine" / "final.safetensors"), "--views", str(views),
                      "--manifest", str(root / "manifest.json"), "--thresholds", "0.5",
                      "--completion", str(run / "completion" / "final.safetensors")]) == 0
@@ -573,12 +569,8 @@ def test_hole_closing_rule_takes_the_least_sealing_that_closes_enough():
 
 
 def test_representation_floor_scores_the_truth_through_each_representation(tiny, capsys):
-    import importlib.util
-
     root, views, _ = tiny
-    spec = importlib.util.spec_from_file_location("representation_floor", Path(__file__).resolve().parents[3] / "scripts" / "representation_floor.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("representation_floor")
     assert mod.main(["--views", str(views), "--manifest", str(root / "manifest.json"), "--thresholds", "0.5"]) == 0
     lines = {line[:36].strip(): float(line[36:]) for line in capsys.readouterr().out.splitlines()[1:]}
     assert set(lines) == {"noise floor (truth resampled)", "shell, t=0.50", "distance, plain, t=0.50", "distance, moved, t=0.50",

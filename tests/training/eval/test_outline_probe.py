@@ -1,13 +1,10 @@
 """scripts/outline_probe.py: its three shapes share one outline from above and differ in depth as it says."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
-_SPEC = importlib.util.spec_from_file_location("outline_probe", Path(__file__).parents[3] / "scripts" / "outline_probe.py")
-outline_probe = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(outline_probe)
+from support.scripts import load_script
+
+outline_probe = load_script("outline_probe")
 
 
 def test_the_ball_the_flattened_ellipsoid_and_the_disc_share_a_footprint_and_not_a_depth():

@@ -1,13 +1,10 @@
 """scripts/shading_spread.py: the luminance spread inside a silhouette, and a shape's thickness."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
-_SPEC = importlib.util.spec_from_file_location("shading_spread", Path(__file__).parents[3] / "scripts" / "shading_spread.py")
-shading_spread = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(shading_spread)
+from support.scripts import load_script
+
+shading_spread = load_script("shading_spread")
 
 
 def test_an_evenly_lit_object_has_no_spread_and_a_grey_ramp_the_spread_of_its_percentiles():
