@@ -28,6 +28,9 @@ recipe's (:mod:`training.learn.recipe`), never the chain's.
   behind them, labels prefixed ``s2_``); ``product-full``: recipe
   ``product_full``, the refiner grown by its full-resolution branch, its
   refine stage from the shipped weights, scored, no joint round.
+* ``eval-views`` — only what scoring a candidate needs on a fresh machine: the
+  corpus, the product test split's and its primitives' views, and the
+  flat-from-above group's shapes and views.
 
 Every command resumes by itself (a stage from its checkpoint, renders and
 scores view by view), so running a chain again continues it.  A step that
@@ -57,7 +60,7 @@ from genre_backend.atomic import atomic_write, atomic_write_json
 from .data.corpus import REPO_ROOT, data_dir
 from .learn.recipe import get_recipe
 
-__all__ = ["Run", "Train", "Copy", "Step", "Chain", "ProtocolChain", "ProductChain", "CHAINS", "ChainFailed",
+__all__ = ["Run", "Train", "Copy", "Step", "Chain", "ProtocolChain", "ProductChain", "EvalViewsChain", "CHAINS", "ChainFailed",
            "plan_lines", "run_chain", "is_finished", "finished_prefix", "parse_args", "main"]
 
 GENRE = "genre_backend.cli"  # `python -m genre_backend.cli` is `genre`
@@ -168,15 +171,19 @@ def _genre(name: str, *args: str | Path, reads=(), writes=()) -> Step:
 
 
 def _render(name: str, home: Path, split: str, out: Path, views: int, seed: int | None = None,
-            classes: str | None = None) -> Step:
-    """``genre data render`` of ``views`` views per shape of the manifest's ``split`` into ``out``."""
-    manifest = home / "corpus" / "manifest.json"
+            classes: str | None = None, manifest: Path | None = None,
+            elevation: tuple[int, int] | None = None) -> Step:
+    """``genre data render`` of ``views`` views per shape of the manifest's ``split`` into ``out`` (the corpus's
+    manifest unless ``manifest`` names another; the preset's elevations unless ``elevation`` is given)."""
+    manifest = manifest or home / "corpus" / "manifest.json"
     args = ["data", "render", "--shapes", manifest, "--split", split]
     if classes:
         args += ["--classes", classes]
     args += ["--out", out, "--views", str(views), "--preset", "default"]
     if seed is not None:
         args += ["--seed", str(seed)]
+    if elevation is not None:
+        args += ["--elevation", *map(str, elevation)]
     return _genre(name, *args, "--no-progress", reads=(manifest,), writes=(out,))
 
 
@@ -313,16 +320,12 @@ class ProductChain:
 
     def _views(self, home: Path, paths: _ProductPaths) -> list[Step]:
         """The training views (every class, and more of the primitives) and the evaluation views."""
+        test, primitives_test = _product_eval_views(home, paths)
         return [_render("render", home, "product-train", paths.views, self.views_per_shape),
-                _targets("targets", paths.views),
-                _render("render_eval", home, "product-test", paths.eval_views, 1, seed=1),
-                _targets("targets_eval", paths.eval_views),
+                _targets("targets", paths.views), *test,
                 _render("render_primitives", home, "product-train", paths.prim_views, self.primitive_views, seed=2,
                         classes="primitive"),
-                _targets("targets_primitives", paths.prim_views),
-                _render("render_primitives_eval", home, "product-test", paths.prim_eval_views, 8, seed=3,
-                        classes="primitive"),
-                _targets("targets_primitives_eval", paths.prim_eval_views)]
+                _targets("targets_primitives", paths.prim_views), *primitives_test]
 
     def _evaluate(self, paths: _ProductPaths, label: str, weights: Path) -> list[Step]:
         """``genre eval`` of ``weights`` on the product test split and on 8 views of each of its primitives."""
@@ -367,6 +370,37 @@ class ProductChain:
         return steps
 
 
+def _product_eval_views(home: Path, paths: _ProductPaths) -> tuple[list[Step], list[Step]]:
+    """The product test split's views (one a shape) and its primitives' (8 a shape), each rendered and targeted."""
+    return ([_render("render_eval", home, "product-test", paths.eval_views, 1, seed=1),
+             _targets("targets_eval", paths.eval_views)],
+            [_render("render_primitives_eval", home, "product-test", paths.prim_eval_views, 8, seed=3,
+                     classes="primitive"),
+             _targets("targets_primitives_eval", paths.prim_eval_views)])
+
+
+@dataclass(frozen=True)
+class EvalViewsChain:
+    """What scoring a candidate against the installed file needs on a fresh machine, and nothing else: the corpus,
+    the product test split's and its primitives' views as ``product`` renders them, and the flat-from-above group
+    (``genre data flat-test``, 2 views a shape from 60-88 degrees: docs/evaluation.md).  A CPU session's candidates are
+    then scored with ``genre eval --data VIEWS --weights W --levels 0.45`` on each (docs/training.md)."""
+
+    flat_views: int = 2
+    flat_elevation: tuple[int, int] = (60, 88)
+
+    def build(self, name: str, home: Path) -> Chain:
+        paths = _ProductPaths(home, home / "runs" / "product")
+        test, primitives_test = _product_eval_views(home, paths)
+        flat_shapes, flat_views = home / "flat_test", home / "views" / "flat_eval"
+        flat_manifest = flat_shapes / "manifest.json"
+        flat = [_genre("flat_test", "data", "flat-test", "--out", flat_shapes, writes=(flat_manifest,)),
+                _render("render_flat_eval", home, "flat-from-above", flat_views, self.flat_views, seed=5,
+                        manifest=flat_manifest, elevation=self.flat_elevation),
+                _targets("targets_flat_eval", flat_views)]
+        return Chain(name, (*_corpus(home), *test, *primitives_test, *flat))
+
+
 @dataclass(frozen=True)
 class _ProductPaths:
     home: Path
@@ -397,13 +431,14 @@ class _ProductPaths:
         return REPO_ROOT / "results" / "product"
 
 
-CHAINS: dict[str, ProtocolChain | ProductChain] = {
+CHAINS: dict[str, ProtocolChain | ProductChain | EvalViewsChain] = {
     "protocol": ProtocolChain("shipped"),
     "protocol-photo": ProtocolChain("photo"),
     "protocol-sharp": ProtocolChain("sharp"),
     "product": ProductChain(),
     "product-continue": ProductChain(first="none", rounds=3, base_hours=2.44, curve_prefix="s2_"),
     "product-full": ProductChain(recipe="product_full", first="refine", rounds=0, run="product_full"),
+    "eval-views": EvalViewsChain(),
 }
 
 
