@@ -12,6 +12,7 @@ from genre_backend.config import GenreConfig
 from genre_backend.geometry import primitive_shapes as S
 from genre_backend.geometry import primitives as P
 from genre_backend.geometry.analytic import sphere_depth
+from support.scripts import load_script
 
 SHAPES = {
     "box": (0.30, 0.20, 0.10),
@@ -136,13 +137,7 @@ def test_bad_input_is_refused():
 def test_the_tolerance_is_the_grid_value_with_the_lowest_mean_cd():
     """scripts/primitive_snap.py's rule: a view is snapped when its fit's disagreement (1 − IoU, or twice the mesh's
     distance to it) is at most tau; the lowest mean CD wins, ties go to the smaller tau."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[3] / "scripts" / "primitive_snap.py"
-    spec = importlib.util.spec_from_file_location("primitive_snap_script", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("primitive_snap")
     rec = lambda mesh, fit, res, mres=0.0: {"cd_mesh": mesh, "cd_fit": fit, "residual": res, "mesh_residual": mres}  # noqa: E731
     # the last view fits the outline (1 − IoU 0.01) but leaves the mesh (0.03, doubled: 0.06)
     views = [rec(0.10, 0.05, 0.015), rec(0.12, 0.06, 0.025), rec(0.08, 0.20, 0.045), rec(0.09, 0.30, 0.2), rec(0.10, 0.04, 0.01, 0.03)]
