@@ -136,3 +136,23 @@ def test_cloud_scorer_reports_depth_over_width_with_an_up():
     assert scorer.dw_true == pytest.approx(0.08, rel=0.05)
     assert scorer.metrics(blob[:1024], blob)["dw"] == pytest.approx(1.0, rel=0.05)
     assert "dw" not in CloudScorer(gt[:1024], gt).metrics(blob[:1024], blob)
+
+
+def test_chamfer_parts_add_up_to_the_chamfer_distance():
+    from genre_backend.geometry.metrics import chamfer_parts
+
+    gen = torch.Generator().manual_seed(7)
+    a, b = torch.rand(300, 3, generator=gen), torch.rand(250, 3, generator=gen) * 1.3
+    a_seen, b_seen = a[:, 2] > 0.5, b[:, 0] < 0.4
+    parts = chamfer_parts(a, b, a_seen, b_seen)
+    total = chamfer_distance_reference(normalize_points(a).numpy(), normalize_points(b).numpy())
+    assert sum(parts.values()) == pytest.approx(total, rel=1e-6)
+    # each direction's two parts: that direction's mean nearest-neighbour distance
+    an, bn = normalize_points(a).double(), normalize_points(b).double()
+    d_ab = torch.cdist(an, bn).min(dim=1).values
+    assert parts["pred_seen"] == pytest.approx(float(d_ab[a_seen].sum() / len(a)), rel=1e-9)
+    assert parts["pred_hidden"] == pytest.approx(float(d_ab[~a_seen].sum() / len(a)), rel=1e-9)
+    everything = chamfer_parts(a, b, torch.ones(300, dtype=torch.bool), torch.ones(250, dtype=torch.bool))
+    assert everything["pred_hidden"] == 0 and everything["gt_hidden"] == 0
+    with pytest.raises(ValueError, match="pred_seen"):
+        chamfer_parts(a, b, a_seen[:10], b_seen)

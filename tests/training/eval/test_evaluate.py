@@ -663,3 +663,26 @@ def test_weights_that_mirror_average_every_learned_row_with_its_own_model(tiny):
         assert torch.allclose(both[row]["prob"], want, atol=1e-5), row
         assert not torch.allclose(both[row]["prob"], plain[row]["prob"], atol=1e-3), row  # the tiny nets are not symmetric
     assert torch.equal(both[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])  # the truth is left as it is
+
+
+def test_cd_split_parts_add_up_to_genre_evals_cd_of_each_view_and_row(tiny, tmp_path):
+    """scripts/cd_split.py: the four parts of every view and row sum to the CD genre eval scores there."""
+    root, views, run = tiny
+    weights = str(run / "refine" / "best.safetensors")  # (what --run scores)
+    assert main(_args(root, views, run, tmp_path / "eval", "--no-figures", "--rows", "GenRe,GenRe-SphOracle", "--levels", "0.45")) == 0
+    split = load_script("cd_split")
+    assert split.main(["--data", str(views), "--groups", "test,unseen", "--manifest", str(root / "manifest.json"), "--weights",
+                       weights, "--name", "tiny", "--rows", "GenRe,GenRe-SphOracle", "--level", "0.45", "--jobs", "1",
+                       "--out", str(tmp_path / "split")]) == 0
+    scored = {(r["key"], r["row"]): float(r["cd1k@0.45"]) for r in _read(tmp_path / "eval" / "per_view.csv")}
+    parts = _read(tmp_path / "split" / "per_view.csv")
+    assert {(r["key"], r["row"]) for r in parts} == set(scored)  # every view, GenRe, its oracle and the floor
+    for r in parts:
+        four = sum(float(r[k]) for k in split.PARTS)
+        assert four == pytest.approx(float(r["cd"]), rel=1e-4) and four == pytest.approx(scored[(r["key"], r["row"])], rel=1e-4)
+        assert 0 <= float(r["pred_seen_share"]) <= 1 and 0 < float(r["gt_seen_share"]) < 1
+    # a second run with the same name finds every view done and only rewrites the table
+    assert split.main(["--data", str(views), "--groups", "test,unseen", "--manifest", str(root / "manifest.json"), "--weights",
+                       weights, "--name", "tiny", "--out", str(tmp_path / "split")]) == 0
+    assert len(_read(tmp_path / "split" / "per_view.csv")) == len(parts)
+    assert "| tiny | GenRe-SphOracle |" in (tmp_path / "split" / "table.md").read_text()
