@@ -83,8 +83,9 @@ def split_view(models, view, sample, truth: Truth, level: float, cache: dict) ->
     for row in models.rows():
         p = pred[row]
         v, f = p["mesh"] if "mesh" in p else grid_to_surface(p["prob"], level, p.get("geometry", models.config.geometry))
-        if len(f) == 0:
-            continue  # an empty mesh has no sides (genre eval scores it EMPTY_CD); left out of the means, counted
+        if len(f) == 0:  # no sides to split (genre eval scores it EMPTY_CD): a row of NaN, left out of the means
+            out.append({"row": row, **{c: float("nan") for c in COLUMNS[3:]}})
+            continue
         points = sample_surface(v, f, POINTS_SMALL, seed=0)
         record(row, points, seen_from_camera(points, _triangles(v, f), camera))
     return out
@@ -116,6 +117,7 @@ def _table(records: list[dict], level: float) -> str:
              "| weights | row | views | CD | pred seen | pred hidden | truth seen | truth hidden | pred seen share | truth seen share |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for (weights, row), rs in groups.items():
+        rs = [r for r in rs if np.isfinite(float(r["cd"]))]  # (an empty mesh's row is NaN)
         mean = {c: float(np.mean([float(r[c]) for r in rs])) for c in COLUMNS[3:]}
         lines.append(f"| {weights} | {row} | {len(rs)} | {mean['cd']:.4f} | " + " | ".join(f"{mean[c]:.4f}" for c in PARTS)
                      + f" | {mean['pred_seen_share']:.2f} | {mean['gt_seen_share']:.2f} |")
@@ -150,8 +152,25 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "per_view.csv"
-    records = list(csv.DictReader(path.open(newline=""))) if path.is_file() else []
-    done = {r["key"] for r in records if r["weights"] == name}
+    records = []
+    if path.is_file():
+        text = path.read_text()
+        if not text.endswith("\n"):  # a line cut by a kill: not a record, even where its last field looks whole
+            text = text[: text.rfind("\n") + 1]
+        records = list(csv.DictReader(text.splitlines()))
+    wanted = {FLOOR, *args.rows.split(",")}
+    got: dict[str, set] = defaultdict(set)
+    for r in records:
+        if r["weights"] == name and r.get(COLUMNS[-1]) not in (None, ""):
+            got[r["key"]].add(r["row"])
+    done = {k for k, rows in got.items() if wanted <= rows}
+    kept = [r for r in records if r["weights"] != name or r["key"] in done]
+    if len(kept) < len(records):  # a view cut short by a kill (or scored with fewer rows): its lines go, it is scored again
+        records = kept
+        with path.open("w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=COLUMNS, lineterminator="\n")
+            writer.writeheader()
+            writer.writerows(records)
     todo = [v for v in views if v.key not in done]
     by_shape: dict[Path, list] = defaultdict(list)
     for v in todo:

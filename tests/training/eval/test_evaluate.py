@@ -685,4 +685,11 @@ def test_cd_split_parts_add_up_to_genre_evals_cd_of_each_view_and_row(tiny, tmp_
     assert split.main(["--data", str(views), "--groups", "test,unseen", "--manifest", str(root / "manifest.json"), "--weights",
                        weights, "--name", "tiny", "--out", str(tmp_path / "split")]) == 0
     assert len(_read(tmp_path / "split" / "per_view.csv")) == len(parts)
+    # a file cut mid-line by a kill: that view's lines go and it is scored again, the rest are kept
+    path = tmp_path / "split" / "per_view.csv"
+    path.write_bytes(path.read_bytes()[:-3])  # (the last field still looks like a number)
+    assert split.main(["--data", str(views), "--groups", "test,unseen", "--manifest", str(root / "manifest.json"), "--weights",
+                       weights, "--name", "tiny", "--rows", "GenRe,GenRe-SphOracle", "--out", str(tmp_path / "split")]) == 0
+    again = _read(path)
+    assert sorted((r["key"], r["row"], r["cd"]) for r in again) == sorted((r["key"], r["row"], r["cd"]) for r in parts)
     assert "| tiny | GenRe-SphOracle |" in (tmp_path / "split" / "table.md").read_text()
