@@ -11,7 +11,7 @@ a 256² z-buffer, 0.02 of the objects' diagonal), and the CD splits exactly into
   (each summed and divided by all 1,024: the two add up to the prediction-to-truth term);
 * ``truth seen`` / ``truth hidden``: the same for the true points, their distances to the prediction.
 
-The four parts of a view add up to its CD (``genre eval``'s ``cd1k`` at that level, which the table checks), so
+The four parts of a view add up to its CD (``genre eval``'s ``cd1k`` at that level; ``tests/training/eval/test_evaluate.py`` checks it), so
 their means say which side of the shape the mean CD is lost on.  ``Noise floor`` is the truth resampled, split the
 same way (the best any row can do on each side).  Rows as ``genre eval``'s (``GenRe``, ``GenRe-Oracle``: true depth,
 ``GenRe-SphOracle``: true depth and full map).
