@@ -43,7 +43,8 @@ from genre_backend.geometry.mesh_voxels import grid_to_surface
 from genre_backend.geometry.metrics import chamfer_parts, sample_surface
 from genre_backend.geometry.raster import seen_from_camera
 from genre_backend.weights_file import resolve_weights
-from training.eval.protocol import FLOOR, POINTS_SMALL, find_eval_views, resolve_mesh
+from training.eval.protocol import FLOOR, POINTS_SMALL, find_eval_views
+from training.eval.report import write_csv
 from training.eval.runner import ModelSpec, Truth
 
 PARTS = ("pred_seen", "pred_hidden", "gt_seen", "gt_hidden")
@@ -55,19 +56,14 @@ def _triangles(vertices, faces) -> torch.Tensor:
     return v[torch.as_tensor(np.asarray(faces), dtype=torch.int64)]
 
 
-def split_view(models, view, sample, truth: Truth, level: float, cache: dict) -> list[dict]:
+def split_view(models, view, sample, truth: Truth, level: float) -> list[dict]:
     """{row, cd, the four parts, the seen shares} of one view, for every row and the noise floor."""
     from training.eval.rows import predict
 
     camera = models.config.camera
     gt_large, again_large = truth.posed(view)
     gt, again = gt_large[:POINTS_SMALL], again_large[:POINTS_SMALL]
-    if cache.get("shape") != view.shape_dir:
-        import trimesh
-
-        mesh = trimesh.load(resolve_mesh(view.meta["mesh"]), force="mesh", process=False)
-        cache.update(shape=view.shape_dir, mesh=(np.asarray(mesh.vertices), np.asarray(mesh.faces)))
-    verts, faces = cache["mesh"]
+    verts, faces = truth.object_mesh(view)
     rot = torch.tensor(view.meta["rotation_cam_to_obj"], dtype=torch.float64)[None]
     true_tri = _triangles(frame.object_to_view(torch.as_tensor(verts, dtype=torch.float64)[None], rot)[0], faces)
     gt_seen = seen_from_camera(gt, true_tri, camera)
@@ -96,7 +92,7 @@ _WORKER: dict = {}
 
 def _init(spec: ModelSpec, level: float) -> None:
     torch.set_num_threads(1)
-    _WORKER.update(models=spec.load(), truth=Truth(), level=level, cache={})
+    _WORKER.update(models=spec.load(), truth=Truth(), level=level)
 
 
 def _shape(views: list) -> list[tuple[str, list[dict]]]:
@@ -105,7 +101,7 @@ def _shape(views: list) -> list[tuple[str, list[dict]]]:
 
     w = _WORKER
     data = ViewDataset([ViewRef(v.shape_dir, v.view) for v in views], w["models"].config)
-    return [(v.key, split_view(w["models"], v, data.sample(i, None), w["truth"], w["level"], w["cache"]))
+    return [(v.key, split_view(w["models"], v, data.sample(i, None), w["truth"], w["level"]))
             for i, v in enumerate(views)]
 
 
@@ -167,10 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     kept = [r for r in records if r["weights"] != name or r["key"] in done]
     if len(kept) < len(records):  # a view cut short by a kill (or scored with fewer rows): its lines go, it is scored again
         records = kept
-        with path.open("w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=COLUMNS, lineterminator="\n")
-            writer.writeheader()
-            writer.writerows(records)
+        write_csv(path, records, COLUMNS)
     todo = [v for v in views if v.key not in done]
     by_shape: dict[Path, list] = defaultdict(list)
     for v in todo:
@@ -206,8 +199,9 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             if pool is not None:
                 pool.terminate()
-    (out / "table.md").write_text(_table(records, args.level))
-    print(_table(records, args.level))
+    table = _table(records, args.level)
+    (out / "table.md").write_text(table)
+    print(table)
     return 0
 
 

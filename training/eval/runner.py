@@ -97,14 +97,22 @@ class Truth:
         self._cache: dict[Path, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def object_points(self, view: EvalView) -> tuple[torch.Tensor, torch.Tensor]:
+        return self._load(view)[:2]
+
+    def object_mesh(self, view: EvalView) -> tuple[np.ndarray, np.ndarray]:
+        """The shape's mesh (vertices (V, 3), faces (F, 3)) in the object frame."""
+        return self._load(view)[2]
+
+    def _load(self, view: EvalView) -> tuple:
         if view.shape_dir not in self._cache:
             import trimesh
 
             with np.load(surface_points_path(view.shape_dir)) as z:
                 stored = torch.from_numpy(z["points"].astype(np.float32))
             mesh = trimesh.load(resolve_mesh(view.meta["mesh"]), force="mesh", process=False)
-            again = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), POINTS_LARGE, seed=12345)
-            self._cache = {view.shape_dir: (stored, again)}  # one shape at a time (views come sorted)
+            vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+            again = sample_surface(vertices, faces, POINTS_LARGE, seed=12345)
+            self._cache = {view.shape_dir: (stored, again, (vertices, faces))}  # one shape at a time (views come sorted)
         return self._cache[view.shape_dir]
 
     def posed(self, view: EvalView) -> tuple[torch.Tensor, torch.Tensor]:
