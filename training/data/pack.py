@@ -56,8 +56,8 @@ PACK_FORMAT = "genre-pack/1"
 # What travels to a device call (64 MiB in all): the tracked tree, the pack and the carried wheels (.whl).
 # tests/training/learn/test_burst.py holds the tree to its budget; the builder refuses a pack over its own.
 DEVICE_CARRY_MIB = 64
-TREE_BUDGET_MIB = 40
-PACK_BUDGET_MIB = 20
+TREE_BUDGET_MIB = 42  # 40 until 2026-12-01, when the tree reached it; the pack measures 14.75 MiB
+PACK_BUDGET_MIB = 18
 WHEELS_BUDGET_MIB = 1
 TRAIN_SPLITS = ("product-train", "train")  # the product model's training split; the protocol's (seen classes)
 TEST_SPLITS = ("product-test", "test")
