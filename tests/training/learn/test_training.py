@@ -538,7 +538,8 @@ def test_sigterm_to_torchrun_stops_both_processes_at_one_checkpointed_step(tiny_
     stopped_at = json.loads((stage / "checkpoint" / "state.json").read_text())["step"]
     assert 5 <= stopped_at < 400 and stopped_at == _last_logged_step(stage / "log.csv")
     assert not (stage / "final.safetensors").exists()
-    subprocess.run(ddp(stopped_at + 3), check=True, cwd=REPO, env=env, capture_output=True, timeout=300)
+    resumed = subprocess.run(ddp(stopped_at + 3), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, f"the resumed run failed ({resumed.returncode}):\n{resumed.stderr[-3000:]}"
     summary = json.loads((stage / "summary.json").read_text())
     assert summary["resumed_from"] == stopped_at and len(set(summary["rank_param_digests"])) == 1
 
