@@ -66,27 +66,36 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-views", type=int, default=None, help="at most this many views of each shape (default: all)")
     p.add_argument("--level", type=float, default=None, help="isosurface level (default: the weights')")
     p.add_argument("--spreads", default="0,1,2", help="the hull's widenings to score, in map pixels (comma-separated)")
+    p.add_argument("--offsets", default="0", help="voxels the hull is moved outward, scored at every spread "
+                   "(comma-separated; geometry.sph_hull_offset)")
+    p.add_argument("--every", type=int, default=1, help="score every K-th view only (a spread-out subset of many)")
     p.add_argument("--oracle", action="store_true", help="also GenRe-SphOracle (the true depth and full map)")
     p.add_argument("--json", default=None, help="also write the figures here")
     args = p.parse_args(argv)
     try:
         weights = resolve_weights(args.weights)
         spreads = [int(s) for s in args.spreads.split(",")]
+        offsets = [float(o) for o in args.offsets.split(",")]
+        if args.every < 1:
+            raise ValueError(f"--every: expected a count >= 1, got {args.every}")
         model, views, data, _ = load_setting_views(weights, args.views, args.manifest, tuple(args.groups.split(",")),
                                                   args.max_views)
     except ValueError as exc:
         p.error(str(exc))
+    picked = range(0, len(views), args.every)
     geometry, camera = model.config.geometry, model.config.camera
     opts = MeshOptions(sph_hull_carve=False).resolved(geometry)
     level = opts.threshold if args.level is None else args.level
     opts = dataclasses.replace(opts, threshold=level)
     rows = ["GenRe"] + (["GenRe-SphOracle"] if args.oracle else [])
-    names = ["off"] + [f"spread {s}" for s in spreads]
+    trims = {f"spread {s}" + (f" offset {o:g}" if o else ""): (s, o) for s in spreads for o in offsets}
+    names = ["off", *trims]
     truth = Truth()
     cd: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     ratio: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     with torch.no_grad():
-        for i, view in enumerate(views):
+        for n, i in enumerate(picked):
+            view = views[i]
             s = data.sample(i, None)
             gt, _ = truth.posed(view)
             target = CloudScorer(gt[:POINTS_SMALL], gt, up=truth.up(view))
@@ -101,16 +110,16 @@ def main(argv: list[str] | None = None) -> int:
                 for name in names:
                     grid = prob
                     if name != "off":
-                        spread = int(name.split()[1])
+                        spread, offset = trims[name]
                         grid = torch.minimum(prob, sph_hull_ramp(out.full_sph, prob.shape[-1], geometry.sph_nohit_min,
-                                                                 spread=spread)[0, 0])
+                                                                 spread=spread, offset=offset)[0, 0])
                     m = score_grid(opts.shape_grid(grid, v, geometry), [level], target, geometry)[level]
                     cd[row][name].append(m["cd1k"])
                     if math.isfinite(target.dw_true) and math.isfinite(m.get("dw", math.nan)):
                         ratio[row][name].append(m["dw"] / target.dw_true)
-            if (i + 1) % 25 == 0:
-                print(f"  {i + 1}/{len(views)} views", file=sys.stderr)
-    print(f"{len(views)} views of {args.views} ({args.groups}); weights {weights}; level {level:.2f}; "
+            if (n + 1) % 25 == 0:
+                print(f"  {n + 1}/{len(picked)} views", file=sys.stderr)
+    print(f"{len(picked)} views of {args.views} ({args.groups}); weights {weights}; level {level:.2f}; "
           f"fusion {opts.visible_fusion}; pits {opts.pit_sealing}; mirror {opts.test_time_mirror}")
     print("| row | trim | CD (mean) | change | lower on | depth ÷ width over the truth's (median) |")
     print("| --- | --- | ---: | ---: | ---: | ---: |")
