@@ -68,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spreads", default="0,1,2", help="the hull's widenings to score, in map pixels (comma-separated)")
     p.add_argument("--offsets", default="0", help="voxels the hull is moved outward, scored at every spread "
                    "(comma-separated; geometry.sph_hull_offset)")
+    p.add_argument("--nohit-open", action="store_true", help="read the map's no-hit pixels as unknown (the hull "
+                   "open there: no trim along them) instead of as radius 0")
     p.add_argument("--every", type=int, default=1, help="score every K-th view only (a spread-out subset of many)")
     p.add_argument("--oracle", action="store_true", help="also GenRe-SphOracle (the true depth and full map)")
     p.add_argument("--json", default=None, help="also write the figures here")
@@ -107,11 +109,14 @@ def main(argv: list[str] | None = None) -> int:
             for row, out in runs.items():
                 prob = torch.sigmoid(out.logits)[0, 0]
                 v = View(out.mask[0], out.masked_depth[0], camera)
+                sph = out.full_sph
+                if args.nohit_open:  # the cube's corner radius: nothing of the grid lies beyond it
+                    sph = torch.where(sph >= geometry.sph_nohit_min, torch.full_like(sph, 1.0 - math.sqrt(3) / 2), sph)
                 for name in names:
                     grid = prob
                     if name != "off":
                         spread, offset = trims[name]
-                        grid = torch.minimum(prob, sph_hull_ramp(out.full_sph, prob.shape[-1], geometry.sph_nohit_min,
+                        grid = torch.minimum(prob, sph_hull_ramp(sph, prob.shape[-1], geometry.sph_nohit_min,
                                                                  spread=spread, offset=offset)[0, 0])
                     m = score_grid(opts.shape_grid(grid, v, geometry), [level], target, geometry)[level]
                     cd[row][name].append(m["cd1k"])
@@ -120,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
             if (n + 1) % 25 == 0:
                 print(f"  {n + 1}/{len(picked)} views", file=sys.stderr)
     print(f"{len(picked)} views of {args.views} ({args.groups}); weights {weights}; level {level:.2f}; "
-          f"fusion {opts.visible_fusion}; pits {opts.pit_sealing}; mirror {opts.test_time_mirror}")
+          f"fusion {opts.visible_fusion}; pits {opts.pit_sealing}; mirror {opts.test_time_mirror}"
+          + ("; no-hit pixels open" if args.nohit_open else ""))
     print("| row | trim | CD (mean) | change | lower on | depth ÷ width over the truth's (median) |")
     print("| --- | --- | ---: | ---: | ---: | ---: |")
     result = {"weights": str(weights), "views": len(views), "level": level, "rows": {}}
