@@ -30,6 +30,8 @@ more than 1 % (``genre eval --sweep sph_hull_carve=...``).
         --groups product-train --spreads 0,1,2
     .venv/bin/python scripts/sph_hull.py --weights default --views $GENRE_HOME/views/flat_eval \
         --groups flat-from-above --manifest $GENRE_HOME/flat_test/manifest.json --oracle
+    .venv/bin/python scripts/sph_hull.py --weights $GENRE_HOME/cand/S50.safetensors --views $GENRE_HOME/views/fresh88 \
+        --groups product-train --max-views 1 --every 10 --spreads 2 --offsets 0,2,4 --nohit-open
 """
 
 from __future__ import annotations
@@ -129,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
           + ("; no-hit pixels open" if args.nohit_open else ""))
     print("| row | trim | CD (mean) | change | lower on | depth ÷ width over the truth's (median) |")
     print("| --- | --- | ---: | ---: | ---: | ---: |")
-    result = {"weights": str(weights), "views": len(views), "level": level, "rows": {}}
+    result = {"weights": str(weights), "views": len(picked), "level": level, "rows": {}}
     for row in rows:
         base = np.array(cd[row]["off"])
         for name in names:
