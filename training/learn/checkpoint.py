@@ -152,4 +152,6 @@ def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor]
         # this run's settings win over the checkpoint's: a stage continued with another --lr (or betas)
         # trains with it, as log.csv says (the Adam moments carry on)
         saved["lr"], saved["betas"] = current["lr"], current["betas"]
+        if "lr_scale" in current:  # (a net's share of the rate: StageModule.param_groups)
+            saved["lr_scale"] = current["lr_scale"]
     opt.load_state_dict({"state": state, "param_groups": groups})

@@ -218,10 +218,9 @@ def _start(tcfg: TrainConfig, model_config: GenreConfig | None) -> _Run:
     speed = Speed.for_device(device) if tcfg.speed == "auto" else Speed.from_way(tcfg.speed)
     module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight,
                          tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight, tcfg.outline_weight,
-                         speed, tcfg.hull_grad_width).to(device)
+                         speed, tcfg.hull_grad_width, tcfg.depth_lr_scale).to(device)
     apply_speed(model, speed)
-    params = [p for p in module.parameters() if p.requires_grad]
-    opt = torch.optim.Adam(params, lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
+    opt = torch.optim.Adam(module.param_groups(), lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
     stage_dir = Path(tcfg.out) / tcfg.stage
     if rank == 0:
         stage_dir.mkdir(parents=True, exist_ok=True)
@@ -241,7 +240,7 @@ def _step(run: _Run, step: int, batch: dict[str, torch.Tensor]) -> tuple[float, 
     """One optimiser step on ``batch`` (B samples); returns (loss, its logged terms, the learning rate used)."""
     lr_now = run.tcfg.lr_at(step)
     for group in run.opt.param_groups:
-        group["lr"] = lr_now
+        group["lr"] = lr_now * group.get("lr_scale", 1.0)
     loss, terms = run.net(to_device(batch, run.device))
     run.opt.zero_grad(set_to_none=True)
     loss.backward()

@@ -79,6 +79,9 @@ class StageRecipe:
     hull_grad_width: float = documented(1.0, "refine, joint, for weights that store sph_hull_carve: the trim's gradient "
                                              "reaches voxels within half this many voxels of the map's hull (a ramp this "
                                              "wide, straight through; the forward pass stays the mesh option's)")
+    depth_lr_scale: float = documented(1.0, "joint: the depth net's learning rate as a multiple of lr (0: the depth net "
+                                            "stays as the starting weights give it, batch-norm statistics too, and only the inpainting "
+                                            "net and the refiner train, end to end on its depth)")
 
     def __post_init__(self):
         if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)) or not (math.isfinite(self.lr) and self.lr > 0):
@@ -98,7 +101,7 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
             raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
-        for name in ("depth_weight", "depth_gradient_weight", "outline_weight"):
+        for name in ("depth_weight", "depth_gradient_weight", "outline_weight", "depth_lr_scale"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")

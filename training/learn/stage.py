@@ -41,7 +41,8 @@ class StageModule(nn.Module):
 
     def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
                  sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0,
-                 outline_weight: float = 0.0, speed: Speed = REFERENCE_SPEED, hull_grad_width: float = 1.0):
+                 outline_weight: float = 0.0, speed: Speed = REFERENCE_SPEED, hull_grad_width: float = 1.0,
+                 depth_lr_scale: float = 1.0):
         super().__init__()
         # bf16 autocast per net as ``speed`` says (the nets' memory format is burst.apply_speed's); the losses in fp32
         self.speed = speed
@@ -56,6 +57,11 @@ class StageModule(nn.Module):
             raise ValueError(f"sph_teacher: only the refine stage feeds the true map (stage {stage!r})")
         if depth_dropout > 0 and stage not in ("refine", "joint"):
             raise ValueError(f"depth_dropout: only the refine and joint stages have depth voxels to empty (stage {stage!r})")
+        if depth_lr_scale != 1.0 and stage != "joint":
+            raise ValueError(f"depth_lr_scale: only the joint stage trains the depth net with the others (stage {stage!r})")
+        if depth_lr_scale == 0 and depth_weight > 0:
+            raise ValueError("depth_weight: the depth net is frozen (depth_lr_scale 0); set depth_weight to 0")
+        self.depth_lr_scale = depth_lr_scale  # the joint stage: the depth net's share of the learning rate
         # training batches only (StepBatches' per-sample "coin"): validation and inference see every input as it is
         self.sph_teacher, self.depth_dropout = sph_teacher, depth_dropout
         self.baseline = None
@@ -76,11 +82,23 @@ class StageModule(nn.Module):
         for part in trainable:
             for p in part.parameters():
                 p.requires_grad_(True)
+        if depth_lr_scale == 0:
+            model.depth_net.requires_grad_(False)
         self.frozen = [m for m in (model.depth_net, model.inpaint_net, model.refiner) if not any(p.requires_grad for p in m.parameters())]
         if stage == "completion":
             for p in self.baseline.depth_net.parameters():
                 p.requires_grad_(False)
             self.frozen.append(self.baseline.depth_net)
+
+    def param_groups(self) -> list[dict]:
+        """The optimiser's parameter groups: every trainable parameter in one, or, where the depth net trains at
+        its own share of the rate (``depth_lr_scale``), the depth net's in a second group with that ``lr_scale``."""
+        depth = {id(p) for p in self.model.depth_net.parameters()}
+        trainable = [p for p in self.parameters() if p.requires_grad]
+        if self.depth_lr_scale in (0.0, 1.0):
+            return [{"params": trainable}]
+        return [{"params": [p for p in trainable if id(p) not in depth], "lr_scale": 1.0},
+                {"params": [p for p in trainable if id(p) in depth], "lr_scale": self.depth_lr_scale}]
 
     def checkpointed(self) -> tuple[str, nn.Module]:
         """The key prefix and module a checkpoint keeps: GenRe's nets, or for a baseline stage the

@@ -40,6 +40,7 @@ class TrainConfig:
     depth_dropout: float | None = None
     mirror: float | None = None
     hull_grad_width: float | None = None
+    depth_lr_scale: float | None = None
     target: str | None = documented(None, f"the voxel representation to train (GeometryConfig.target: {' or '.join(TARGETS)}); "
                                           "none: the recipe's, else the model's")
     refiner_full_nf: int | None = documented(None, "the width of the refiner's full-resolution branch "

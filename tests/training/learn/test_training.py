@@ -52,6 +52,33 @@ def test_frozen_nets_stay_frozen(tiny_views, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_joint_stage_trains_the_depth_net_at_its_share_of_the_rate(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("depth", tiny_views, run, steps=3), TINY)
+    init = run / "depth" / "final.safetensors"
+    before = load_model(init)
+    # 0: the depth net stays as --init gives it (weights and batch-norm statistics); the other two train
+    train(_cfg("joint", tiny_views, tmp_path / "frozen", steps=3, init=str(init), depth_lr_scale=0.0, depth_weight=0.0))
+    after = load_model(tmp_path / "frozen" / "joint" / "final.safetensors")
+    assert weights_digest(before.depth_net) == weights_digest(after.depth_net)
+    assert weights_digest(before.inpaint_net) != weights_digest(after.inpaint_net)
+    assert weights_digest(before.refiner) != weights_digest(after.refiner)
+    # a share: the depth net's group steps at that multiple of each step's rate, and a resumed run keeps it
+    train(_cfg("joint", tiny_views, tmp_path / "share", steps=2, init=str(init), lr=1e-3, depth_lr_scale=0.25), TINY)
+    train(_cfg("joint", tiny_views, tmp_path / "share", steps=3, init=str(init), lr=1e-3, depth_lr_scale=0.25), TINY)
+    groups = json.loads((tmp_path / "share" / "joint" / "checkpoint" / "state.json").read_text())["param_groups"]
+    assert [(g["lr"], g["lr_scale"]) for g in groups] == [(1e-3, 1.0), (2.5e-4, 0.25)]
+    depth_count = len(list(before.depth_net.parameters()))
+    assert len(groups[1]["params"]) == depth_count
+    assert len(groups[0]["params"]) == len(list(before.parameters())) - depth_count
+    # refused where it cannot apply
+    with pytest.raises(ValueError, match="depth_lr_scale"):
+        StageModule(GenRe(TINY), "refine", 0.1, depth_lr_scale=0.5)
+    with pytest.raises(ValueError, match="depth_weight"):
+        StageModule(GenRe(TINY), "joint", 0.1, depth_weight=1.0, depth_lr_scale=0.0)
+
+
+@pytest.mark.slow
 def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
     from training.data.dataset import ViewDataset, find_views
 
