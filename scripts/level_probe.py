@@ -31,6 +31,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from genre_backend.arguments import add_weights
+from genre_backend.weights_file import resolve_weights
+
 LEVELS = ("0.35", "0.40", "0.45", "0.50", "0.55")
 BASE = LEVELS.index("0.45")
 VOLUME_LEVELS = (0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6)
@@ -88,7 +91,7 @@ def joined(feats: dict, cds: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--weights", required=True)
+    add_weights(p, default="default")
     p.add_argument("--train-views", required=True)
     p.add_argument("--train-scores", required=True, help="genre eval --levels output on the training views")
     p.add_argument("--train-group", default="product-train")
@@ -97,6 +100,7 @@ def main() -> None:
     p.add_argument("--test-group", default="product-test")
     p.add_argument("--lam", type=float, default=10.0, help="the ridge penalty applied to the test (default 10)")
     args = p.parse_args()
+    args.weights = str(resolve_weights(args.weights))
     torch.set_num_threads(1)
     xt, yt = joined(features(args.weights, args.train_views, args.train_group), scores(args.train_scores))
     base = yt[:, BASE].mean()

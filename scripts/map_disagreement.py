@@ -27,6 +27,9 @@ import numpy as np
 import torch
 from scipy.stats import mannwhitneyu, spearmanr
 
+from genre_backend.arguments import add_weights
+from genre_backend.weights_file import resolve_weights
+
 
 def auroc(positive: np.ndarray, score: np.ndarray) -> float:
     """The probability that a positive's score exceeds a negative's (ties half), by the Mann–Whitney U."""
@@ -74,13 +77,14 @@ def main() -> None:
     from training.eval.protocol import load_setting_views
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--weights", required=True)
+    add_weights(p, default="default")
     p.add_argument("--other", required=True, help="weights whose inpainting net is the second opinion")
     p.add_argument("--views", required=True)
     p.add_argument("--group", default="product-train")
     p.add_argument("--count", type=int, default=120, help="views, spread evenly over the folder's order")
     p.add_argument("--learn", type=int, default=0, metavar="STEPS", help="also train and score a learned head")
     args = p.parse_args()
+    args.weights = str(resolve_weights(args.weights))
     torch.set_num_threads(1 if not args.learn else 2)
     model, views, data, _ = load_setting_views(args.weights, args.views, None, (args.group,))
     other = load_model(args.other).eval()
