@@ -33,15 +33,14 @@ import genre_backend.nets.model as model_module
 
 
 class RefinerMean(torch.nn.Module):
-    """Refiners whose probabilities are averaged; returns logits."""
+    """Two refiners whose probabilities are averaged (:func:`genre_backend.nets.model.mean_probability_logits`)."""
 
-    def __init__(self, refiners):
+    def __init__(self, a, b):
         super().__init__()
-        self.members = torch.nn.ModuleList(refiners)
+        self.a, self.b = a, b
 
     def forward(self, x):
-        p = torch.stack([torch.sigmoid(r(x).float()) for r in self.members]).mean(0).clamp(1e-6, 1 - 1e-6)
-        return torch.log(p) - torch.log1p(-p)
+        return model_module.mean_probability_logits(self.a(x), self.b(x))
 
 
 class PipelineMean(torch.nn.Module):
@@ -85,7 +84,7 @@ def main(argv: list[str]) -> int:
     if args.refiner_from:
         def patched(path, device="cpu"):
             m = load(path, device)
-            m.refiner = RefinerMean([m.refiner, load(args.refiner_from, device).refiner]).eval()
+            m.refiner = RefinerMean(m.refiner, load(args.refiner_from, device).refiner).eval()
             return m
         model_module.load_model = patched
     elif args.pipeline_from:

@@ -116,6 +116,7 @@ def main() -> None:
         xe, ye = joined(features(args.weights, args.test_views, args.test_group), scores(args.test_scores))
         picked = choose(fit(xt, yt, args.lam)(xe))
         cd, base = ye[np.arange(len(ye)), picked].mean(), ye[:, BASE].mean()
+        print(f"{len(xe)} test views: CD {base:.5f} at {LEVELS[BASE]}, {ye.min(1).mean():.5f} with the best level per view")
         lower = int((ye[np.arange(len(ye)), picked] < ye[:, BASE]).sum())
         print(f"{len(xe)} test views, ridge {args.lam:g}: {cd:.5f} against {base:.5f} ({(cd / base - 1) * 100:+.2f} %), "
               f"lower on {lower}, {np.mean(picked != BASE):.0%} moved")

@@ -30,23 +30,26 @@ from scipy.stats import mannwhitneyu, spearmanr
 from genre_backend.arguments import add_weights
 from genre_backend.weights_file import resolve_weights
 
+LOG_EPS = 1e-3  # the floor under the errors whose log the head predicts
+
 
 def auroc(positive: np.ndarray, score: np.ndarray) -> float:
     """The probability that a positive's score exceeds a negative's (ties half), by the Mann–Whitney U."""
     return float(mannwhitneyu(score[positive], score[~positive]).statistic / (positive.sum() * (~positive).sum()))
 
 
-def learned_head(inputs: np.ndarray, log_err: np.ndarray, hidden: np.ndarray, shapes: np.ndarray, steps: int):
+def learned_head(inputs: np.ndarray, errors: np.ndarray, hidden: np.ndarray, shapes: np.ndarray, steps: int):
     """Train the head on three quarters of the shapes; return (held-out predictions, their errors, their mirror
     disagreements), pooled over the held-out views' hidden-side pixels."""
     rng = np.random.default_rng(0)
+    torch.manual_seed(0)
     names = sorted(set(shapes.tolist()))
     rng.shuffle(names)
     held = np.isin(shapes, names[: len(names) // 4])
     n, size = len(inputs), inputs.shape[-1]
     yy, xx = torch.meshgrid(torch.linspace(-1, 1, size), torch.linspace(-1, 1, size), indexing="ij")
     x = torch.cat([torch.tensor(inputs, dtype=torch.float32), yy.expand(n, 1, size, size), xx.expand(n, 1, size, size)], 1)
-    y, m = torch.tensor(log_err, dtype=torch.float32), torch.tensor(hidden)
+    y, m = torch.tensor(np.log(errors + LOG_EPS), dtype=torch.float32), torch.tensor(hidden)
     layers, width = [], x.shape[1]
     for dilation in (1, 2, 4, 8, 1):
         layers += [torch.nn.Conv2d(width, 32, 3, padding=dilation, dilation=dilation), torch.nn.ReLU()]
@@ -65,10 +68,8 @@ def learned_head(inputs: np.ndarray, log_err: np.ndarray, hidden: np.ndarray, sh
     test = torch.tensor(np.where(held)[0])
     with torch.no_grad():
         pred = net(x[test])[:, 0][m[test]].numpy()
-    return pred, np.exp(y[test][m[test]].numpy()) - LOG_EPS, inputs[held][:, 5][hidden[held]], int(held.sum())
+    return pred, errors[held][hidden[held]], inputs[held][:, 5][hidden[held]], int(held.sum())
 
-
-LOG_EPS = 1e-3
 
 
 def main() -> None:
@@ -117,7 +118,7 @@ def main() -> None:
         print(f"  disagreement with the {name}: pixel Spearman {spearmanr(d, e)[0]:.3f}, AUROC for the worst quarter "
               f"{auroc(worst, d):.3f}; per view Spearman {spearmanr(per_view, mean_err)[0]:.3f}")
     if args.learn:
-        pred, held_err, held_mirror, n_held = learned_head(inputs, np.log(errors + LOG_EPS), hiddens, shapes, args.learn)
+        pred, held_err, held_mirror, n_held = learned_head(inputs, errors, hiddens, shapes, args.learn)
         worst = held_err > np.quantile(held_err, 0.75)
         print(f"  learned head ({args.learn} steps) on {n_held} held-out views of other shapes ({held_err.size} pixels): "
               f"Spearman {spearmanr(pred, held_err)[0]:.3f}, AUROC {auroc(worst, pred):.3f}; the mirror disagreement "
