@@ -343,6 +343,15 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
         lr=1.5e-4, batch_size=4, total_steps=8_000, warmup_steps=100, reuse=2, buffer_steps=100, sph_teacher=0.1,
         bank_share=0.75,
     ),
+    BurstRecipe(
+        name="fit-oracle",
+        description="a diagnosis, not a product recipe (scripts/fit_oracle.sh): can the refiner fit a few shapes "
+                    "when every input is true? genre train session --nets both on a small pack, the refiner always "
+                    "fed the true depth (no added error) and the true full map; lr 5e-4, 100-step warm-up, cosine "
+                    "to 5 % over 3,000 steps of batch 4 (2 fresh views a step, the batch from the last 50 steps')",
+        lr=5e-4, batch_size=4, total_steps=3_000, warmup_steps=100, reuse=2, buffer_steps=50, sph_teacher=1.0,
+        depth_noise=0.0,
+    ),
 )}
 
 
