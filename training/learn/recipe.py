@@ -352,13 +352,6 @@ BURST_RECIPES: dict[str, BurstRecipe] = {r.name: r for r in (
         lr=5e-4, batch_size=4, total_steps=3_000, warmup_steps=100, reuse=2, buffer_steps=50, sph_teacher=1.0,
         depth_noise=0.0,
     ),
-    BurstRecipe(
-        name="fit-oracle-wide",
-        description="fit-oracle with the preset 'wide' refiner (base 16 capped at 64, a 16-channel full-resolution "
-                    "branch), starting afresh: whether a wider refiner fits the same few shapes closer",
-        preset="wide", lr=5e-4, batch_size=4, total_steps=3_000, warmup_steps=100, reuse=2, buffer_steps=50,
-        sph_teacher=1.0, depth_noise=0.0,
-    ),
 )}
 
 
