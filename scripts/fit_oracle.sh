@@ -33,8 +33,9 @@ for s in manifest["shapes"]:
         os.symlink(f"{home}/views/fresh88/{s['id']}", link)
 EOF
 [ -f "$H/fit/pack$N/pack.json" ] || genre data pack --shapes "$H/fit/manifest$N.json" --out "$H/fit/pack$N" --thin 0 --no-progress
+STEPS=$(python -c "from training.learn.recipe import get_burst_recipe; print(get_burst_recipe('$RECIPE').total_steps)")
 genre train session --pack "$H/fit/pack$N" --nets both --recipe "$RECIPE" --init "$INIT" --out "$H/fit/run_$NAME" \
-    --threads 2 --max-steps 3000 --log-every 50
+    --threads 2 --max-steps "$STEPS" --log-every 50
 score() {
     genre eval --data "$H/views/fit$N" --weights "$1" --groups product-train --max-views 1 --rows GenRe-SphOracle \
         --levels 0.45 --jobs 2 --no-figures --no-progress --out "$2"

@@ -71,7 +71,6 @@ def learned_head(inputs: np.ndarray, errors: np.ndarray, hidden: np.ndarray, sha
     return pred, errors[held][hidden[held]], inputs[held][:, 5][hidden[held]], int(held.sum())
 
 
-
 def main() -> None:
     from genre_backend.geometry.spherical import mirror_sph
     from genre_backend.nets.model import load_model
