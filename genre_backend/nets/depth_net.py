@@ -47,7 +47,15 @@ class DepthNet(nn.Module):
         Returns ``depth`` (B, S, S) planar depth over the whole image and
         ``silhouette_logits`` (B, S, S).
         """
+        return self.decode(*self.encode(rgb))
+
+    def encode(self, rgb: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """The encoder's skips and deepest features for rgb (B, 3, S, S) in [0, 1]: what every head reads
+        (and what a training-only head, :mod:`training.learn.aux_heads`, reads beside them)."""
         check_tensor("rgb", rgb, ("B", 3, self.size, self.size))
-        skips, deep = self.encoder(normalize_rgb(rgb))
+        return self.encoder(normalize_rgb(rgb))
+
+    def decode(self, skips: list[torch.Tensor], deep: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The heads' outputs (:meth:`forward`'s) from :meth:`encode`'s features."""
         depth = self.distance + self.decoders["depth"](skips, deep)[:, 0] / self.scale
         return {"depth": depth, "silhouette_logits": self.decoders["silhouette"](skips, deep)[:, 0]}

@@ -85,6 +85,8 @@ def save_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optim
                      cpu_s: float = 0.0) -> None:
     prefix, trained = module.checkpointed()
     tensors = {f"{prefix}.{k}": v.detach().cpu().contiguous() for k, v in trained.state_dict().items()}
+    # training-only heads (StageModule.aux: the depth stage's normals head), which no weights file keeps
+    tensors.update({f"aux.{k}": v.detach().cpu().contiguous() for k, v in module.aux.state_dict().items()})
     opt_tensors, opt_meta = optimizer_tensors(opt)
     meta = {
         "step": step,
@@ -122,6 +124,7 @@ def load_checkpoint(stage_dir: Path, module: StageModule, opt: torch.optim.Optim
     prefix, trained = module.checkpointed()  # older baseline checkpoints also hold "model." tensors: ignored
     try:
         trained.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")})
+        module.aux.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("aux.")})
         _load_optimizer(opt, tensors, meta)
     except (RuntimeError, ValueError, KeyError) as exc:
         why = " ".join(str(exc).split())[:300] or type(exc).__name__

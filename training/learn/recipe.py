@@ -67,6 +67,8 @@ class StageRecipe:
     depth_weight: float = documented(0.0, "joint: the depth net's own loss (depth and silhouette) added with this weight")
     depth_gradient_weight: float = documented(0.0, "depth, joint: this weight times the multi-scale gradient matching term "
                                                    "added to the depth's MSE (0: the MSE alone)")
+    normals_weight: float = documented(0.0, "depth: this weight times the loss (1 - cos) of a training-only normals head "
+                                            "on the depth net's encoder (training.learn.normals; 0: no head)")
     outline_weight: float = documented(0.0, "refine, joint: this weight times the BCE between the predicted and the true "
                                             "grid's silhouettes through the view's camera (0: off)")
     lr_halflife: int = documented(0, "the learning rate halves every this many steps, counted from the stage's first step "
@@ -101,7 +103,7 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
             raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
-        for name in ("depth_weight", "depth_gradient_weight", "outline_weight", "depth_lr_scale"):
+        for name in ("depth_weight", "depth_gradient_weight", "normals_weight", "outline_weight", "depth_lr_scale"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")

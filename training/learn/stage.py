@@ -13,6 +13,7 @@ from genre_backend.nets.model import GenRe, save_model
 
 from .burst import REFERENCE_SPEED, Speed
 from .losses import depth_gradient_loss, outline_loss, sph_loss, voxel_loss
+from .normals import NormalsHead, depth_normals, normals_loss
 
 __all__ = ["BASELINE_STAGES", "StageModule", "hull_trimmed"]
 
@@ -42,7 +43,7 @@ class StageModule(nn.Module):
     def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
                  sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0,
                  outline_weight: float = 0.0, speed: Speed = REFERENCE_SPEED, hull_grad_width: float = 1.0,
-                 depth_lr_scale: float = 1.0):
+                 depth_lr_scale: float = 1.0, normals_weight: float = 0.0):
         super().__init__()
         # bf16 autocast per net as ``speed`` says (the nets' memory format is burst.apply_speed's); the losses in fp32
         self.speed = speed
@@ -62,6 +63,15 @@ class StageModule(nn.Module):
         if depth_lr_scale == 0 and depth_weight > 0:
             raise ValueError("depth_weight: the depth net is frozen (depth_lr_scale 0); set depth_weight to 0")
         self.depth_lr_scale = depth_lr_scale  # the joint stage: the depth net's share of the learning rate
+        if normals_weight > 0 and stage != "depth":
+            raise ValueError(f"normals_weight: only the depth stage trains the depth net's normals head (stage {stage!r})")
+        # the depth stage: a training-only normals head on the depth net's encoder (training.learn.normals); its
+        # loss counts in training steps only, so validation losses compare with runs without it
+        self.normals_weight = normals_weight
+        self.aux = nn.ModuleDict()
+        if normals_weight > 0:
+            net = model.config.network
+            self.aux["normals"] = NormalsHead(net.depth_widths, net.depth_decoder_blocks)
         # training batches only (StepBatches' per-sample "coin"): validation and inference see every input as it is
         self.sph_teacher, self.depth_dropout = sph_teacher, depth_dropout
         self.baseline = None
@@ -135,6 +145,18 @@ class StageModule(nn.Module):
             loss = loss + self.depth_gradient_weight * l_grad
         return loss, terms
 
+    def depth_with_normals(self, batch):
+        """The depth loss plus ``normals_weight`` times the normals head's (:mod:`training.learn.normals`)."""
+        net = self.model.depth_net
+        with self.speed.autocast("depth", batch["rgb"].device):
+            skips, deep = net.encode(batch["rgb"])
+            out = net.decode(skips, deep)
+            normals = self.aux["normals"](skips, deep)
+        loss, terms = self.depth_loss({k: v.float() for k, v in out.items()}, batch)
+        true, valid = depth_normals(batch["depth"], self.model.config.camera)
+        terms["normals_cos"] = normals_loss(normals.float(), true, valid)
+        return loss + self.normals_weight * terms["normals_cos"], terms
+
     def sph_loss(self, parts: dict[str, torch.Tensor], batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """:func:`training.learn.losses.sph_loss` of the inpainting net's ``parts`` against ``batch["full_sph"]``."""
         return sph_loss(parts, batch["full_sph"], self.model.config.geometry, self.sph_loss_kind)
@@ -151,6 +173,8 @@ class StageModule(nn.Module):
 
     def forward(self, batch: dict[str, torch.Tensor]):
         m = self.model
+        if self.stage == "depth" and "normals" in self.aux and self.training:
+            return self.depth_with_normals(batch)
         if self.stage == "depth":
             return self.depth_loss(self._net("depth", m.depth_net, batch["rgb"]), batch)
         if self.stage == "onestep":
