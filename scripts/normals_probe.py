@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from depth_errors import flat_coloured  # noqa: E402
 
+from genre_backend.arguments import add_weights  # noqa: E402
 from genre_backend.config import GenreConfig  # noqa: E402
 from genre_backend.nets.model import GenRe, load_model  # noqa: E402
 from genre_backend.weights_file import resolve_weights  # noqa: E402
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--views", required=True, help="a folder of rendered views")
     ap.add_argument("--stage", required=True, help="a depth stage folder trained with --normals-weight (RUN/depth)")
-    ap.add_argument("--weights", action="append", default=[], help="weights whose depth's normals to compare; repeat")
+    add_weights(ap, action="append", default=[], help="weights (name or file) whose depth's normals to compare; repeat")
     args = ap.parse_args(argv)
     model, head = load_stage(Path(args.stage))
     others = [load_model(resolve_weights(w)).eval() for w in args.weights]
