@@ -51,7 +51,7 @@ class DepthNet(nn.Module):
 
     def encode(self, rgb: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
         """The encoder's skips and deepest features for rgb (B, 3, S, S) in [0, 1]: what every head reads
-        (and what a training-only head, :mod:`training.learn.aux_heads`, reads beside them)."""
+        (and what a training-only head, :mod:`training.learn.normals`, reads beside them)."""
         check_tensor("rgb", rgb, ("B", 3, self.size, self.size))
         return self.encoder(normalize_rgb(rgb))
 
