@@ -62,7 +62,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from genre_backend.arguments import add_weights  # noqa: E402
-from genre_backend.geometry.metrics import CloudScorer, thinnest_depth_over_width  # noqa: E402
+from genre_backend.geometry.metrics import CloudScorer, grid_thinness  # noqa: E402
 from genre_backend.geometry.spherical import sph_hull_ramp  # noqa: E402
 from genre_backend.inference.options import MeshOptions  # noqa: E402
 from genre_backend.nets.outputs import View  # noqa: E402
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                         r = m["dw"] / target.dw_true
                         ratio[row][name].append(r)
                     if args.per_view and row == "GenRe":
-                        thin, occupied = gate_features(shaped, level)
+                        thin, occupied = grid_thinness(shaped, level)
                         occupied_off = occupied if name == "off" else occupied_off
                         per_view.append({"key": f"{view.shape_dir.name}/{view.view}", "trim": name, "cd": m["cd1k"],
                                          "ratio": r, "thin": thin, "kept": occupied / max(occupied_off, 1)})
@@ -185,18 +185,6 @@ def main(argv: list[str] | None = None) -> int:
             w.writeheader()
             w.writerows(per_view)
     return 0
-
-
-def gate_features(shaped: torch.Tensor, level: float) -> tuple[float, int]:
-    """``(thin, occupied)`` of a shaped grid (N, N, N): the thinnest depth ÷ width of the voxel centres at or above
-    ``level`` (nan for fewer than 4) and how many there are."""
-    points = torch.nonzero(shaped >= level).double()
-    if len(points) < 4:
-        return math.nan, len(points)
-    try:
-        return thinnest_depth_over_width(points), len(points)
-    except ValueError:  # a cloud of zero width
-        return math.nan, len(points)
 
 
 GATE_FEATURES = ("thin", "kept")  # results/decisions.md, 2026-12-02 05:16 UTC

@@ -262,6 +262,20 @@ def thinnest_depth_over_width(points: torch.Tensor, trim: float = 0.002) -> floa
     return depth_over_width(p, vectors[:, 0], trim=trim)
 
 
+def grid_thinness(grid: torch.Tensor, level: float) -> tuple[float, int]:
+    """``(thinness, count)`` of a grid (N, N, N): :func:`thinnest_depth_over_width` of the centres of its voxels at or
+    above ``level`` (nan where fewer than 4 are, or they span no width) and how many there are: a plate's grid reads
+    about 0.1, a ball's about 1 (the trim gate's feature in ``scripts/sph_hull.py``)."""
+    check_tensor("grid", grid, ("N", "N", "N"))
+    points = torch.nonzero(grid >= level).double()
+    if len(points) < 4:
+        return math.nan, len(points)
+    try:
+        return thinnest_depth_over_width(points), len(points)
+    except ValueError:  # a cloud of zero width (one line of voxels)
+        return math.nan, len(points)
+
+
 # k-d tree leaves of 64 points: the same exact distances, and faster than SciPy's 16 on surface clouds
 # queried from a shape's distance (1.7× on one predicted mesh's 10,000 points, timed once on the
 # loaded shared CPU with a script not kept: a rough figure)

@@ -9,6 +9,7 @@ from genre_backend.geometry.metrics import (
     chamfer_distance,
     chamfer_distance_reference,
     depth_over_width,
+    grid_thinness,
     thinnest_depth_over_width,
     mesh_chamfer,
     normalize_points,
@@ -125,6 +126,20 @@ def test_thinnest_depth_over_width_finds_the_flat_axis_in_any_pose():
         assert thinnest_depth_over_width(pts) == pytest.approx(want, rel=rel)
     sphere = torch.from_numpy(trimesh.sample.sample_surface(trimesh.creation.icosphere(4), 20000, seed=2)[0])
     assert thinnest_depth_over_width(sphere) == pytest.approx(1.0, rel=0.04)
+
+
+def test_grid_thinness_reads_a_voxel_plate_and_ball():
+    """The voxel centres at the level: a ball of radius 20 voxels reads about 1; a disc 48 voxels across and 4 thick,
+    its centres' spread (3 voxels) over their width (47), whichever axis it lies on; too few voxels: nan."""
+    n = 64
+    c = torch.arange(n).double() + 0.5 - n / 2
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    ball = ((x**2 + y**2 + z**2) < 20**2).float()
+    assert grid_thinness(ball, 0.5)[0] == pytest.approx(1.0, abs=0.05) and grid_thinness(ball, 0.5)[1] == int(ball.sum())
+    for a, b, t in ((x, z, y), (y, z, x)):
+        disc = (((a**2 + b**2) < 24**2) & (t.abs() < 2.5)).float() * 0.8
+        assert grid_thinness(disc, 0.5)[0] == pytest.approx(3 / 47, rel=0.05)
+        assert np.isnan(grid_thinness(disc, 0.9)[0]) and grid_thinness(disc, 0.9)[1] == 0  # below the level: none
 
 
 def test_cloud_scorer_reports_depth_over_width_with_an_up():
