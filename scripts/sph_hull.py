@@ -42,7 +42,7 @@ mean CD (the mean of the files' means), the lowest first; ``--gate FEATURE:TAU``
     .venv/bin/python scripts/sph_hull.py --views $GENRE_HOME/views/fresh88 --groups product-train --max-views 1 \
         --every 10 --spreads 2 --per-view fresh88.csv        # and views/fresh_prim, views/thin_gate (--manifest)
     .venv/bin/python scripts/sph_hull.py --choose-gate fresh88.csv,fresh_prim.csv thin_gate.csv
-    .venv/bin/python scripts/sph_hull.py --gate thin:0.31 product_eval.csv
+    .venv/bin/python scripts/sph_hull.py --choose-gate product_eval.csv flat_eval.csv --gate thin:0.29
 """
 
 from __future__ import annotations
