@@ -252,12 +252,12 @@ def report_gates(groups: list[list[Path]], trim: str, only: str | None) -> int:
     scored = []
     for label, feature, tau in candidates:
         means = [_gated(views, feature, tau)[0].mean() for views in sets]
-        scored.append((float(np.mean(means)), label, feature, tau, means))
+        scored.append((float(np.mean(means)), label, tau, means))
     scored.sort(key=lambda s: s[0])
     print(f"{trim}: {' | '.join(f'{n} ({len(s)} views)' for n, s in zip(names, sets))}")
     print("| gate | τ | mean of the sets' means | " + " | ".join(names) + " |")
     print("| --- | ---: | ---: |" + " ---: |" * len(names))
-    for score, label, _feature, tau, means in scored:
+    for score, label, tau, means in scored:
         print(f"| {label} | {tau:.4f} | {score:.5f} | " + " | ".join(f"{m:.5f}" for m in means) + " |")
     return 0
 
