@@ -15,15 +15,18 @@ from pathlib import Path
 
 from ..data.views import manifest_index
 
-__all__ = ['BASE_COLUMNS', 'DIAGNOSTIC_ROWS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'REPRESENTATION', 'ROWS', 'find_eval_views', 'sample_seen_test_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
+__all__ = ['BASE_COLUMNS', 'DEPTH_BLENDS', 'DIAGNOSTIC_ROWS', 'EMPTY_CD', 'EvalView', 'FLOOR', 'FSCORE_AT', 'GROUPS', 'GROUP_LABEL', 'METRICS', 'POINTS_LARGE', 'POINTS_SMALL', 'REPO_ROOT', 'REPRESENTATION', 'ROWS', 'find_eval_views', 'sample_seen_test_views', 'metric_columns', 'resolve_mesh', 'threshold_key']
 
 
 ROWS = ("GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle", "GenRe-1step", "Nearest training shape",
         "Truth through the representation")
 # diagnostic rows, produced only when --rows names them: the depth net's error split in two. GenRe's predicted depth
 # moved along the view by the median of (true - predicted) over the mask (its relief at the true offset), and the
-# true depth moved by the median of (predicted - true) (the true relief at the predicted offset)
-DIAGNOSTIC_ROWS = ("GenRe-OffsetOracle", "GenRe-ReliefOracle")
+# true depth moved by the median of (predicted - true) (the true relief at the predicted offset); and the depth net's
+# error scaled down: the true depth plus a share of (predicted - true) over the mask (DEPTH_BLENDS), from GenRe-Oracle
+# (0) to GenRe (1), which shows how good the depth must be before a refiner that reads its inputs wins
+DEPTH_BLENDS = {"GenRe-DepthBlend-25": 0.25, "GenRe-DepthBlend-50": 0.5, "GenRe-DepthBlend-75": 0.75}
+DIAGNOSTIC_ROWS = ("GenRe-OffsetOracle", "GenRe-ReliefOracle", *DEPTH_BLENDS)
 REPRESENTATION = "Truth through the representation"  # the true voxel target → marching cubes: the best a refiner can do
 
 

@@ -45,7 +45,7 @@ from genre_backend.nets.outputs import View
 from genre_backend.inference.options import BY_NAME, OPTIONS, MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
 
-from .protocol import DIAGNOSTIC_ROWS, REPRESENTATION, ROWS
+from .protocol import DEPTH_BLENDS, DIAGNOSTIC_ROWS, REPRESENTATION, ROWS
 
 __all__ = ['Models', 'predict', 'sweep_row', 'SWEEPABLE']
 
@@ -146,6 +146,10 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
             other = depth if moved is g.depth else g.depth
             shifted = moved + median_offset(other, moved, valid)
             out[name] = row_of(m(rgb, mask=mask, depth=shifted, mirror=mirror))
+    for name, share in DEPTH_BLENDS.items():
+        if name in models.wanted:  # the true depth plus that share of the depth net's error, where the truth has depth
+            blended = torch.where(valid, depth + share * (g.depth - depth), g.depth)
+            out[name] = row_of(m(rgb, mask=mask, depth=blended, mirror=mirror))
     if "GenRe-SphOracle" in models.wanted:
         out["GenRe-SphOracle"] = row_of(m(rgb, mask=mask, depth=depth, full_sph=full, mirror=mirror))
     if models.completion is not None:

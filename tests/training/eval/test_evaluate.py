@@ -168,6 +168,14 @@ def test_the_offset_and_relief_oracles_feed_one_depth_map_at_the_others_offset(t
             assert torch.allclose(out[row]["prob"], torch.sigmoid(genre(rgb, mask=mask, depth=d).logits)[0, 0], atol=1e-6), row
     # the two are other inputs than the plain row's (the tiny net's offset is not the truth's)
     assert not torch.allclose(out["GenRe-OffsetOracle"]["prob"], out["GenRe"]["prob"])
+    # the blends: the true depth plus a share of the depth net's error; 0 would be GenRe-Oracle's input, 1 GenRe's
+    from training.eval.protocol import DEPTH_BLENDS
+    assert sorted(DEPTH_BLENDS.values()) == [0.25, 0.5, 0.75]
+    with torch.no_grad():
+        for row, share in DEPTH_BLENDS.items():
+            d = torch.where(valid, depth + share * (pred - depth), pred)
+            assert torch.allclose(out[row]["prob"], torch.sigmoid(genre(rgb, mask=mask, depth=d).logits)[0, 0], atol=1e-6), row
+            assert not torch.allclose(out[row]["prob"], out["GenRe"]["prob"]), row
     # diagnostics are produced only when named
     assert not set(DIAGNOSTIC_ROWS) & set(predict(Models(genre, wanted=("GenRe",)), sample, "cpu"))
 
