@@ -218,7 +218,8 @@ def _start(tcfg: TrainConfig, model_config: GenreConfig | None) -> _Run:
     speed = Speed.for_device(device) if tcfg.speed == "auto" else Speed.from_way(tcfg.speed)
     module = StageModule(model, tcfg.stage, tcfg.surface_weight, tcfg.sph_loss, tcfg.depth_weight,
                          tcfg.sph_teacher, tcfg.depth_dropout, tcfg.depth_gradient_weight, tcfg.outline_weight,
-                         speed, tcfg.hull_grad_width, tcfg.depth_lr_scale, tcfg.normals_weight).to(device)
+                         speed, tcfg.hull_grad_width, tcfg.depth_lr_scale, tcfg.normals_weight,
+                         tcfg.depth_offset_weight).to(device)
     apply_speed(model, speed)
     if speed.depth_channels_last:  # a training-only head on the depth net's features runs as the depth net does
         module.aux.to(memory_format=torch.channels_last)

@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -11,10 +13,36 @@ from genre_backend.geometry.spherical import pad_sph
 from genre_backend.nets.inpaint_net import RADIUS_SCALE
 from genre_backend.validation import check_tensor
 
-__all__ = ["DEPTH_GRADIENT_STRIDES", "OUTLINE_STEP", "depth_gradient_loss", "outline_loss", "sph_loss", "voxel_loss"]
+__all__ = ["DEPTH_GRADIENT_STRIDES", "OUTLINE_STEP", "depth_gradient_loss", "depth_mse", "outline_loss", "sph_loss", "voxel_loss"]
 
 
 DEPTH_GRADIENT_STRIDES = (1, 2, 4, 8)
+
+
+def depth_mse(pred: torch.Tensor, true: torch.Tensor, valid: torch.Tensor, offset_weight: float = 1.0) -> torch.Tensor:
+    """The depth's squared error over the valid pixels, its per-view offset weighed ``offset_weight`` times.
+
+    pred, true: (B, H, W) depth; valid: (B, H, W) bool.  Each view's error
+    ``e = pred - true`` over its valid pixels splits exactly into its mean
+    ``m`` (the offset along the view) and the rest (the relief):
+    ``sum e² = sum (e - m)² + n m²``.  The loss is
+    ``(sum over views of sum (e - m)² + offset_weight · n m²) / (valid pixels)``:
+    at 1 the plain MSE over the batch's valid pixels; at 0 a constant error
+    costs nothing (scale-invariant losses weigh the offset down likewise: Eigen
+    et al., NeurIPS 2014).  Returns a scalar tensor.
+    """
+    check_tensor("pred", pred, ("B", "H", "W"))
+    check_tensor("true", true, tuple(pred.shape))
+    check_tensor("valid", valid, tuple(pred.shape), floating=False, finite=False)
+    if not (isinstance(offset_weight, (int, float)) and not isinstance(offset_weight, bool)
+            and math.isfinite(offset_weight) and offset_weight >= 0):
+        raise ValueError(f"offset_weight: expected a finite number >= 0, got {offset_weight!r}")
+    v = valid.to(pred.dtype)
+    err = (pred - true) * v
+    n = v.sum(dim=(1, 2))
+    mean = err.sum(dim=(1, 2)) / n.clamp(min=1)
+    relief = (((err - mean[:, None, None]) * v) ** 2).sum()
+    return (relief + offset_weight * (n * mean ** 2).sum()) / n.sum().clamp(min=1)
 
 
 def depth_gradient_loss(pred: torch.Tensor, true: torch.Tensor, valid: torch.Tensor,

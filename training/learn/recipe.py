@@ -67,6 +67,9 @@ class StageRecipe:
     depth_weight: float = documented(0.0, "joint: the depth net's own loss (depth and silhouette) added with this weight")
     depth_gradient_weight: float = documented(0.0, "depth, joint: this weight times the multi-scale gradient matching term "
                                                    "added to the depth's MSE (0: the MSE alone)")
+    depth_offset_weight: float = documented(1.0, "depth, joint: the depth's MSE splits exactly into each view's offset "
+                                                 "(its error's mean over the mask) and its relief (the rest); the offset "
+                                                 "counts this many times (1: the plain MSE; below 1 the relief weighs more)")
     normals_weight: float = documented(0.0, "depth: this weight times the loss (1 - cos) of a training-only normals head "
                                             "on the depth net's encoder (training.learn.normals; 0: no head)")
     outline_weight: float = documented(0.0, "refine, joint: this weight times the BCE between the predicted and the true "
@@ -103,7 +106,7 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
             raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
-        for name in ("depth_weight", "depth_gradient_weight", "normals_weight", "outline_weight", "depth_lr_scale"):
+        for name in ("depth_weight", "depth_gradient_weight", "depth_offset_weight", "normals_weight", "outline_weight", "depth_lr_scale"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")

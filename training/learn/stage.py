@@ -12,7 +12,7 @@ from genre_backend.geometry.spherical import crop_sph, hull_ramp, pad_sph
 from genre_backend.nets.model import GenRe, save_model
 
 from .burst import REFERENCE_SPEED, Speed
-from .losses import depth_gradient_loss, outline_loss, sph_loss, voxel_loss
+from .losses import depth_gradient_loss, depth_mse, outline_loss, sph_loss, voxel_loss
 from .normals import NormalsHead, depth_normals, normals_loss
 
 __all__ = ["BASELINE_STAGES", "StageModule", "hull_trimmed"]
@@ -43,13 +43,14 @@ class StageModule(nn.Module):
     def __init__(self, model: GenRe, stage: str, surface_weight: float, sph_loss: str = "mse", depth_weight: float = 0.0,
                  sph_teacher: float = 0.0, depth_dropout: float = 0.0, depth_gradient_weight: float = 0.0,
                  outline_weight: float = 0.0, speed: Speed = REFERENCE_SPEED, hull_grad_width: float = 1.0,
-                 depth_lr_scale: float = 1.0, normals_weight: float = 0.0):
+                 depth_lr_scale: float = 1.0, normals_weight: float = 0.0, depth_offset_weight: float = 1.0):
         super().__init__()
         # bf16 autocast per net as ``speed`` says (the nets' memory format is burst.apply_speed's); the losses in fp32
         self.speed = speed
         self.model, self.stage, self.surface_weight, self.sph_loss_kind = model, stage, surface_weight, sph_loss
         self.depth_weight = depth_weight  # the joint stage: the depth net's own loss, added with this weight
         self.depth_gradient_weight = depth_gradient_weight  # the depth loss's gradient matching term
+        self.depth_offset_weight = depth_offset_weight  # the depth MSE's offset part counts this many times (losses.depth_mse)
         self.hull_grad_width = hull_grad_width  # the trim's gradient ramp (hull_trimmed), for weights storing sph_hull_carve
         self.outline_weight = outline_weight  # refine, joint: the grid's silhouette through the camera (losses.outline_loss)
         if outline_weight > 0 and stage not in ("refine", "joint"):
@@ -134,8 +135,7 @@ class StageModule(nn.Module):
     def depth_loss(self, out, batch):
         valid = batch["depth"] > 0
         scale = self.model.config.network.depth_output_scale
-        err = ((out["depth"] - batch["depth"]) * scale) ** 2
-        l_depth = (err * valid).sum() / valid.sum().clamp(min=1)
+        l_depth = depth_mse(out["depth"] * scale, batch["depth"] * scale, valid, self.depth_offset_weight)
         l_sil = F.binary_cross_entropy_with_logits(out["silhouette_logits"], batch["mask"].float())
         terms = {"depth_mse": l_depth, "silhouette_bce": l_sil}
         loss = l_depth + l_sil

@@ -34,6 +34,7 @@ class TrainConfig:
     sph_loss: str | None = None
     depth_weight: float | None = None
     depth_gradient_weight: float | None = None
+    depth_offset_weight: float | None = None
     normals_weight: float | None = None
     outline_weight: float | None = None
     lr_halflife: int | None = None

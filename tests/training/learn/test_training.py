@@ -237,6 +237,53 @@ def test_the_depth_gradient_weight_adds_exactly_its_term(tiny_views):
 
 
 
+def test_depth_mse_splits_each_views_error_into_its_offset_and_its_relief():
+    from training.learn.losses import depth_mse
+
+    g = torch.Generator().manual_seed(3)
+    pred, true = torch.rand(3, 9, 7, generator=g), torch.rand(3, 9, 7, generator=g)
+    valid = torch.rand(3, 9, 7, generator=g) > 0.4
+    valid[2] = False  # a view with nothing valid adds nothing
+    plain = float((((pred - true) ** 2) * valid).sum() / valid.sum())
+    assert float(depth_mse(pred, true, valid)) == pytest.approx(plain, rel=1e-6)  # weight 1: the plain MSE
+    # written out view by view, in float64
+    for w in (0.0, 0.1, 2.5):
+        total = 0.0
+        for b in range(3):
+            e = (pred[b] - true[b]).double()[valid[b]]
+            if e.numel():
+                m = float(e.mean())
+                total += float(((e - m) ** 2).sum()) + w * e.numel() * m * m
+        assert float(depth_mse(pred, true, valid, w)) == pytest.approx(total / int(valid.sum()), rel=1e-5)
+    # an offset per view (plus anything outside the mask) costs nothing at weight 0 and its square at weight 1
+    shift = torch.tensor([0.3, -1.2, 7.0]).view(3, 1, 1)
+    moved = torch.where(valid, true + shift, true + 50.0)
+    assert float(depth_mse(moved, true, valid, 0.0)) == pytest.approx(0.0, abs=1e-6)
+    n = valid.sum(dim=(1, 2)).double()
+    assert float(depth_mse(moved, true, valid, 1.0)) == pytest.approx(float((n * shift.view(3).double() ** 2).sum() / n.sum()), rel=1e-5)
+    assert float(depth_mse(pred, true, torch.zeros_like(valid))) == 0.0  # nothing valid: 0, not NaN
+    with pytest.raises(ValueError, match="offset_weight"):
+        depth_mse(pred, true, valid, -1.0)
+
+
+def test_the_depth_offset_weight_reaches_the_depth_stages_loss(tiny_views):
+    from training.data.dataset import ViewDataset, find_views
+    from training.learn.losses import depth_mse
+
+    data = ViewDataset(find_views(tiny_views), TINY)
+    batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
+    model = GenRe(TINY).eval()
+    scale = TINY.network.depth_output_scale
+    with torch.no_grad():
+        out = model.depth_net(batch["rgb"])
+        for w in (1.0, 0.1):
+            _, terms = StageModule(model, "depth", 0.1, depth_offset_weight=w).eval().depth_loss(out, batch)
+            own = depth_mse(out["depth"] * scale, batch["depth"] * scale, batch["depth"] > 0, w)
+            assert float(terms["depth_mse"]) == pytest.approx(float(own), rel=1e-6)
+        low = StageModule(model, "depth", 0.1, depth_offset_weight=0.1).eval().depth_loss(out, batch)[1]["depth_mse"]
+        full = StageModule(model, "depth", 0.1).eval().depth_loss(out, batch)[1]["depth_mse"]
+    assert float(low) < float(full)  # an untrained net is off in offset too: weighing it down lowers the term
+
 def test_outline_loss_is_zero_at_the_truth_and_charges_a_part_left_out():
     from genre_backend.config import get_preset
     from training.learn.losses import outline_loss
