@@ -236,7 +236,6 @@ def test_the_depth_gradient_weight_adds_exactly_its_term(tiny_views):
     assert torch.allclose(weighted - plain, 3.0 * own, rtol=1e-5, atol=1e-6)
 
 
-
 def test_depth_mse_splits_each_views_error_into_its_offset_and_its_relief():
     from training.learn.losses import depth_mse
 
@@ -274,15 +273,17 @@ def test_the_depth_offset_weight_reaches_the_depth_stages_loss(tiny_views):
     batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
     model = GenRe(TINY).eval()
     scale = TINY.network.depth_output_scale
+    terms = {}
     with torch.no_grad():
         out = model.depth_net(batch["rgb"])
         for w in (1.0, 0.1):
-            _, terms = StageModule(model, "depth", 0.1, depth_offset_weight=w).eval().depth_loss(out, batch)
+            terms[w] = float(StageModule(model, "depth", 0.1, depth_offset_weight=w).eval().depth_loss(out, batch)[1]["depth_mse"])
             own = depth_mse(out["depth"] * scale, batch["depth"] * scale, batch["depth"] > 0, w)
-            assert float(terms["depth_mse"]) == pytest.approx(float(own), rel=1e-6)
-        low = StageModule(model, "depth", 0.1, depth_offset_weight=0.1).eval().depth_loss(out, batch)[1]["depth_mse"]
-        full = StageModule(model, "depth", 0.1).eval().depth_loss(out, batch)[1]["depth_mse"]
-    assert float(low) < float(full)  # an untrained net is off in offset too: weighing it down lowers the term
+            assert terms[w] == pytest.approx(float(own), rel=1e-6)
+        default = float(StageModule(model, "depth", 0.1).eval().depth_loss(out, batch)[1]["depth_mse"])
+    assert default == terms[1.0]  # the stage's default weight is 1: the plain MSE
+    assert terms[0.1] < terms[1.0]  # an untrained net is off in offset too: weighing it down lowers the term
+
 
 def test_outline_loss_is_zero_at_the_truth_and_charges_a_part_left_out():
     from genre_backend.config import get_preset
