@@ -7,7 +7,7 @@ import struct
 import numpy as np
 import pytest
 
-from training.data.readers import read_3ds, read_ac3d
+from training.data.readers import read_3ds, read_ac3d, read_pmd
 from training.data.readers.ac3d import read_ac3d_parts, triangulate_polygon
 
 CUBE_VERTS = [(x, y, z) for x in (0, 1) for y in (0, 1) for z in (0, 1)]
@@ -205,3 +205,59 @@ def test_3ds_face_index_out_of_range():
     bad = _chunk(0x4D4D, _chunk(0x3D3D, _object_3ds("bad", [(0, 0, 0), (1, 0, 0)], [(0, 1, 5)], None)))
     with pytest.raises(ValueError, match="refers to vertex"):
         read_3ds(bad)
+
+
+# --- 0 A.D. .pmd: files written here from the layout in training/data/readers/pmd.py, read back exactly
+
+
+def _file_pmd(positions, faces, uvs, *, version=4, n_uv=1, bones=0, size_delta=0) -> bytes:
+    """A PMD file: each vertex's normal is +z and its UV sets are ``uv``, ``uv + 10``, …; one bone blend."""
+    body = struct.pack("<I", len(positions)) + (struct.pack("<I", n_uv) if version >= 4 else b"")
+    for p, uv in zip(positions, uvs):
+        sets = b"".join(struct.pack("<2f", uv[0] + 10 * k, uv[1] + 10 * k) for k in range(n_uv))
+        body += struct.pack("<6f", *p, 0, 0, 1) + sets + bytes((0, 255, 255, 255)) + struct.pack("<4f", 1, 0, 0, 0)
+    body += struct.pack("<I", len(faces)) + b"".join(struct.pack("<3H", *f) for f in faces)
+    body += struct.pack("<I", bones) + b"".join(struct.pack("<7f", k, 0, 0, 0, 0, 0, 1) for k in range(bones))
+    body += struct.pack("<I", 0) if version >= 2 else b""  # no prop points
+    return b"PSMD" + struct.pack("<II", version, len(body) + size_delta) + body
+
+
+_TETRA = [(0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 3.0, 0.0), (0.0, 0.0, 4.0)]
+_TETRA_FACES = [(0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3)]
+_TETRA_UV = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.5, 0.5)]
+
+
+@pytest.mark.parametrize("version, n_uv", [(3, 1), (4, 1), (4, 2)])
+def test_pmd_tetrahedron_read_back(tmp_path, version, n_uv):
+    path = tmp_path / "tetra.pmd"
+    path.write_bytes(_file_pmd(_TETRA, _TETRA_FACES, _TETRA_UV, version=version, n_uv=n_uv, bones=2))
+    mesh = read_pmd(path)
+    np.testing.assert_array_equal(mesh.vertices, _TETRA)
+    np.testing.assert_array_equal(mesh.faces, _TETRA_FACES)
+    np.testing.assert_array_equal(mesh.metadata["uv"], _TETRA_UV)  # the first UV set, whatever follows it
+    assert mesh.metadata["bones"] == 2 and mesh.metadata["pmd_version"] == version
+    assert mesh.is_watertight and mesh.volume == pytest.approx(2 * 3 * 4 / 6)  # the corner tetrahedron, outward faces
+
+
+@pytest.mark.parametrize(
+    "payload, message",
+    [
+        (b"PSMX" + bytes(20), "not a PMD file"),
+        (_file_pmd(_TETRA, _TETRA_FACES, _TETRA_UV, version=5), "version 5"),
+        (_file_pmd(_TETRA, _TETRA_FACES, _TETRA_UV, size_delta=8), "declares"),
+        (_file_pmd(_TETRA, [(0, 1, 4)], _TETRA_UV), "uses vertex 4 of 4"),
+        (_file_pmd(_TETRA, [], _TETRA_UV), "no triangles"),
+        (_file_pmd([(0.0, float("nan"), 0.0)] + _TETRA[1:], _TETRA_FACES, _TETRA_UV), "non-finite"),
+    ],
+)
+def test_pmd_bad_input_raises_value_error(payload, message):
+    with pytest.raises(ValueError, match=message):
+        read_pmd(payload)
+
+
+def test_pmd_truncated_file_names_the_part():
+    whole = _file_pmd(_TETRA, _TETRA_FACES, _TETRA_UV)
+    cut = whole[:60]
+    cut = cut[:8] + struct.pack("<I", len(cut) - 12) + cut[12:]  # a consistent size, so the cut itself is what fails
+    with pytest.raises(ValueError, match="truncated in the vertices"):
+        read_pmd(cut)
