@@ -47,6 +47,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from .source_bytes import source_bytes
+
 __all__ = ["AC3DPart", "read_ac3d", "read_ac3d_parts", "merge_parts", "triangulate_polygon"]
 
 _TOKEN = re.compile(r'"[^"]*"|\S+')
@@ -330,13 +332,7 @@ def read_ac3d_parts(
     Raises:
         ValueError: not an AC3D file, or a malformed/truncated one.
     """
-    if isinstance(source, (bytes, bytearray)):
-        raw, label = bytes(source), "<bytes>"
-    else:
-        path = Path(source)
-        if not path.is_file():
-            raise ValueError(f"{path}: no such file")
-        raw, label = path.read_bytes(), str(path)
+    raw, label = source_bytes(source)
     text = raw.decode("latin-1")
     lines = text.splitlines()
     if not lines or not lines[0].startswith("AC3D"):

@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from .source_bytes import source_bytes
+
 __all__ = ["read_pmd"]
 
 _MAGIC = b"PSMD"
@@ -52,13 +54,7 @@ def read_pmd(source: str | Path | bytes) -> trimesh.Trimesh:
             inconsistent one, a face index outside the vertices, non-finite
             positions, or no triangles.
     """
-    if isinstance(source, (bytes, bytearray, memoryview)):
-        data, label = bytes(source), "<bytes>"
-    else:
-        path = Path(source)
-        if not path.is_file():
-            raise ValueError(f"{path}: no such file")
-        data, label = path.read_bytes(), str(path)
+    data, label = source_bytes(source)
     if len(data) < _HEADER + 4 or data[:4] != _MAGIC:
         raise ValueError(f"{label}: not a PMD file (no PSMD magic)")
     version, size = struct.unpack_from("<II", data, 4)

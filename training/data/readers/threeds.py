@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from .source_bytes import source_bytes
+
 __all__ = ["read_3ds"]
 
 _MAIN, _EDITOR, _OBJECT, _TRIMESH = 0x4D4D, 0x3D3D, 0x4000, 0x4100
@@ -124,13 +126,7 @@ def read_3ds(source: str | Path | bytes) -> trimesh.Trimesh:
     Raises:
         ValueError: not a 3DS file, a truncated/malformed one, or no triangles.
     """
-    if isinstance(source, (bytes, bytearray)):
-        data, label = bytes(source), "<bytes>"
-    else:
-        path = Path(source)
-        if not path.is_file():
-            raise ValueError(f"{path}: no such file")
-        data, label = path.read_bytes(), str(path)
+    data, label = source_bytes(source)
     if len(data) < 6 or struct.unpack_from("<H", data, 0)[0] != _MAIN:
         raise ValueError(f"{label}: not a 3DS file (no 0x4D4D main chunk)")
     try:
