@@ -42,7 +42,7 @@ from genre_backend.atomic import atomic_write_bytes, atomic_write_text
 
 from .sources import ShapeRecord, rotation_to_list
 from .views import read_manifest
-from .sources import crrcsim, flightgear, gl117, procedural, sweethome3d, torcs, trigger_rally
+from .sources import crrcsim, flightgear, gl117, procedural, sweethome3d, torcs, trigger_rally, zeroad
 
 __all__ = [
     "REPO_ROOT",
@@ -87,6 +87,7 @@ SOURCES = {
     "gl117": gl117,
     "trigger_rally": trigger_rally,
     "procedural": procedural,
+    "zeroad": zeroad,
 }
 DEBIAN_PACKAGES: tuple[str, ...] = tuple(p for m in SOURCES.values() for p in m.PACKAGES)
 
