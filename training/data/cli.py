@@ -129,7 +129,7 @@ def format_credits(manifest: dict, split: str) -> str:
 
 
 def _parser(prog: str) -> argparse.ArgumentParser:
-    from .corpus import DEBIAN_PACKAGES, SOURCES
+    from .corpus import DEBIAN_PACKAGES, OPT_IN_SOURCES, SOURCES
 
     parser = argparse.ArgumentParser(prog=prog, description="Fetch, build and inspect the training corpus.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -150,7 +150,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                    help=f"packages (default: {' '.join(BACKGROUND_PACKAGES)})")
 
     p = sub.add_parser("build", parents=[common], help="normalise, classify, split; write corpus/manifest.json")
-    p.add_argument("--sources", nargs="+", choices=list(SOURCES), default=None, help="Debian sources to use (default: all)")
+    p.add_argument("--sources", nargs="+", choices=list(SOURCES), default=None, help="Debian sources to use (default: all but the opt-in "
+                   + ", ".join(OPT_IN_SOURCES) + ", built in a home of its own: docs/data.md)")
     p.add_argument("--no-debian", action="store_true", help="use only --shapenet/--folder sources")
     p.add_argument("--shapenet", default=None, metavar="DIR", help="a ShapeNetCore v1/v2 folder")
     p.add_argument("--shapenet-front", default="+z", help="ShapeNet's front axis (default +z; up is +y)")
