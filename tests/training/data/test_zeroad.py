@@ -144,3 +144,13 @@ def test_corpus_build_gives_own_classes_outside_the_protocol(tmp_path):
     skipped = {s["id"]: s["reason"] for s in manifest["skipped"]}
     assert "cut-out texture" in skipped["zeroad-props-bush_1"]
     assert manifest["splits"]["train"] == [] and manifest["splits"]["unseen"] == []
+
+
+def test_default_build_leaves_the_opt_in_source_out(tmp_path):
+    unpacked = tmp_path / "cache" / "unpacked"
+    unpacked.mkdir(parents=True)
+    _write_package(unpacked)
+    assert "0ad-data" not in corpus.DEBIAN_PACKAGES  # `genre data fetch` does not download it unless named
+    records = corpus.enumerate_records(tmp_path, sources=None)
+    assert not [r for r in records if r.source == "zeroad"]
+    assert len([r for r in corpus.enumerate_records(tmp_path, sources=["zeroad"])]) == 3
