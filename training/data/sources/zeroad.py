@@ -29,10 +29,11 @@ Family: the file stem without trailing variant marks (``_a``, ``_2``, ``_new``),
 so ``athen_house_a``/``athen_house_b`` and ``bush_1``/``bush_2`` stay on one side
 of the product split and are compared as near-duplicates.
 
-Frame: Y up; the game's units and buildings face +Z (their doors and the
-units' faces point along +Z in the actor viewer), so ``(x, y, z) -> (x, -z, y)``
-(:data:`Y_UP_FRONT_POS_Z`).  Training mirrors half the views, so the
-handedness of the game's frame does not matter to the nets.
+Frame: Y up (checked by eye on renders: buildings stand on their ground), and
+the front taken as +Z, so ``(x, y, z) -> (x, -z, y)`` (:data:`Y_UP_FRONT_POS_Z`).
+The heading is not checked: the renders' cameras circle the object, and
+training mirrors half the views, so neither the front nor the handedness of
+the game's frame matters to the nets.
 """
 
 from __future__ import annotations
