@@ -79,20 +79,15 @@ def _variant_pairs(root: ET.Element) -> list[tuple[str, str | None]]:
     """``(mesh, baseTex or None)`` of every variant of an actor that names a mesh; a variant without a
     texture of its own takes the actor's first (its groups often pick mesh and texture apart)."""
     pairs: list[tuple[str, str | None]] = []
-    textures: list[str] = []
+    first: str | None = None
     for variant in root.iter("variant"):
         mesh = (variant.findtext("mesh") or "").strip()
-        base = None
-        for texture in variant.iter("texture"):
-            if texture.get("name") == "baseTex" and texture.get("file"):
-                base = texture.get("file").strip()
-                textures.append(base)
-                break
+        base = next((t.get("file").strip() for t in variant.iter("texture")
+                     if t.get("name") == "baseTex" and t.get("file")), None)
+        first = first or base
         if mesh:
             pairs.append((mesh, base))
-    if textures:
-        pairs = [(m, b or textures[0]) for m, b in pairs]
-    return pairs
+    return [(m, b or first) for m, b in pairs]
 
 
 def mesh_textures(archive: zipfile.ZipFile) -> tuple[dict[str, str], set[str]]:
@@ -105,23 +100,23 @@ def mesh_textures(archive: zipfile.ZipFile) -> tuple[dict[str, str], set[str]]:
     """
     names = set(archive.namelist())
     textures: dict[str, str] = {}
-    cut_out: set[str] = set()
+    alpha_tested: set[str] = set()
     for name in sorted(n for n in names if n.startswith("art/actors/") and n.endswith(".xml")):
         try:
             root = ET.fromstring(archive.read(name))
         except ET.ParseError:
             continue
         material = (root.findtext("material") or "").strip()
-        alpha = bool(_ALPHA_TESTED.search(Path(material).stem)) if material else False
+        alpha = bool(material) and bool(_ALPHA_TESTED.search(Path(material).stem))
         for mesh, base in _variant_pairs(root):
             member = _MESHES + mesh + ".cached.pmd" if mesh.endswith(".dae") else _MESHES + mesh
             if alpha:
-                cut_out.add(member)
+                alpha_tested.add(member)
             if base and member not in textures:
                 dds = _SKINS + base + ".cached.dds"
                 if dds in names:
                     textures[member] = dds
-    return textures, cut_out
+    return textures, alpha_tested
 
 
 def _archive(path: str) -> zipfile.ZipFile:
@@ -173,7 +168,7 @@ def enumerate_shapes(root: Path) -> list[ShapeRecord]:
     if not zip_path.is_file():
         return []
     archive = _archive(str(zip_path))
-    textures, cut_out = mesh_textures(archive)
+    textures, alpha_tested = mesh_textures(archive)
     records = []
     for member in sorted(textures):
         if not member.endswith(_SUFFIX):
@@ -201,7 +196,7 @@ def enumerate_shapes(root: Path) -> list[ShapeRecord]:
                 category=folder,
                 class_hint=CLASSES[folder],
                 rotation=Y_UP_FRONT_POS_Z,
-                load=lambda z=str(zip_path), m=member, t=textures[member], a=member in cut_out: _load(z, m, t, a),
+                load=lambda z=str(zip_path), m=member, t=textures[member], a=member in alpha_tested: _load(z, m, t, a),
                 family=f"zeroad-{folder}-{family_of(stem)}",
                 extra={"texture": textures[member][len(_SKINS):]},
             )
