@@ -28,6 +28,13 @@ samples is the view of the scene reflected in the view frame's x = 0 plane
 spherical maps and voxels reflected with them.  The reflection is exact (the
 camera's principal point is the image centre), so a mirrored sample is a view
 the renderer could have made of the mirrored object, with every target true.
+
+**Stretched samples** (``stretch`` > 0, training only, the depth stage's samples: no targets): that share of the
+samples has its picture, film alpha and depth scaled left to right about the image centre
+(:func:`stretch_sample`).  With the principal point at the centre, the image of the object scaled by ``s`` along
+the camera's x axis is the image scaled by ``s`` across, at the same planar depth: so a stretched sample is the
+exact picture and depth of a wider or narrower object (only its shading keeps the old surface's normals), a
+new shape for a depth net whose unseen error follows the number of shapes it saw.
 """
 
 from __future__ import annotations
@@ -46,7 +53,10 @@ from .targets import load_targets
 from .views import ViewRef, find_views, view_paths
 
 __all__ = ["ViewRef", "ViewDataset", "find_views", "split_views", "augment_rgb", "photometric", "composite_alpha",
-           "mirror_sample"]
+           "mirror_sample", "stretch_sample", "STRETCH_RANGE"]
+
+# the factor of a stretched sample is log-uniform in this range (then cut so the object stays in the frame)
+STRETCH_RANGE = (0.7, 1.4)
 
 # ImageNet RGB PCA (eigenvalues, eigenvectors as columns): the standard "lighting" noise
 _PCA_EIGVAL = torch.tensor([0.2175, 0.0188, 0.0045])
@@ -89,6 +99,48 @@ def mirror_sample(sample: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     if "voxels" in out:
         out["voxels"] = mirror_voxels(out["voxels"])
     return out
+
+
+def stretch_sample(rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor, factor: float
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The view of the object scaled by ``factor`` along the camera's x axis (see the module docstring).
+
+    ``rgb`` (3, S, S), ``alpha`` (S, S) film alpha and ``depth`` (S, S) planar depth are resampled at column
+    ``c + (j - c) / factor`` (c the image centre): the picture and alpha bilinearly, the depth as the blend of
+    the neighbouring columns that are object (never blended with the background's); a pixel is object where the
+    nearest column is, and its returned alpha is on that side of 0.5, so that the mask and the depth agree.
+    """
+    size = rgb.shape[-1]
+    x = (torch.arange(size, dtype=torch.float32) + 0.5) / size * 2.0 - 1.0  # align_corners=False pixel centres
+    grid = torch.stack(torch.broadcast_tensors((x / factor)[None, :], x[:, None]), dim=-1)[None]  # (1, S, S, 2): (x, y)
+
+    def sample(t: torch.Tensor, mode: str) -> torch.Tensor:
+        return torch.nn.functional.grid_sample(t[None], grid, mode=mode, padding_mode="zeros", align_corners=False)[0]
+
+    rgb_s = sample(rgb, "bilinear")
+    alpha_b = sample(alpha[None], "bilinear")[0]
+    object_n = sample(alpha[None], "nearest")[0] > 0.5
+    # the depth: the blend of the two neighbouring columns that are object (never of object and background)
+    inside = ((alpha > 0.5) & (depth > 0)).to(depth.dtype)
+    weight = sample(inside[None], "bilinear")[0]
+    blend = sample((depth * inside)[None], "bilinear")[0] / weight.clamp(min=1e-6)
+    object_n &= weight > 0
+    # the blend's own side of 0.5 must agree with the nearest column's: the silhouette follows the depth
+    alpha_s = torch.where(object_n, alpha_b.clamp(min=0.5 + 1e-3), alpha_b.clamp(max=0.5))
+    return rgb_s, alpha_s, torch.where(object_n, blend, torch.zeros_like(blend))
+
+
+def stretch_factor(alpha: torch.Tensor, gen: torch.Generator) -> float:
+    """A factor log-uniform in :data:`STRETCH_RANGE`, cut so that the object (alpha > 0) stays a pixel inside the frame."""
+    lo, hi = STRETCH_RANGE
+    factor = float(np.exp(np.log(lo) + float(torch.rand((), generator=gen)) * (np.log(hi) - np.log(lo))))
+    cols = torch.nonzero(alpha.amax(dim=0) > 0).flatten()
+    if cols.numel():
+        size = alpha.shape[-1]
+        centre = size / 2.0
+        reach = float(torch.maximum(centre - cols.min(), cols.max() + 1 - centre))  # the object's half-width in pixels
+        factor = min(factor, (centre - 1.0) / max(reach, 1.0))
+    return factor
 
 
 def augment_rgb(rgb: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
@@ -158,13 +210,17 @@ class ViewDataset(torch.utils.data.Dataset):
     """Samples of a list of views; ``sample(i, seed)`` applies seeded augmentation when ``augment``."""
 
     def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True,
-                 backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0):
+                 backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0, stretch: float = 0.0):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
         if not 0.0 <= photo_fraction <= 1.0:
             raise ValueError(f"photo_fraction: expected a value in [0, 1], got {photo_fraction}")
         if isinstance(mirror, bool) or not 0.0 <= mirror <= 1.0:
             raise ValueError(f"mirror: expected a share in [0, 1], got {mirror!r}")
+        if isinstance(stretch, bool) or not 0.0 <= stretch <= 1.0:
+            raise ValueError(f"stretch: expected a share in [0, 1], got {stretch!r}")
+        if stretch > 0 and targets:
+            raise ValueError("stretch: only samples without targets (the depth stage's) can be stretched")
         if photo_fraction > 0 and backgrounds is None:
             raise ValueError("photo_fraction > 0 needs backgrounds (a BackgroundBank of 'genre data backgrounds')")
         self.refs = list(refs)
@@ -174,6 +230,7 @@ class ViewDataset(torch.utils.data.Dataset):
         self.backgrounds = backgrounds if photo_fraction > 0 else None
         self.photo_fraction = photo_fraction
         self.mirror = mirror  # the share of seeded samples mirrored (independent of ``augment``: it is geometric)
+        self.stretch = stretch  # the share of seeded samples stretched across (geometric too)
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -196,6 +253,12 @@ class ViewDataset(torch.utils.data.Dataset):
             depth = torch.from_numpy(z["depth"].astype(np.float32))
             alpha = torch.from_numpy(z["mask"].astype(np.float32))
             mask = alpha > 0.5
+        # the stretch's own seeded draws (as the mirror's), before the colour's, so that stream stays as it was
+        if self.stretch > 0 and seed is not None:
+            gen_s = torch.Generator().manual_seed((seed * 2246822519 + 131) % (1 << 63))
+            if float(torch.rand((), generator=gen_s)) < self.stretch:
+                rgb, alpha, depth = stretch_sample(rgb, alpha, depth, stretch_factor(alpha, gen_s))
+                mask = alpha > 0.5
         if self.augment and seed is not None:
             gen = torch.Generator().manual_seed(seed)
             if self.backgrounds is None:

@@ -51,7 +51,8 @@ class StageRecipe:
 
     Each field's ``help`` (its metadata) says what it does; ``genre train --help`` prints it.  Photo compositing:
     :mod:`training.data.dataset`; ``mirror`` is an exact augmentation (:func:`training.data.dataset.mirror_sample`);
-    ``sph_teacher``, ``depth_dropout`` and ``mirror`` touch neither validation nor inference.
+    ``stretch`` (:func:`training.data.dataset.stretch_sample`) too; ``sph_teacher``, ``depth_dropout``, ``mirror`` and
+    ``stretch`` touch neither validation nor inference.
     """
 
     lr: float = field(metadata={"help": "Adam's learning rate"})
@@ -81,6 +82,9 @@ class StageRecipe:
     depth_dropout: float = documented(0.0, "refine, joint: the share of training samples whose depth voxels are emptied, so "
                                            "that the refiner builds them from the spherical map alone")
     mirror: float = documented(0.0, "the share of training samples reflected left to right, targets with them")
+    stretch: float = documented(0.0, "depth: the share of training samples whose object is stretched across (a new "
+                                     "object's exact view: picture, depth and mask scaled left to right about the "
+                                     "image centre by a factor log-uniform in [0.7, 1.4], kept inside the frame)")
     hull_grad_width: float = documented(1.0, "refine, joint, for weights that store sph_hull_carve: the trim's gradient "
                                              "reaches voxels within half this many voxels of the map's hull (a ramp this "
                                              "wide, straight through; the forward pass stays the mesh option's)")
@@ -100,7 +104,7 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1), got {getattr(self, name)!r}")
         if not (math.isfinite(self.surface_weight) and self.surface_weight >= 0):
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
-        for name in ("photo_fraction", "sph_teacher", "depth_dropout", "mirror"):
+        for name in ("photo_fraction", "sph_teacher", "depth_dropout", "mirror", "stretch"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")

@@ -41,6 +41,7 @@ class TrainConfig:
     sph_teacher: float | None = None
     depth_dropout: float | None = None
     mirror: float | None = None
+    stretch: float | None = None
     hull_grad_width: float | None = None
     depth_lr_scale: float | None = None
     target: str | None = documented(None, f"the voxel representation to train (GeometryConfig.target: {' or '.join(TARGETS)}); "
@@ -87,6 +88,8 @@ class TrainConfig:
             raise ValueError(f"sph_teacher: only the refine stage feeds the true map, not {self.stage!r}")
         if self.depth_dropout > 0 and self.stage not in ("refine", "joint"):
             raise ValueError(f"depth_dropout: only the refine and joint stages have depth voxels to empty, not {self.stage!r}")
+        if self.stretch > 0 and self.stage != "depth":
+            raise ValueError(f"stretch: only the depth stage's samples (picture, depth, mask) can be stretched, not {self.stage!r}'s")
         if self.outline_weight > 0 and self.stage not in ("refine", "joint"):
             raise ValueError(f"outline_weight: only the refine and joint stages train GenRe's grid, not {self.stage!r}")
         if isinstance(self.data, (list, tuple)):
