@@ -30,6 +30,15 @@ def _model_with_norms_moved(seed: int) -> GenRe:
     return model
 
 
+def _both_depths(old: GenRe, new: GenRe, train_mode: bool, seed: int) -> tuple[dict, dict]:
+    """Both depth nets' outputs on the same random pictures, in train or eval mode."""
+    old.train(train_mode)
+    new.train(train_mode)
+    rgb = torch.rand(3, 3, 64, 64, generator=torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        return old.depth_net(rgb), new.depth_net(rgb)
+
+
 @pytest.fixture(scope="module")
 def narrow():
     return _model_with_norms_moved(0)
@@ -40,17 +49,13 @@ def test_the_wider_net_predicts_what_the_narrower_one_did(narrow, train_mode):
     wide = widen_depth_net(narrow, (16, 24, 48, 96), seed=3)
     assert wide.config.network.depth_widths == (16, 24, 48, 96)
     assert sum(p.numel() for p in wide.depth_net.parameters()) > 2 * sum(p.numel() for p in narrow.depth_net.parameters())
-    narrow.train(train_mode)
-    wide.train(train_mode)
-    rgb = torch.rand(3, 3, 64, 64, generator=torch.Generator().manual_seed(1))
-    with torch.no_grad():
-        a, b = narrow.depth_net(rgb), wide.depth_net(rgb)
+    a, b = _both_depths(narrow, wide, train_mode, seed=1)
     for head in ("depth", "silhouette_logits"):
         scale = a[head].abs().max().item()
         assert (a[head] - b[head]).abs().max().item() <= 1e-5 * max(scale, 1.0), head
     # the new channels are not dead: the deepest features of the wide encoder differ from zero there
     with torch.no_grad():
-        _, deep = wide.depth_net.encoder(rgb)
+        _, deep = wide.depth_net.encoder(torch.rand(3, 3, 64, 64, generator=torch.Generator().manual_seed(1)))
     assert deep[:, 64:].abs().mean() > 1e-3
     narrow.eval()
 
@@ -144,16 +149,12 @@ def test_the_command_writes_a_wider_file_that_loads(narrow_refiner, tmp_path):
 def test_the_guided_depth_net_predicts_what_the_unguided_one_did_then_learns_from_the_guide(narrow, train_mode):
     guided = add_salient_guide(narrow)
     assert guided.config.network.depth_salient_guide and not narrow.config.network.depth_salient_guide
-    narrow.train(train_mode)
-    guided.train(train_mode)
-    rgb = torch.rand(2, 3, 64, 64, generator=torch.Generator().manual_seed(4))
-    with torch.no_grad():
-        a, b = narrow.depth_net(rgb), guided.depth_net(rgb)
+    a, b = _both_depths(narrow, guided, train_mode, seed=4)
     for head in ("depth", "silhouette_logits"):
         assert torch.equal(a[head], b[head]), head
     # every guide convolution gets a gradient from the first step (the salient net's features are not zero)
     guided.train()
-    guided.depth_net(rgb)["depth"].square().mean().backward()
+    guided.depth_net(torch.rand(2, 3, 64, 64, generator=torch.Generator().manual_seed(4)))["depth"].square().mean().backward()
     for conv in guided.depth_net.guide:
         assert conv.weight.grad.abs().max() > 0
     with pytest.raises(ValueError, match="already"):
