@@ -179,6 +179,12 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     add_out(p, required=True, help="output folder")
     p.add_argument("--per-kind", type=int, default=100, help="shapes of each kind (default 100)")
     add_seed(p, help="seed of the shapes (default 0)")
+    p = sub.add_parser("furniture", parents=[common], help="procedural tables, chairs, stools, benches, shelves, cabinets, beds, "
+                       "sofas and lamps built from parts, for the depth net (training/data/sources/furniture.py): "
+                       "OUT/manifest.json + meshes")
+    add_out(p, required=True, help="output folder")
+    p.add_argument("--per-kind", type=int, default=100, help="shapes of each kind (default 100)")
+    add_seed(p, help="seed of the shapes (default 0)")
     sub.add_parser("render", add_help=False, help="render views of the corpus (training/render/cli.py)")
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")
     sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/data/show.py)")
@@ -312,7 +318,7 @@ def _procedural_shapes(args: argparse.Namespace, prog: str, make, kinds, limit: 
         return 2
     entries = [make(kind, k) for kind in kinds for k in range(args.per_kind)]
     _write_shapes(Path(args.out), entries, split, [group], seed, source=source)
-    print(f"{prog}: {len(entries)} {what} lying on the ground plane in {args.out}")
+    print(f"{prog}: {len(entries)} {what} on the ground plane in {args.out}")
     return 0
 
 
@@ -340,8 +346,17 @@ def _squashed(args: argparse.Namespace, prog: str) -> int:
                               "product-train", "squashed", args.seed, "procedural-squashed", "squashed training shapes")
 
 
+def _furniture(args: argparse.Namespace, prog: str) -> int:
+    """``genre data furniture``: procedural furniture and lamps standing upright, split ``product-train``."""
+    from .sources.furniture import KINDS, furniture_shape
+
+    return _procedural_shapes(args, prog, lambda kind, k: furniture_shape(kind, k, args.seed), KINDS, 5000,
+                              "product-train", "furniture", args.seed, "procedural-furniture", "furniture shapes")
+
+
 _COMMANDS = {"fetch": _fetch, "backgrounds": _backgrounds, "build": _build, "stats": _from_manifest,
-             "credits": _from_manifest, "flat-test": _flat_test, "thin": _thin, "squashed": _squashed}
+             "credits": _from_manifest, "flat-test": _flat_test, "thin": _thin, "squashed": _squashed,
+             "furniture": _furniture}
 
 
 def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dict | None = None) -> int:
