@@ -5,7 +5,9 @@ seen (about the −0.15 power of the count; ``results/stage_errors/depth.md``), 
 than the corpus has, and shapes of other kinds (0 A.D.'s buildings), features of a net trained on photographs and
 stretched views did not stand in.  These are new shapes of the product's kinds, as many as asked for: each one
 assembled from boxes, cylinders and lathed profiles in proportions drawn at random, in the styles real furniture
-is made in.  Like the thin and squashed shapes they are never a corpus source or a test shape
+is made in.  The corpus's own procedural source (:mod:`.procedural`, kind ``assembly``) holds a fixed 80 such
+assemblies of six kinds in the corpus's splits, and changing it would change the corpus; this module makes as many as
+a training run asks for, of nine kinds and more styles.  Like the thin and squashed shapes they are never a corpus source or a test shape
 (``genre data furniture`` writes them for ``genre data render``), and their classes are ``procedural-<kind>``, so
 no evaluation mistakes them for the corpus's chairs and tables.
 
