@@ -359,9 +359,6 @@ class NetworkConfig:
     refiner_max_width: int = 0
     # the depth net predicts planar depth as distance + output / depth_output_scale
     depth_output_scale: float = 10.0
-    # the depth net also reads the pretrained salient-object net's inner features (genre_backend.photo.salient),
-    # each added to a skip through a 1x1 convolution; false: RGB alone (weights stored without the key)
-    depth_salient_guide: bool = False
 
     def __post_init__(self):
         for name in ("depth_widths", "inpaint_widths"):
@@ -382,8 +379,6 @@ class NetworkConfig:
             raise ValueError(f"network.refiner_full_nf: expected an int in [0, {MAX_REFINER_FULL_NF}] (0: no full-resolution "
                              f"branch), got {_shown(self.refiner_full_nf)}")
         _check_float("network.depth_output_scale", self.depth_output_scale, 0.0, 1e6, lo_open=True)
-        if not isinstance(self.depth_salient_guide, bool):
-            raise ValueError(f"network.depth_salient_guide: expected true or false, got {_shown(self.depth_salient_guide)}")
 
 
 @dataclass(frozen=True)

@@ -3,12 +3,6 @@
 A U-ResNet-18 (:mod:`genre_backend.nets.uresnet`) with one decoder per output
 head: ``depth`` (planar depth in world units, ``distance + output / scale``)
 and ``silhouette`` (logits of the object mask).  Trained from scratch.
-
-With ``network.depth_salient_guide`` the decoders also read the inner features of the pretrained
-salient-object net (U²-Netp, :func:`genre_backend.photo.salient.SalientNet.features`, trained on real
-photographs), computed without gradient from the same picture: each of its five feature maps is added to the
-encoder's skip or deepest features of the same size through a 1×1 convolution, zero at initialisation (so a
-net given the guide computes what it did without it until it trains).
 """
 
 from __future__ import annotations
@@ -17,7 +11,6 @@ import torch
 from torch import nn
 
 from ..config import GenreConfig
-from ..photo import salient
 from .uresnet import ResNetEncoder, UDecoder
 from ..validation import check_tensor
 
@@ -47,13 +40,6 @@ class DepthNet(nn.Module):
         self.scale = net.depth_output_scale
         self.encoder = ResNetEncoder(3, net.depth_widths)
         self.decoders = nn.ModuleDict({h: UDecoder(net.depth_widths, 1, net.depth_decoder_blocks) for h in self.HEADS})
-        self.guide = None
-        if net.depth_salient_guide:
-            w1, w2, w3, w4 = net.depth_widths
-            self.guide = nn.ModuleList(nn.Conv2d(salient.FEATURE_CHANNELS, w, 1) for w in (w1, w1, w2, w3, w4))
-            for conv in self.guide:
-                nn.init.zeros_(conv.weight)
-                nn.init.zeros_(conv.bias)
 
     def forward(self, rgb: torch.Tensor) -> dict[str, torch.Tensor]:
         """rgb: (B, 3, S, S) float in [0, 1].
@@ -67,13 +53,7 @@ class DepthNet(nn.Module):
         """The encoder's skips and deepest features for rgb (B, 3, S, S) in [0, 1]: what every head reads
         (and what a training-only head, :mod:`training.learn.normals`, reads beside them)."""
         check_tensor("rgb", rgb, ("B", 3, self.size, self.size))
-        skips, deep = self.encoder(normalize_rgb(rgb))
-        if self.guide is None:
-            return skips, deep
-        feats = salient.load().features(rgb.detach().float().cpu().numpy())
-        guided = [x + conv(torch.from_numpy(f).to(device=x.device, dtype=x.dtype, memory_format=torch.contiguous_format))
-                  for x, conv, f in zip([*skips, deep], self.guide, feats, strict=True)]
-        return guided[:4], guided[4]
+        return self.encoder(normalize_rgb(rgb))
 
     def decode(self, skips: list[torch.Tensor], deep: torch.Tensor) -> dict[str, torch.Tensor]:
         """The heads' outputs (:meth:`forward`'s) from :meth:`encode`'s features."""

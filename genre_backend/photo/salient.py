@@ -49,8 +49,6 @@ __all__ = [
     "MEAN",
     "STD",
     "SALIENT_THRESHOLD",
-    "FEATURE_NAMES",
-    "FEATURE_CHANNELS",
     "SalientNetError",
     "model_path",
     "file_md5",
@@ -66,11 +64,6 @@ MODEL_MD5 = "8e83ca70e441ab06c318d82300c84806"
 # the net's input side (it was trained at 320²) and the name of its fused output in the ONNX graph
 INPUT_SIDE = 320
 OUTPUT_NAME = "1959"
-# the net's inner features that guide the depth net (``network.depth_salient_guide``,
-# :mod:`genre_backend.nets.depth_net`): the outputs of its decoder stages De_2, De_3, De_4, De_5 and of its
-# encoder stage En_6 in this ONNX file, 64 channels each, at 1/2, 1/4, 1/8, 1/16 and 1/32 of the input's side
-FEATURE_NAMES = ("onnx_node!Add_789", "onnx_node!Add_659", "onnx_node!Add_554", "onnx_node!Add_474", "onnx_node!Add_434")
-FEATURE_CHANNELS = 64
 # ImageNet's channel means and standard deviations (RGB, 0–1), the net's input normalisation
 MEAN = (0.485, 0.456, 0.406)
 STD = (0.229, 0.224, 0.225)
@@ -150,20 +143,6 @@ class SalientNet:
             out = np.asarray(self._net.forward(OUTPUT_NAME), np.float32).reshape(INPUT_SIDE, INPUT_SIDE)
         lo, hi = float(out.min()), float(out.max())
         return (out - lo) / (hi - lo) if hi > lo else np.zeros_like(out)
-
-    def features(self, rgb: np.ndarray) -> list[np.ndarray]:
-        """(B, 3, S, S) float32 RGB in [0, 1], S a multiple of 32, → the net's inner features
-        (:data:`FEATURE_NAMES`): five float32 arrays (B, 64, S / 2^k, S / 2^k), k = 1 … 5.
-
-        The net runs at the images' own side, not at :data:`INPUT_SIDE`: the depth net reads them at its
-        resolution, and at 128² this costs about 30 ms an image on two cores.
-        """
-        x = (np.asarray(rgb, np.float32) - np.asarray(MEAN, np.float32).reshape(1, 3, 1, 1)) / np.asarray(
-            STD, np.float32).reshape(1, 3, 1, 1)
-        with self._lock:
-            self._net.setInput(np.ascontiguousarray(x))
-            outs = self._net.forward(list(FEATURE_NAMES))
-        return [np.asarray(o, np.float32) for o in outs]
 
     def __call__(self, rgb: np.ndarray, size: tuple[int, int] | None = None) -> np.ndarray:
         """(H, W, 3) uint8 photo → (h, w) float32 saliency in [0, 1] at ``size`` (w, h; default the photo's)."""

@@ -18,11 +18,7 @@ each decoder stage's fusion, is mapped part by part.
 fit diagnostic says capacity is the limit"); its concatenations are the decoder's ``[up, skip]`` too, and its
 fully-connected bottleneck keeps its size as long as the deepest level's width does (``refiner_max_width``).
 
-:func:`add_salient_guide` grows the depth net's guide by the salient-object net (``network.depth_salient_guide``,
-:mod:`genre_backend.nets.depth_net`): its 1×1 convolutions start at zero, so the outputs are the old ones too.
-
-``python -m training.learn.widen --weights W --refiner-nf 12 --out WIDE.safetensors`` writes a widened file
-(``--depth-widths``, ``--refiner-nf``, ``--salient-guide``, in any combination).
+``python -m training.learn.widen --weights W --refiner-nf 12 --out WIDE.safetensors`` writes a widened file.
 """
 
 from __future__ import annotations
@@ -36,7 +32,7 @@ from genre_backend.nets.model import GenRe
 from genre_backend.nets.refiner import VoxelRefiner
 from genre_backend.nets.uresnet import _UpStage
 
-__all__ = ["widen_depth_net", "widen_refiner", "add_salient_guide", "main"]
+__all__ = ["widen_depth_net", "widen_refiner", "main"]
 
 _CONVS = (nn.Conv2d, nn.ConvTranspose2d, nn.Conv3d, nn.ConvTranspose3d)
 _NORMS = (nn.BatchNorm2d, nn.BatchNorm3d)
@@ -154,19 +150,6 @@ def widen_refiner(model: GenRe, nf: int, seed: int = 0) -> GenRe:
     return wide.train(model.training)
 
 
-def add_salient_guide(model: GenRe) -> GenRe:
-    """A copy of ``model`` whose depth net also reads the salient-object net's features (zero-initialised, so it
-    predicts what the old one did); every other weight is copied."""
-    if model.config.network.depth_salient_guide:
-        raise ValueError("the depth net already reads the salient-object net's features")
-    guided = GenRe(dataclasses.replace(model.config, network=dataclasses.replace(
-        model.config.network, depth_salient_guide=True)))
-    missing, unexpected = guided.load_state_dict(model.state_dict(), strict=False)
-    if unexpected or any(not k.startswith("depth_net.guide.") for k in missing):
-        raise ValueError(f"the nets do not fit: {unexpected or missing}")
-    return guided.train(model.training)
-
-
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
@@ -180,21 +163,17 @@ def main(argv: list[str] | None = None) -> int:
     add_weights(parser, required=True, help="the weights to widen: a shipped name ('default') or a .safetensors file")
     parser.add_argument("--depth-widths", type=int, nargs=4, metavar="W", help="the depth net's four new widths")
     parser.add_argument("--refiner-nf", type=int, help="the refiner's new base width (network.refiner_nf)")
-    parser.add_argument("--salient-guide", action="store_true",
-                        help="let the depth net read the salient-object net's features (network.depth_salient_guide)")
     add_seed(parser, default=0, help="the new channels' initialisation (default 0)")
     add_out(parser, required=True, help="the widened weights file to write")
     args = parser.parse_args(argv)
-    if not (args.depth_widths or args.refiner_nf or args.salient_guide):
-        parser.error("nothing to widen: give --depth-widths, --refiner-nf and/or --salient-guide")
+    if not (args.depth_widths or args.refiner_nf):
+        parser.error("nothing to widen: give --depth-widths and/or --refiner-nf")
     source = resolve_weights(args.weights)
     model = load_model(source)
     if args.depth_widths:
         model = widen_depth_net(model, tuple(args.depth_widths), seed=args.seed)
     if args.refiner_nf:
         model = widen_refiner(model, args.refiner_nf, seed=args.seed)
-    if args.salient_guide:
-        model = add_salient_guide(model)
     save_model(model, args.out, extra={**weights_extra(source), "widened_from": str(args.weights)})
     print(f"wrote {args.out}: " + ", ".join(
         f"{name} {sum(p.numel() for p in getattr(model, name).parameters()) / 1e6:.2f} M parameters"

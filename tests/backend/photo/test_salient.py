@@ -126,25 +126,6 @@ def test_preprocessing_and_the_net_output_named_1959(fresh_net):
     assert np.abs(other - out).mean() > 0.01  # (0.04 on the bus)
 
 
-def test_the_inner_features_the_depth_net_reads(fresh_net):
-    """Five 64-channel maps at 1/2 … 1/32 of the side, each image's own: a batch gives what each image gives alone."""
-    import cv2
-
-    rgb, _ = _photo(PHOTOS, "bus")
-    pics = [cv2.resize(rgb, (128, 128), interpolation=cv2.INTER_AREA), cv2.resize(rgb[:, ::-1], (128, 128))]
-    x = np.stack([p.astype(np.float32).transpose(2, 0, 1) / 255.0 for p in pics])
-    net = salient.load()
-    both = net.features(x)
-    assert [f.shape for f in both] == [(2, 64, 128 >> k, 128 >> k) for k in range(1, 6)]
-    for i in range(2):
-        alone = net.features(x[i:i + 1])
-        for a, b in zip(alone, both):
-            assert np.abs(a[0] - b[i]).max() <= 1e-4 * max(1.0, float(np.abs(a).max()))
-    # the two pictures differ, and so do their features (no constant maps)
-    assert all(float(np.abs(f[0] - f[1]).mean()) > 1e-3 for f in both)
-    assert [f.shape[2] for f in net.features(np.zeros((1, 3, 320, 320), np.float32))] == [160, 80, 40, 20, 10]
-
-
 @pytest.mark.slow
 def test_the_net_on_the_nine_photos_automatic_and_box():
     """docs/masks.md's table: automatic mean ≥ 0.92, box ≥ 0.925, no box worse than its automatic mask by 0.01."""

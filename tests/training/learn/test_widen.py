@@ -9,7 +9,7 @@ import torch
 
 from genre_backend.nets.model import GenRe
 from support.tiny_data import TINY
-from training.learn.widen import add_salient_guide, widen_depth_net, widen_refiner
+from training.learn.widen import widen_depth_net, widen_refiner
 
 # the tiny preset with one basic block after each decoder fusion (as the shipped depth net has)
 CONFIG = dataclasses.replace(TINY, network=dataclasses.replace(TINY.network, depth_decoder_blocks=1))
@@ -133,30 +133,11 @@ def test_the_command_writes_a_wider_file_that_loads(narrow_refiner, tmp_path):
 
     src = save_model(narrow_refiner.eval(), tmp_path / "narrow.safetensors", extra={"threshold_from": "a rule"})
     assert main(["--weights", str(src), "--refiner-nf", "6", "--depth-widths", "8", "16", "32", "96",
-                 "--salient-guide", "--out", str(tmp_path / "wide.safetensors")]) == 0
+                 "--out", str(tmp_path / "wide.safetensors")]) == 0
     wide = load_model(tmp_path / "wide.safetensors")
     assert wide.config.network.refiner_nf == 6 and wide.config.network.depth_widths == (8, 16, 32, 96)
-    assert wide.config.network.depth_salient_guide and not load_model(src).config.network.depth_salient_guide
-    assert len(wide.depth_net.guide) == 5
     grids = (torch.rand(1, 2, 32, 32, 32, generator=torch.Generator().manual_seed(6)) > 0.7).float()
     with torch.no_grad():
         assert torch.allclose(narrow_refiner.refiner(grids), wide.refiner(grids), atol=1e-5)
     from genre_backend.weights_file import weights_extra
     assert weights_extra(tmp_path / "wide.safetensors")["threshold_from"] == "a rule"
-
-
-@pytest.mark.parametrize("train_mode", [False, True])
-def test_the_guided_depth_net_predicts_what_the_unguided_one_did_then_learns_from_the_guide(narrow, train_mode):
-    guided = add_salient_guide(narrow)
-    assert guided.config.network.depth_salient_guide and not narrow.config.network.depth_salient_guide
-    a, b = _both_depths(narrow, guided, train_mode, seed=4)
-    for head in ("depth", "silhouette_logits"):
-        assert torch.equal(a[head], b[head]), head
-    # every guide convolution gets a gradient from the first step (the salient net's features are not zero)
-    guided.train()
-    guided.depth_net(torch.rand(2, 3, 64, 64, generator=torch.Generator().manual_seed(4)))["depth"].square().mean().backward()
-    for conv in guided.depth_net.guide:
-        assert conv.weight.grad.abs().max() > 0
-    with pytest.raises(ValueError, match="already"):
-        add_salient_guide(guided)
-    narrow.eval()
