@@ -24,6 +24,18 @@ def _stands(mesh) -> bool:
     return bool(Delaunay(hull).find_simplex(centre) >= 0)
 
 
+def _covers(tri_xy: np.ndarray, point: np.ndarray) -> bool:
+    """Whether any triangle's projection (T, 3, 2) contains ``point`` (2,) (barycentric signs)."""
+    a, b, c = tri_xy[:, 0], tri_xy[:, 1], tri_xy[:, 2]
+
+    def cross(u, v, p):
+        return (v[:, 0] - u[:, 0]) * (p[1] - u[:, 1]) - (v[:, 1] - u[:, 1]) * (p[0] - u[:, 0])
+
+    d = np.stack([cross(a, b, point), cross(b, c, point), cross(c, a, point)], axis=1)
+    inside = (d >= 0).all(axis=1) | (d <= 0).all(axis=1)
+    return bool((inside & (np.abs(d).sum(axis=1) > 0)).any())  # (a vertical triangle's projection covers nothing)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_style_of_every_kind_is_normalised_upright_and_stands(kind):
     styles = STYLES[kind]
@@ -49,11 +61,13 @@ def test_the_kinds_have_their_proportions():
     assert shelf[2] > shelf[0] > shelf[1]  # tall, wide, shallow
     assert lamp[2] > max(lamp[0], lamp[1])  # taller than wide
     assert bench[0] > 1.5 * max(bench[1], bench[2])  # long
-    # a chair's seat: the chair is more than a third of its height empty under the seat (between the legs)
-    _, _, chair = furniture_shape("chair", 0)
-    v = chair.vertices
-    low = v[:, 2] < v[:, 2].min() + 0.3 * np.ptp(v[:, 2])
-    assert np.ptp(v[low][:, 0]) > 0.3  # legs apart, not a block
+    # chairs and tables stand on legs: no triangle in their lowest 30 % covers the point under the middle (a block would)
+    for kind, k in (("chair", 0), ("chair", 1), ("table", 0)):
+        mesh = furniture_shape(kind, k)[2]
+        z = mesh.vertices[:, 2]
+        tri = mesh.triangles[(mesh.triangles[:, :, 2] < z.min() + 0.3 * np.ptp(z)).all(axis=1)]
+        assert len(tri) and not _covers(tri[:, :, :2], np.zeros(2)), (kind, k)
+    assert _covers(furniture_shape("cabinet", 1)[2].triangles[:, :, :2], np.zeros(2))  # a plinth cabinet does
 
 
 def test_the_command_writes_meshes_and_a_manifest_the_renderer_reads(tmp_path, capsys):
