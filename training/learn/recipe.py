@@ -60,6 +60,8 @@ class StageRecipe:
     batch_size: int = documented(4, "samples a step, per process")
     beta1: float = documented(0.5, "Adam's beta1")
     beta2: float = documented(0.9, "Adam's beta2")
+    weight_decay: float = documented(0.0, "decoupled weight decay (AdamW) of the convolutions' and linear maps' weights: "
+                                          "each shrinks by lr times this a step (0: Adam, no decay)")
     surface_weight: float = documented(10.0, "voxel stages: the weight of the BCE over the true shell's voxels, added to the "
                                              "BCE over the whole grid")
     photo_fraction: float = documented(0.0, "the share of samples composited over real photographs, with a camera's faults "
@@ -110,7 +112,8 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")
         if isinstance(self.lr_halflife, bool) or not isinstance(self.lr_halflife, int) or self.lr_halflife < 0:
             raise ValueError(f"lr_halflife: expected an int >= 0 (0: a constant rate), got {self.lr_halflife!r}")
-        for name in ("depth_weight", "depth_gradient_weight", "depth_offset_weight", "normals_weight", "outline_weight", "depth_lr_scale"):
+        for name in ("depth_weight", "depth_gradient_weight", "depth_offset_weight", "normals_weight", "outline_weight", "depth_lr_scale",
+                     "weight_decay"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")

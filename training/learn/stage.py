@@ -101,15 +101,23 @@ class StageModule(nn.Module):
                 p.requires_grad_(False)
             self.frozen.append(self.baseline.depth_net)
 
-    def param_groups(self) -> list[dict]:
+    def param_groups(self, weight_decay: float = 0.0) -> list[dict]:
         """The optimiser's parameter groups: every trainable parameter in one, or, where the depth net trains at
-        its own share of the rate (``depth_lr_scale``), the depth net's in a second group with that ``lr_scale``."""
+        its own share of the rate (``depth_lr_scale``), the depth net's in a second group with that ``lr_scale``.
+        With ``weight_decay`` > 0 each group splits in two: the weights of convolutions and linear maps (more than
+        one dimension) decay at that rate, biases and batch-norm scales (one dimension) do not."""
         depth = {id(p) for p in self.model.depth_net.parameters()}
         trainable = [p for p in self.parameters() if p.requires_grad]
         if self.depth_lr_scale in (0.0, 1.0):
-            return [{"params": trainable}]
-        return [{"params": [p for p in trainable if id(p) not in depth], "lr_scale": 1.0},
-                {"params": [p for p in trainable if id(p) in depth], "lr_scale": self.depth_lr_scale}]
+            groups = [{"params": trainable}]
+        else:
+            groups = [{"params": [p for p in trainable if id(p) not in depth], "lr_scale": 1.0},
+                      {"params": [p for p in trainable if id(p) in depth], "lr_scale": self.depth_lr_scale}]
+        if weight_decay == 0:
+            return groups
+        return [{**group, "params": [p for p in group["params"] if (p.dim() > 1) == decays],
+                 "weight_decay": weight_decay if decays else 0.0}
+                for group in groups for decays in (True, False)]
 
     def checkpointed(self) -> tuple[str, nn.Module]:
         """The key prefix and module a checkpoint keeps: GenRe's nets, or for a baseline stage the

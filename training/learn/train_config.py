@@ -29,6 +29,7 @@ class TrainConfig:
     lr: float | None = None
     beta1: float | None = None
     beta2: float | None = None
+    weight_decay: float | None = None
     surface_weight: float | None = None
     photo_fraction: float | None = None
     sph_loss: str | None = None

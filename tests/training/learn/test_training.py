@@ -78,6 +78,35 @@ def test_a_joint_stage_trains_the_depth_net_at_its_share_of_the_rate(tiny_views,
         StageModule(GenRe(TINY), "joint", 0.1, depth_weight=1.0, depth_lr_scale=0.0)
 
 
+def test_weight_decay_shrinks_the_maps_weights_and_leaves_biases_and_scales():
+    module = StageModule(GenRe(TINY), "depth", 0.1)
+    trainable = [p for p in module.parameters() if p.requires_grad]
+    assert module.param_groups() == [{"params": trainable}]  # no decay: one group, as before
+    groups = module.param_groups(0.5)
+    assert sorted(id(p) for g in groups for p in g["params"]) == sorted(map(id, trainable))
+    assert {g["weight_decay"] for g in groups} == {0.5, 0.0}
+    for g in groups:
+        assert g["params"] and all((p.dim() > 1) == (g["weight_decay"] > 0) for p in g["params"])
+    # with zero gradients Adam's step is zero, so each weight only decays: a conv's by 1 - lr * 0.5, a bias not at all
+    before = [p.detach().clone() for p in trainable]
+    opt = torch.optim.AdamW(groups, lr=0.01)
+    for p in trainable:
+        p.grad = torch.zeros_like(p)
+    opt.step()
+    for p, b in zip(trainable, before):
+        torch.testing.assert_close(p.detach(), b * (0.995 if p.dim() > 1 else 1.0), rtol=1e-6, atol=0)
+
+
+@pytest.mark.slow
+def test_a_stage_with_weight_decay_keeps_it_across_a_resume(tiny_views, tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("depth", tiny_views, run, steps=2, lr=1e-3, weight_decay=0.5), TINY)
+    train(_cfg("depth", tiny_views, run, steps=3, lr=1e-3, weight_decay=0.5), TINY)
+    state = json.loads((run / "depth" / "checkpoint" / "state.json").read_text())
+    assert state["step"] == 3 and [g["weight_decay"] for g in state["param_groups"]] == [0.5, 0.0]
+    assert json.loads((run / "depth" / "config.json").read_text())["train"]["weight_decay"] == 0.5
+
+
 @pytest.mark.slow
 def test_gradients_reach_the_depth_net_through_the_projections(tiny_views):
     from training.data.dataset import ViewDataset, find_views
