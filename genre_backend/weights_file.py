@@ -31,6 +31,9 @@ __all__ = [
     "check_state",
     "stored_config",
     "parse_json_bounded",
+    "STORAGES",
+    "INT8_SCALE_SUFFIX",
+    "pack_int8",
 ]
 
 
@@ -113,6 +116,57 @@ def _not_a_file(path: Path, what: str) -> str | None:
     return f"{path}: is {kind}, not a {what} file" if kind != "not a regular file" else f"{path}: not a regular file"
 
 
+# How a file stores its floating-point weights (the metadata's ``storage``; none means float32):
+# float16 halves the file; int8 quarters the large weights (see :func:`pack_int8`), the rest float16.
+STORAGES = ("float32", "float16", "int8")
+INT8_SCALE_SUFFIX = ".int8_scale"
+INT8_MIN_ELEMENTS = 1024  # smaller tensors (biases, batch-norm scales) are not worth a scale per row
+
+
+def pack_int8(state: dict) -> dict:
+    """``state`` with every floating-point tensor of two or more dimensions and at least 1,024 elements stored as
+    int8 rows: symmetric, one float32 scale per output channel (``NAME`` + :data:`INT8_SCALE_SUFFIX`, the row's
+    largest magnitude ÷ 127), so each value is within half a scale step of the original.  The rest is returned
+    as it is.  :func:`read_weights` undoes it for a file whose metadata says ``storage: int8``."""
+    import torch
+
+    out = {}
+    for name, tensor in state.items():
+        if not tensor.is_floating_point() or tensor.dim() < 2 or tensor.numel() < INT8_MIN_ELEMENTS:
+            out[name] = tensor
+            continue
+        rows = tensor.detach().float().reshape(tensor.shape[0], -1)
+        scale = rows.abs().amax(dim=1) / 127.0
+        scale = torch.where(scale > 0, scale, torch.ones_like(scale))  # an all-zero row stores zeros
+        out[name] = torch.round(rows / scale[:, None]).clamp(-127, 127).to(torch.int8).reshape(tensor.shape)
+        out[name + INT8_SCALE_SUFFIX] = scale
+    return out
+
+
+def _unpack_int8(state: dict, path: Path) -> dict:
+    """The float32 tensors a :func:`pack_int8` state stands for; a scale without its rows, rows that are not
+    int8, or a scale of the wrong shape or not finite and positive is a :class:`WeightsError`."""
+    import torch
+
+    out = {}
+    for name, tensor in state.items():
+        if name.endswith(INT8_SCALE_SUFFIX):
+            if name[: -len(INT8_SCALE_SUFFIX)] not in state:
+                raise WeightsError(f"{path}: int8 storage: scale {name} has no tensor")
+            continue
+        scale = state.get(name + INT8_SCALE_SUFFIX)
+        if scale is None:
+            out[name] = tensor
+            continue
+        if tensor.dtype != torch.int8 or tensor.dim() < 2:
+            raise WeightsError(f"{path}: int8 storage: tensor {name} has a scale but is not int8 rows")
+        if (not scale.is_floating_point() or tuple(scale.shape) != (tensor.shape[0],)
+                or not bool(torch.isfinite(scale).all()) or not bool((scale > 0).all())):
+            raise WeightsError(f"{path}: int8 storage: scale of {name} is not {tensor.shape[0]} finite positive values")
+        out[name] = (tensor.float().reshape(tensor.shape[0], -1) * scale.float()[:, None]).reshape(tensor.shape)
+    return out
+
+
 def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weights") -> tuple[dict, dict[str, str]]:
     """Read a file written by :func:`save_weights`: ``(state, meta)`` on the CPU.
 
@@ -138,6 +192,11 @@ def read_weights(path: str | os.PathLike, expect_format: str, what: str = "weigh
         raise WeightsError(f"{path}: not a readable safetensors {what} file ({exc.__class__.__name__}: {exc})") from None
     if meta.get("format") != expect_format:
         raise WeightsError(f"{path}: {what} format {meta.get('format')!r}, this version reads {expect_format!r}")
+    storage = meta.get("storage", "float32")
+    if storage not in STORAGES:
+        raise WeightsError(f"{path}: {what} storage {storage!r}, this version reads {', '.join(STORAGES)}")
+    if storage == "int8":
+        state = _unpack_int8(state, path)
     return state, meta
 
 

@@ -30,7 +30,8 @@ from .refiner import VoxelRefiner
 from ..geometry.spherical import depth_to_sph, mirror_sph, sph_to_voxels
 from ..validation import check_tensor
 from ..geometry.voxels import mirror_voxels, points_to_voxels
-from ..weights_file import WeightsError, check_state, read_weights, save_weights, stored_config
+from ..weights_file import (INT8_SCALE_SUFFIX, STORAGES, WeightsError, check_state, pack_int8, read_weights, save_weights,
+                            stored_config)
 
 __all__ = ["GenRe", "mirror_averaged", "mean_probability_logits", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError", "MAX_PARAMETERS"]
 
@@ -220,26 +221,33 @@ def _half_if_it_fits(name: str, tensor: torch.Tensor) -> torch.Tensor:
     return half if bool(torch.isfinite(half).all()) else tensor
 
 
-def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None, *, half: bool = False) -> Path:
+def save_model(model: GenRe, path: str | os.PathLike, extra: dict | None = None, *, storage: str = "float32") -> Path:
     """Write ``path`` (.safetensors, config in its metadata) atomically, and ``path`` with .json beside it.
 
-    ``half``: store the floating-point weights as float16 (half the file).
-    The batch-norm statistics stay float32 (a running variance can exceed
-    float16's range, 65,504: one of the refiner's reaches 6e7), as does any
-    tensor that float16 cannot hold, and the step counters stay integers.
-    :func:`load_model` reads either into the float32 model, so inference
-    always computes in float32.
+    ``storage`` (one of :data:`~genre_backend.weights_file.STORAGES`):
+    ``float16`` stores the floating-point weights as float16 (half the file);
+    ``int8`` stores the large ones as int8 rows with a scale per output
+    channel (:func:`~genre_backend.weights_file.pack_int8`, about a quarter)
+    and the rest as float16.  The batch-norm statistics stay float32 (a
+    running variance can exceed float16's range, 65,504: one of the
+    refiner's reaches 6e7), as does any tensor that float16 cannot hold, and
+    the step counters stay integers.  :func:`load_model` reads any of them
+    into the float32 model, so inference always computes in float32.
     """
+    if storage not in STORAGES:
+        raise ValueError(f"storage {storage!r}: choose {', '.join(STORAGES)}")
     config = model.config.to_dict()
     meta = {"format": WEIGHTS_FORMAT, "config": json.dumps(config)}
     if extra:
         meta["extra"] = json.dumps(extra)
     state = model.state_dict()
-    if half:
-        state = {k: _half_if_it_fits(k, v) for k, v in state.items()}
-        meta["storage"] = "float16"
+    if storage == "int8":
+        state = pack_int8(state)  # (the batch-norm statistics are vectors, left as they are)
+    if storage != "float32":
+        state = {k: v if k.endswith(INT8_SCALE_SUFFIX) else _half_if_it_fits(k, v) for k, v in state.items()}
+        meta["storage"] = storage
     return save_weights(path, state, meta, {"format": WEIGHTS_FORMAT, "config": config, "extra": extra or {},
-                                            **({"storage": "float16"} if half else {})})
+                                            **({"storage": storage} if storage != "float32" else {})})
 
 
 # The most parameters a weights file's config may ask for, counted on the meta device before anything

@@ -189,7 +189,7 @@ CASES = [
 
 def test_the_undamaged_file_and_the_shipped_weights_load(good, tmp_path):
     assert load_model(good).config == TINY
-    half = save_model(load_model(good), tmp_path / "half.safetensors", half=True)
+    half = save_model(load_model(good), tmp_path / "half.safetensors", storage="float16")
     assert load_model(half).config == TINY
     for name in ("default", "protocol"):
         load_model(REPO / "genre_backend" / "weights" / f"{name}.safetensors")
@@ -274,3 +274,52 @@ def test_an_unexpected_error_at_load_is_still_one_line(good, tmp_path, monkeypat
     code = reconstruct_cli.main([str(_photo(tmp_path)), "-o", str(tmp_path / "m.obj"), "--weights", str(good)])
     out, err = capsys.readouterr()
     assert code == 1 and out == "" and err.count("\n") == 1 and err.rstrip().endswith("[internal]") and "disk on fire" in err
+
+
+def _int8_damages():
+    """Damages of an int8-stored file (``storage: int8``): its scales and its rows."""
+    from genre_backend.weights_file import INT8_SCALE_SUFFIX as S
+
+    def first_scale(state):
+        return sorted(k for k in state if k.endswith(S))[0]
+
+    def negative(state):
+        state[first_scale(state)][0] = -1.0
+
+    def short(state):
+        k = first_scale(state)
+        state[k] = state[k][:-1].clone()
+
+    def orphan(state):
+        del state[first_scale(state)[: -len(S)]]
+
+    def not_int8(state):
+        k = first_scale(state)[: -len(S)]
+        state[k] = state[k].float()
+
+    def nan(state):
+        state[first_scale(state)][0] = float("nan")
+
+    return [("scale_negative", negative, "finite positive"), ("scale_short", short, "finite positive"),
+            ("scale_orphan", orphan, "has no tensor"), ("rows_not_int8", not_int8, "not int8 rows"),
+            ("scale_nan", nan, "finite positive")]
+
+
+@pytest.mark.parametrize("name, change, text", _int8_damages(), ids=[d[0] for d in _int8_damages()])
+def test_a_damaged_int8_file_is_refused_whole_at_load(good, tmp_path, name, change, text):
+    packed = save_model(load_model(good), tmp_path / "int8.safetensors", storage="int8")
+    assert load_model(packed).config == TINY
+    meta, state = _parts(packed)
+    assert meta["storage"] == "int8"
+    change(state)
+    path = _write(tmp_path / f"{name}.safetensors", meta, state)
+    with pytest.raises(WeightsError, match=text) as exc:
+        load_model(path)
+    assert str(exc.value).startswith(f"{path}: ") and "\n" not in str(exc.value)
+
+
+def test_an_unknown_storage_is_refused(good, tmp_path):
+    meta, state = _parts(good)
+    path = _write(tmp_path / "int4.safetensors", {**meta, "storage": "int4"}, state)
+    with pytest.raises(WeightsError, match="storage 'int4'"):
+        load_model(path)

@@ -36,7 +36,7 @@ from pathlib import Path
 from genre_backend.config import SETTINGS
 from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, PROTOCOL_WEIGHTS_NAME, WEIGHTS_NAMES, named_weights
 from genre_backend.nets.model import WeightsError, load_model, save_model
-from genre_backend.arguments import add_out, add_weights
+from genre_backend.arguments import add_out, add_storage, add_weights
 
 __all__ = ["install", "main"]
 
@@ -75,7 +75,7 @@ def _threshold(thresholds: Path | float) -> float:
 
 
 def install(weights: Path, thresholds: Path | float, out: Path | None = None, *, name: str = PROTOCOL_WEIGHTS_NAME,
-            half: bool = False, **settings) -> float:
+            storage: str = "float32", **settings) -> float:
     """Copy ``weights`` to ``out`` (default: the shipped weights ``name``) with the seen-test threshold of GenRe.
 
     ``thresholds``: a ``thresholds.json`` of ``genre eval`` on seen-test views, or the level itself
@@ -84,8 +84,8 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     ``settings``: ``geometry`` fields to store, by name (``hole_closing=2``, ``sph_keep_seen=True``; ``None``: the
     weights' own), checked by the config; each is stored with how it was chosen (``extra.NAME_from``: a mesh option's
     field says it).  ``sph_hit_probability`` needs hit-head weights; the protocol weights never snap to regular shapes.
-    ``half``: store the weights as float16, the batch-norm statistics as float32 (``save_model(half=True)``:
-    half the file, read back into float32).
+    ``storage``: how the file stores the weights (``float16``: half the file; ``int8``: about a quarter;
+    :func:`~genre_backend.nets.model.save_model`), read back into float32.
     """
     if name not in WEIGHTS_NAMES:
         raise ValueError(f"unknown weights name {name!r}: choose {' or '.join(WEIGHTS_NAMES)}")
@@ -109,7 +109,7 @@ def install(weights: Path, thresholds: Path | float, out: Path | None = None, *,
     out.parent.mkdir(parents=True, exist_ok=True)
     extra = {"source": str(weights), "threshold_from": str(thresholds), "model": name,
              **{f"{k}_from": _chosen(k) for k in given}}
-    save_model(model, out, extra, half=half)
+    save_model(model, out, extra, storage=storage)
     if name == PROTOCOL_WEIGHTS_NAME and out.resolve() == shipped.resolve():
         interim = named_weights(DEFAULT_WEIGHTS_NAME)
         if interim.is_file() and _is_interim_copy_of_protocol(interim):
@@ -146,9 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sph-hit-probability", type=float, default=None, metavar="P",
                    help="store geometry.sph_hit_probability = P (the hit head's decision level, chosen by "
                         "scripts/stage_errors.py --hit-levels on seen-test views); default: the weights' own")
-    p.add_argument("--fp16", action="store_true",
-                   help="store the weights as float16 (half the file; inference still computes in float32; check the "
-                        "scores stay within 1e-3 CD of the float32 file's)")
+    add_storage(p)  # (check the scores stay within 1e-3 CD of the float32 file's)
     p.add_argument("--set", action="append", default=[], metavar="NAME=JSON",
                    help="store another geometry setting, e.g. --set sph_keep_seen=true (repeatable)")
     args = p.parse_args(argv)
@@ -168,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         given = {spec.weights: getattr(args, spec.weights) for spec in SETTINGS if spec.weights != "default_threshold"}
         t = install(args.weights, args.thresholds if args.thresholds is not None else args.threshold, out, name=args.name,
-                    half=args.fp16, **{**given, "sph_hit_probability": args.sph_hit_probability, **settings})
+                    storage=args.storage, **{**given, "sph_hit_probability": args.sph_hit_probability, **settings})
     except (ValueError, WeightsError, OSError) as exc:
         print(f"install: {exc}", file=sys.stderr)
         return 1

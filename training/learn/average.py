@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from genre_backend.arguments import add_out
+from genre_backend.arguments import add_out, add_storage
 from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.weights_file import WeightsError
 
@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None, prog: str = "genre train average") -> in
     ap.add_argument("files", nargs="+", help="GenRe weights files of one model (same nets; the first one's config is kept)")
     ap.add_argument("--mix", type=float, nargs="+", default=None, help="each file's share, one number per file (default: equal)")
     add_out(ap, required=True, help="the averaged weights file (.safetensors; a .json beside it)")
-    ap.add_argument("--fp16", action="store_true", help="store the weights as float16 (batch-norm statistics stay float32)")
+    add_storage(ap)
     args = ap.parse_args(argv)
     if Path(args.out).resolve() in {Path(f).resolve() for f in args.files}:
         ap.error("--out is one of the input files")
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None, prog: str = "genre train average") -> in
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
     extra = {"averaged": [str(f) for f in args.files], "mix": args.mix or [1.0] * len(args.files)}
-    save_model(model, args.out, extra, half=args.fp16)
+    save_model(model, args.out, extra, storage=args.storage)
     print(f"{len(models)} files averaged -> {args.out}")
     return 0
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from genre_backend.arguments import add_out, add_seed
+from genre_backend.arguments import add_out, add_seed, add_storage
 from genre_backend.nets.model import GenRe, load_model, save_model
 from genre_backend.weights_file import WeightsError
 
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None, prog: str = "genre train batch-norm") ->
     ap.add_argument("--batch-size", type=int, default=8, help="samples a batch, as one training process's (default: 8)")
     add_seed(ap, help="which batches (default: 0)")
     add_out(ap, required=True, help="the weights file with the new statistics (.safetensors; a .json beside it)")
-    ap.add_argument("--fp16", action="store_true", help="store the weights as float16 (batch-norm statistics stay float32)")
+    add_storage(ap)
     args = ap.parse_args(argv)
     if Path(args.out).resolve() == Path(args.weights).resolve():
         ap.error("--out is the input file")
@@ -122,6 +122,6 @@ def main(argv: list[str] | None = None, prog: str = "genre train batch-norm") ->
         return 2
     extra = {"batch_norm": {"from": Path(args.weights).name, "data": args.data, "recipe": args.recipe,
                             "batches": count, "batch_size": args.batch_size, "seed": args.seed}}
-    path = save_model(model, args.out, extra, half=args.fp16)
+    path = save_model(model, args.out, extra, storage=args.storage)
     print(f"{path}: {len(batch_norms(model))} batch-norm layers re-estimated on {count} batches of {args.batch_size}")
     return 0

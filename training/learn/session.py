@@ -276,7 +276,7 @@ def run_session(spec: SessionSpec, say=print) -> dict:
              "session_steps": done, "session_samples_per_s": done * batch / max(elapsed, 1e-9)}
         _save_state(folder, model, opt, m)
         save_model(model, folder / WEIGHTS, {"session": {k: m[k] for k in ("step", "samples", "recipe", "nets", "init")}},
-                   half=True)
+                   storage="float16")
         _write_log(folder / LOG, rows)
         return m
 

@@ -138,7 +138,7 @@ def test_weights_round_trip_and_bad_files(tmp_path):
 
 @pytest.mark.slow
 def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
-    """save_model(half=True): the weights stored as float16, the batch-norm statistics as float32, the step
+    """save_model(storage="float16"): the weights stored as float16, the batch-norm statistics as float32, the step
     counters as integers; load_model gives the float32 model with the weights rounded to float16, whose nets
     follow the original's within the rounding; a value float16 cannot hold is kept in float32."""
     from safetensors import safe_open
@@ -146,7 +146,7 @@ def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
     torch.manual_seed(0)
     model = GenRe(get_preset("default")).eval()
     full = save_model(model, tmp_path / "full.safetensors")
-    half = save_model(model, tmp_path / "half.safetensors", half=True)
+    half = save_model(model, tmp_path / "half.safetensors", storage="float16")
     assert 0.45 < half.stat().st_size / full.stat().st_size < 0.55
     with safe_open(str(half), framework="pt") as f:
         assert f.metadata()["storage"] == "float16"
@@ -173,9 +173,54 @@ def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
     bn = next(k for k in model.state_dict() if k.startswith("refiner") and k.endswith("running_var"))
     model.state_dict()[bn].fill_(6e7)
     model.state_dict()["refiner.skip.weight"].view(-1)[0] = 1e6  # a weight float16 cannot hold stays float32
-    again = load_model(save_model(model, tmp_path / "big.safetensors", half=True)).state_dict()
+    again = load_model(save_model(model, tmp_path / "big.safetensors", storage="float16")).state_dict()
     assert torch.equal(again[bn], model.state_dict()[bn])
     assert torch.equal(again["refiner.skip.weight"], model.state_dict()["refiner.skip.weight"])
+
+
+@pytest.mark.slow
+def test_int8_storage_quarters_the_large_weights_within_half_a_step(tmp_path):
+    """save_model(storage="int8"): every weight of two or more dimensions and 1,024 or more elements stored as int8
+    rows with one scale per output channel (the row's largest magnitude / 127), each value read back within half a
+    step of the original; the small tensors as float16, the batch-norm statistics exact; the nets follow the
+    original's within the rounding, and the file is about a quarter of the float32 one."""
+    from safetensors import safe_open
+    from genre_backend.weights_file import INT8_SCALE_SUFFIX
+
+    torch.manual_seed(0)
+    model = GenRe(get_preset("default")).eval()
+    full = save_model(model, tmp_path / "full.safetensors")
+    packed = save_model(model, tmp_path / "int8.safetensors", storage="int8")
+    assert 0.25 < packed.stat().st_size / full.stat().st_size < 0.30
+    with safe_open(str(packed), framework="pt") as f:
+        assert f.metadata()["storage"] == "int8"
+        kinds = {k: f.get_tensor(k).dtype for k in f.keys()}
+    loaded = load_model(packed).state_dict()
+    big = 0
+    for k, v in model.state_dict().items():
+        got = loaded[k]
+        assert got.dtype == v.dtype and got.shape == v.shape, k
+        if kinds[k] == torch.int8:
+            big += 1
+            assert v.dim() >= 2 and v.numel() >= 1024 and kinds[k + INT8_SCALE_SUFFIX] == torch.float32, k
+            rows = v.reshape(v.shape[0], -1)
+            step = rows.abs().amax(dim=1, keepdim=True) / 127
+            assert bool(((got.reshape(rows.shape) - rows).abs() <= step / 2 + 1e-7).all()), k
+        elif k.endswith(("running_mean", "running_var")) or not v.is_floating_point():
+            assert torch.equal(got, v), k
+        else:
+            assert v.dim() < 2 or v.numel() < 1024, k
+            assert torch.equal(got, v.to(torch.float16).to(v.dtype)), k
+    assert big >= 20
+    rgb = torch.rand(1, 3, 128, 128)
+    net = load_model(packed)
+    with torch.no_grad():
+        a = model(rgb)
+        depth = net(rgb).depth
+        full_map = net.inpaint_net(a.partial_sph)
+        logits = net.refine(a.vox_sph, a.vox_depth)
+    for got, want in ((depth, a.depth), (full_map, a.full_sph), (logits, a.logits)):
+        assert (got - want).abs().max() <= 5e-2 * want.abs().max(), (got - want).abs().max()
 
 
 @pytest.mark.slow

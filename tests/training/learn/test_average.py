@@ -59,7 +59,7 @@ def test_the_command_writes_a_file_that_loads(tmp_path, capsys):
     files = []
     for seed in (1, 2):
         files.append(tmp_path / f"s{seed}.safetensors")
-        save_model(_model(seed), files[-1], half=seed == 2)  # a float16 file averages with a float32 one
+        save_model(_model(seed), files[-1], storage="float16" if seed == 2 else "float32")  # a float16 file averages with a float32 one
     out = tmp_path / "avg.safetensors"
     assert main([str(f) for f in files] + ["--out", str(out)]) == 0
     got = load_model(out).state_dict()

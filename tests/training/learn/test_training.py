@@ -694,7 +694,7 @@ def test_install_stores_the_seen_test_threshold(tmp_path):
     with pytest.raises(ValueError, match="hole_closing"):
         install(src, 0.4, tmp_path / "bad.safetensors", hole_closing=99)
     # float16 storage: half the file, the same config, the weights rounded to float16
-    install(src, 0.4, tmp_path / "half.safetensors", half=True)
+    install(src, 0.4, tmp_path / "half.safetensors", storage="float16")
     assert (tmp_path / "half.safetensors").stat().st_size < 0.6 * (tmp_path / "level.safetensors").stat().st_size
     halved = load_model(tmp_path / "half.safetensors")
     assert halved.config == load_model(tmp_path / "level.safetensors").config
