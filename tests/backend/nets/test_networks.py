@@ -136,21 +136,39 @@ def test_weights_round_trip_and_bad_files(tmp_path):
         load_model(other)
 
 
-@pytest.mark.slow
-def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
-    """save_model(storage="float16"): the weights stored as float16, the batch-norm statistics as float32, the step
-    counters as integers; load_model gives the float32 model with the weights rounded to float16, whose nets
-    follow the original's within the rounding; a value float16 cannot hold is kept in float32."""
+def _stored(tmp_path, storage: str):
+    """A random default-preset model, its float32 file, its file in ``storage``, and that file's tensor dtypes."""
     from safetensors import safe_open
 
     torch.manual_seed(0)
     model = GenRe(get_preset("default")).eval()
     full = save_model(model, tmp_path / "full.safetensors")
-    half = save_model(model, tmp_path / "half.safetensors", storage="float16")
-    assert 0.45 < half.stat().st_size / full.stat().st_size < 0.55
-    with safe_open(str(half), framework="pt") as f:
-        assert f.metadata()["storage"] == "float16"
+    path = save_model(model, tmp_path / f"{storage}.safetensors", storage=storage)
+    with safe_open(str(path), framework="pt") as f:
+        assert f.metadata()["storage"] == storage
         kinds = {k: f.get_tensor(k).dtype for k in f.keys()}
+    return model, full, path, kinds
+
+
+def _nets_follow(model, loaded, tol: float) -> None:
+    """Each net of ``loaded`` on the float32 ``model``'s own inputs is within ``tol`` of its largest output."""
+    rgb = torch.rand(1, 3, 128, 128)
+    with torch.no_grad():
+        a = model(rgb)
+        depth = loaded(rgb).depth
+        full = loaded.inpaint_net(a.partial_sph)
+        logits = loaded.refine(a.vox_sph, a.vox_depth)
+    for got, want in ((depth, a.depth), (full, a.full_sph), (logits, a.logits)):
+        assert (got - want).abs().max() <= tol * want.abs().max(), (got - want).abs().max()
+
+
+@pytest.mark.slow
+def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
+    """save_model(storage="float16"): the weights stored as float16, the batch-norm statistics as float32, the step
+    counters as integers; load_model gives the float32 model with the weights rounded to float16, whose nets
+    follow the original's within the rounding; a value float16 cannot hold is kept in float32."""
+    model, full, half, kinds = _stored(tmp_path, "float16")
+    assert 0.45 < half.stat().st_size / full.stat().st_size < 0.55
     assert set(kinds.values()) == {torch.float16, torch.float32, torch.int64}
     for k, dtype in kinds.items():  # the weights halved; the batch-norm statistics and step counters kept
         assert dtype == (torch.int64 if k.endswith("num_batches_tracked") else
@@ -161,14 +179,7 @@ def test_half_storage_halves_the_file_and_loads_into_float32(tmp_path):
         assert got.dtype == v.dtype, k
         want = v.to(torch.float16).to(v.dtype) if kinds[k] == torch.float16 else v
         assert torch.equal(got, want), k
-    rgb = torch.rand(1, 3, 128, 128)
-    with torch.no_grad():
-        a = model(rgb)
-        depth = loaded(rgb).depth
-        full = loaded.inpaint_net(a.partial_sph)  # each net on the float32 model's own inputs
-        logits = loaded.refine(a.vox_sph, a.vox_depth)
-    for got, want in ((depth, a.depth), (full, a.full_sph), (logits, a.logits)):
-        assert (got - want).abs().max() <= 1e-2 * want.abs().max(), (got - want).abs().max()
+    _nets_follow(model, loaded, 1e-2)
     # a statistic beyond float16's range (a refiner's running variance reached 6e7) survives the round trip
     bn = next(k for k in model.state_dict() if k.startswith("refiner") and k.endswith("running_var"))
     model.state_dict()[bn].fill_(6e7)
@@ -184,17 +195,10 @@ def test_int8_storage_quarters_the_large_weights_within_half_a_step(tmp_path):
     rows with one scale per output channel (the row's largest magnitude / 127), each value read back within half a
     step of the original; the small tensors as float16, the batch-norm statistics exact; the nets follow the
     original's within the rounding, and the file is about a quarter of the float32 one."""
-    from safetensors import safe_open
     from genre_backend.weights_file import INT8_SCALE_SUFFIX
 
-    torch.manual_seed(0)
-    model = GenRe(get_preset("default")).eval()
-    full = save_model(model, tmp_path / "full.safetensors")
-    packed = save_model(model, tmp_path / "int8.safetensors", storage="int8")
+    model, full, packed, kinds = _stored(tmp_path, "int8")
     assert 0.25 < packed.stat().st_size / full.stat().st_size < 0.30
-    with safe_open(str(packed), framework="pt") as f:
-        assert f.metadata()["storage"] == "int8"
-        kinds = {k: f.get_tensor(k).dtype for k in f.keys()}
     loaded = load_model(packed).state_dict()
     big = 0
     for k, v in model.state_dict().items():
@@ -212,15 +216,7 @@ def test_int8_storage_quarters_the_large_weights_within_half_a_step(tmp_path):
             assert v.dim() < 2 or v.numel() < 1024, k
             assert torch.equal(got, v.to(torch.float16).to(v.dtype)), k
     assert big >= 20
-    rgb = torch.rand(1, 3, 128, 128)
-    net = load_model(packed)
-    with torch.no_grad():
-        a = model(rgb)
-        depth = net(rgb).depth
-        full_map = net.inpaint_net(a.partial_sph)
-        logits = net.refine(a.vox_sph, a.vox_depth)
-    for got, want in ((depth, a.depth), (full_map, a.full_sph), (logits, a.logits)):
-        assert (got - want).abs().max() <= 5e-2 * want.abs().max(), (got - want).abs().max()
+    _nets_follow(model, load_model(packed), 5e-2)
 
 
 @pytest.mark.slow
