@@ -29,7 +29,8 @@ recipe's (:mod:`training.learn.recipe`), never the chain's.
   ``product_full``, the refiner grown by its full-resolution branch, its
   refine stage from the shipped weights, scored, no joint round.
 * ``eval-views`` — only what scoring a candidate needs on a fresh machine: the
-  corpus, the product test split's and its primitives' views, and the
+  corpus, the product test split's views (from below 45° and, in
+  ``views/product_up``, from 45–88°) and its primitives', and the
   flat-from-above group's shapes and views.
 
 Every command resumes by itself (a stage from its checkpoint, renders and
@@ -382,16 +383,21 @@ def _product_eval_views(home: Path, paths: _ProductPaths) -> tuple[list[Step], l
 @dataclass(frozen=True)
 class EvalViewsChain:
     """What scoring a candidate against the installed file needs on a fresh machine, and nothing else: the corpus,
-    the product test split's and its primitives' views as ``product`` renders them, and the flat-from-above group
+    the product test split's and its primitives' views as ``product`` renders them, the product test split's shapes
+    once more from 45-88 degrees (``views/product_up``: the product rule scores every angle), and the flat-from-above group
     (``genre data flat-test``, 2 views a shape from 60-88 degrees: docs/evaluation.md).  A CPU session's candidates are
     then scored with ``genre eval --data VIEWS --weights W --levels 0.45`` on each (docs/training.md)."""
 
     flat_views: int = 2
     flat_elevation: tuple[int, int] = (60, 88)
+    up_elevation: tuple[int, int] = (45, 88)  # the product test's shapes from above too (results/decisions.md 2026-12-03)
 
     def build(self, name: str, home: Path) -> Chain:
         paths = _ProductPaths(home, home / "runs" / "product")
         test, primitives_test = _product_eval_views(home, paths)
+        up_views = home / "views" / "product_up"
+        test += [_render("render_eval_up", home, "product-test", up_views, 1, seed=71, elevation=self.up_elevation),
+                 _targets("targets_eval_up", up_views)]
         flat_shapes, flat_views = home / "flat_test", home / "views" / "flat_eval"
         flat_manifest = flat_shapes / "manifest.json"
         flat = [_genre("flat_test", "data", "flat-test", "--out", flat_shapes, writes=(flat_manifest,)),

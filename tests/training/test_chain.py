@@ -32,7 +32,8 @@ EXPECTED = {
                          "compare_primitives"],
     "product-full": [*_DATA, *_PRODUCT_VIEWS, "refine", *_START, "eval_refine", "eval_primitives_refine", "curve_refine",
                      "compare", "compare_primitives"],
-    "eval-views": [*_DATA, "render_eval", "targets_eval", "render_primitives_eval", "targets_primitives_eval", "flat_test",
+    "eval-views": [*_DATA, "render_eval", "targets_eval", "render_eval_up", "targets_eval_up", "render_primitives_eval",
+                   "targets_primitives_eval", "flat_test",
                    "render_flat_eval", "targets_flat_eval"],
 }
 
