@@ -44,7 +44,7 @@ def test_each_shipped_file_loads_and_says_which_model_it_is(name):
 def test_default_is_the_trained_product_model_at_the_protocols_level():
     """`default` is no longer the interim copy of `protocol`: the same depth net and refiner architecture, trained
     on (every tensor differs), with its own inpainting net (since the fourteenth run twice as wide, the hit head
-    like `protocol`'s), at the same level."""
+    like `protocol`'s) and, since the thirty-seventh session (R68), a depth net twice as wide, at the same level."""
     import dataclasses
 
     import torch
@@ -57,10 +57,12 @@ def test_default_is_the_trained_product_model_at_the_protocols_level():
     assert (a.config.network.inpaint_head, b.config.network.inpaint_head) == ("hit", "hit")
     assert tuple(a.config.network.inpaint_widths) == (32, 64, 128, 256)
     assert tuple(b.config.network.inpaint_widths) == (16, 32, 64, 128)
-    inpaint = ("inpaint_widths", "inpaint_decoder_blocks")
-    assert dataclasses.replace(a.config.network, **{k: getattr(b.config.network, k) for k in inpaint}) == b.config.network
+    assert tuple(a.config.network.depth_widths) == (32, 64, 128, 256)
+    assert tuple(b.config.network.depth_widths) == (16, 32, 64, 128)
+    wider = ("inpaint_widths", "inpaint_decoder_blocks", "depth_widths")
+    assert dataclasses.replace(a.config.network, **{k: getattr(b.config.network, k) for k in wider}) == b.config.network
     assert a.config.geometry.default_threshold == b.config.geometry.default_threshold
-    for part in ("depth_net", "refiner"):
+    for part in ("refiner",):
         sa, sb = getattr(a, part).state_dict(), getattr(b, part).state_dict()
         assert sa.keys() == sb.keys()
         floats = [k for k in sa if sa[k].is_floating_point()]
