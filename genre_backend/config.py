@@ -257,6 +257,15 @@ class GeometryConfig:
         False, kind="bool", label="Mirror Average",
         help="also run the photo's mirror image and average the two (about twice the networks' time)",
         chosen="results/decisions.md")
+    # The photo around the mask painted plain (photo.preprocess.on_plain_backdrop): where the networks are given a
+    # mask (a file, the alpha, a box, strokes, the salient net; not the depth net's own silhouette), every pixel
+    # outside it is set to the neutral grey before any net sees the picture, in reconstruction and in evaluation
+    # (every learned row alike).  Solid backdrops are among the training renders' backgrounds.  Turned on only by the
+    # rule in results/decisions.md.  Weights stored without the key: off.
+    plain_backdrop: bool = _setting(
+        False, kind="bool", label="Plain Backdrop",
+        help="paint the photo outside the mask plain grey before the networks see it (a mask from a file, the alpha, "
+             "a box, strokes or the salient net)", chosen="results/decisions.md")
     # The seen side kept: the full spherical map takes the partial map's own value wherever the partial map
     # sees the surface, the inpainting net's elsewhere (nets.model.GenRe.forward).  The net predicts every
     # pixel afresh; on the seen side its map is ~1.7x further from the truth than its own input

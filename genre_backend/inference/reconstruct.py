@@ -39,7 +39,7 @@ from ..nets.outputs import NetOutputs
 from .options import MeshOptions, mesh_of_probability
 from .result import Reconstruction
 from ..photo.decode import ImageError, MIN_OBJECT_PIXELS, load_image
-from ..photo.preprocess import Preprocessed, preprocess, uncrop
+from ..photo.preprocess import Preprocessed, on_plain_backdrop, preprocess, uncrop
 from ..photo.guidance import MaskGuidance
 from ..photo.mask_doubt import doubt
 
@@ -219,7 +219,8 @@ class Reconstructor:
             image = load_image(image_path)
             stage("preprocess")
             pre: Preprocessed = preprocess(image, self.config, guidance, silhouette=self._silhouette)
-            nets = self._networks(pre, opts, stage, image.path)
+            seen = pre.rgb if pre.mask is None or not opts.plain_backdrop else on_plain_backdrop(pre.rgb, pre.mask)
+            nets = self._networks(pre, seen, opts, stage, image.path)
             stage("mesh")
             mesh = self._mesh(nets, opts, image.path, list(pre.notes))
             stage("done")
@@ -227,7 +228,7 @@ class Reconstructor:
         if photo_mask is None:  # the crop's silhouette, back at the photo's pixels
             crop = tuple(v * image.scale for v in pre.crop_box)
             photo_mask = uncrop(nets.mask[0].cpu().numpy(), crop, image.size)
-        inter = {"rgb": pre.rgb, **nets.images(), "probability": mesh.probability}
+        inter = {"rgb": seen, **nets.images(), "probability": mesh.probability}
         return Reconstruction(
             image=Path(image_path),
             vertices=mesh.vertices,
@@ -249,11 +250,12 @@ class Reconstructor:
             primitive=mesh.primitive,
         )
 
-    def _networks(self, pre: Preprocessed, opts: MeshOptions, stage: _StageClock, path) -> NetOutputs:
-        """The networks on one framed photo (:class:`genre_backend.nets.outputs.NetOutputs`)."""
+    def _networks(self, pre: Preprocessed, rgb: torch.Tensor, opts: MeshOptions, stage: _StageClock, path) -> NetOutputs:
+        """The networks on one framed photo (:class:`genre_backend.nets.outputs.NetOutputs`); ``rgb`` (3, S, S): the
+        picture they see (the framed photo, on a plain backdrop where ``opts.plain_backdrop`` says so)."""
         model = self.model
         stage("depth")
-        out = self._depth_net(pre.rgb)
+        out = self._depth_net(rgb)
         self._first_pass = None
         mask = out["silhouette_logits"] > 0 if pre.mask is None else pre.mask[None].to(self.device)
         masked = model.masked_depth(out["depth"], mask)
@@ -270,7 +272,7 @@ class Reconstructor:
         stage("refine")
         logits = model.refine(vox_sph, vox_depth)
         if opts.test_time_mirror:  # the mirror image through every net, its output reflected back
-            logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k).logits, pre.rgb[None].to(self.device), mask,
+            logits = mirror_averaged(lambda r, k, d, f: model(r, mask=k).logits, rgb[None].to(self.device), mask,
                                      logits=logits)
         return NetOutputs(depth=out["depth"], silhouette_logits=out["silhouette_logits"], mask=mask, masked_depth=masked,
                           partial_sph=partial, full_sph=full, vox_sph=vox_sph, vox_depth=vox_depth, logits=logits)

@@ -51,6 +51,7 @@ __all__ = [
     "square_crop_box",
     "crop_resize",
     "composite",
+    "on_plain_backdrop",
     "uncrop",
     "preprocess",
 ]
@@ -157,6 +158,16 @@ def composite(image: LoadedImage) -> np.ndarray:
     a = image.alpha.astype(np.float32)[:, :, None] / 255.0
     bg = np.array(NEUTRAL_BACKGROUND, np.float32) * 255.0
     return np.clip(np.rint(image.rgb.astype(np.float32) * a + bg * (1.0 - a)), 0, 255).astype(np.uint8)
+
+
+def on_plain_backdrop(rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``rgb`` (..., 3, S, S) in [0, 1] with every pixel outside ``mask`` (..., S, S) bool set to the neutral grey
+    (:data:`NEUTRAL_BACKGROUND`): the picture the networks see with ``geometry.plain_backdrop`` on."""
+    if rgb.shape[-3] != 3 or mask.shape[-2:] != rgb.shape[-2:]:
+        raise ValueError(f"on_plain_backdrop: rgb (..., 3, S, S) and mask (..., S, S) expected, got {tuple(rgb.shape)} "
+                         f"and {tuple(mask.shape)}")
+    grey = torch.tensor(NEUTRAL_BACKGROUND, dtype=rgb.dtype, device=rgb.device).view(3, 1, 1)
+    return torch.where(mask.bool().unsqueeze(-3), rgb, grey)
 
 
 def _to_tensor(rgb: np.ndarray) -> torch.Tensor:

@@ -28,7 +28,8 @@ front (*Seal Pits*), every learned voxel row does so (after any fusion; the trut
 regular shape (``geometry.primitive_snap``), every row with a depth map is fitted
 likewise, to its own depth map and its mesh at the weights' level.  When they average each view with its
 mirror image (``geometry.test_time_mirror``), every learned row does so with its own model
-(:func:`genre_backend.nets.model.mirror_averaged`).  These steps are ``genre reconstruct``'s own, in its order
+(:func:`genre_backend.nets.model.mirror_averaged`).  When they paint the picture outside the mask plain
+(``geometry.plain_backdrop``), every learned row sees that picture (the view's true silhouette is the mask).  These steps are ``genre reconstruct``'s own, in its order
 (:class:`genre_backend.inference.options.MeshOptions`, resolved against the weights).
 """
 
@@ -44,6 +45,7 @@ from genre_backend.config import GenreConfig
 from genre_backend.nets.outputs import View
 from genre_backend.inference.options import BY_NAME, OPTIONS, MeshOptions
 from genre_backend.nets.model import GenRe, WeightsError, mirror_averaged
+from genre_backend.photo.preprocess import on_plain_backdrop
 
 from .protocol import DEPTH_BLENDS, DIAGNOSTIC_ROWS, REPRESENTATION, ROWS
 
@@ -117,14 +119,15 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     ``"mesh"``: (vertices (V, 3), faces (F, 3)), which is scored at every level in place of ``prob``.
     """
     m = models.genre
-    rgb = sample["rgb"][None].to(device)
     mask = sample["mask"][None].to(device)
+    shown = sample["rgb"][None].to(device)  # the render; the picture the nets see follows the options (plain_backdrop)
     depth = sample["depth"][None].to(device)
     full = sample["full_sph"][None].to(device)
     out: dict[str, dict] = {}
     true_depth = torch.where(mask, depth, torch.zeros_like(depth))[0].cpu()
     opts = MeshOptions().resolved(m.config.geometry)  # the weights' own options, as genre reconstruct takes them by default
     mirror = opts.test_time_mirror  # every learned row alike
+    rgb = on_plain_backdrop(shown, mask) if opts.plain_backdrop else shown
     g = m(rgb, mask=mask, mirror=mirror)
     def row_of(n) -> dict:  # a pass's grid and what the steps after the networks read of it
         return {"prob": torch.sigmoid(n.logits)[0, 0].cpu(), "depth": n.masked_depth[0].cpu(), "sph": n.full_sph[0].cpu()}
@@ -132,7 +135,9 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
     out["GenRe"] = row_of(g)
     for name, value in models.sweeps:  # the networks run again only where the option changes their pass (the mirror)
         swept = dataclasses.replace(opts, **{name: value})
-        s = g if swept.test_time_mirror == mirror else m(rgb, mask=mask, mirror=swept.test_time_mirror)
+        same = swept.test_time_mirror == mirror and swept.plain_backdrop == opts.plain_backdrop
+        s = g if same else m(on_plain_backdrop(shown, mask) if swept.plain_backdrop else shown, mask=mask,
+                             mirror=swept.test_time_mirror)
         out[sweep_row(name, value)] = {**row_of(s), "options": swept,  # and its surface made with the changed setting (hole_closing)
                                        "geometry": dataclasses.replace(m.config.geometry, **{BY_NAME[name].weights: value})}
     pred_depth = g.masked_depth

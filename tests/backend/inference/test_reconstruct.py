@@ -424,6 +424,38 @@ def test_primitive_snap_replaces_the_mesh_by_the_fitted_shape(rec, photos, tmp_p
     assert exc.value.code == 2 and "--primitive-snap" in capsys.readouterr().err
 
 
+def test_plain_backdrop_paints_the_photo_outside_the_mask_grey(rec, photos, tmp_path, trained):
+    from genre_backend.photo.preprocess import NEUTRAL_BACKGROUND, on_plain_backdrop
+
+    rgb = np.asarray(Image.open(photos["rgb"]).convert("RGB"))
+    mask = np.asarray(Image.open(photos["mask"])) > 127
+    noisy = rgb.copy()
+    noisy[~mask] = np.random.default_rng(0).integers(0, 256, size=(int((~mask).sum()), 3), dtype=np.uint8)
+    Image.fromarray(noisy).save(tmp_path / "noisy.png")
+    guide = MaskGuidance(mask=photos["mask"])
+    assert rec.config.geometry.plain_backdrop is False  # weights stored without the key: off
+    off = rec.run(tmp_path / "noisy.png", guide, threshold=0.3)
+    on = rec.run(tmp_path / "noisy.png", guide, threshold=0.3, plain_backdrop=True)
+    assert (off.options.plain_backdrop, on.options.plain_backdrop) == (False, True)
+    seen, kept, inside = on.intermediates["rgb"], off.intermediates["rgb"], on.intermediates["mask"]
+    grey = torch.tensor(NEUTRAL_BACKGROUND).view(3, 1, 1).expand_as(seen)
+    assert torch.equal(seen[:, ~inside], grey[:, ~inside])  # the nets saw grey outside the mask ...
+    assert torch.equal(seen[:, inside], kept[:, inside])  # ... and the framed photo inside it
+    assert (kept[:, ~inside] - grey[:, ~inside]).abs().mean() > 0.1  # where the noise is, without the option
+    with torch.no_grad():  # what the nets made is the pipeline on that picture
+        want = rec.model(seen[None], mask=inside[None]).logits[0, 0]
+    assert torch.allclose(on.intermediates["logits"], want, atol=1e-5)
+    assert not torch.allclose(on.intermediates["logits"], off.intermediates["logits"], atol=1e-3)
+    # the depth net's own silhouette is no mask to paint by: without one the option changes nothing
+    own = MaskGuidance(refine=False)
+    assert torch.equal(rec.run(photos["rgb"], own, plain_backdrop=True).intermediates["logits"],
+                       rec.run(photos["rgb"], own).intermediates["logits"])
+    with pytest.raises(ValueError, match="on_plain_backdrop"):
+        on_plain_backdrop(seen[:2], inside)
+    with pytest.raises(ValueError, match="plain_backdrop"):
+        rec.run(photos["rgb"], plain_backdrop="yes")
+
+
 def test_test_time_mirror_averages_the_photo_with_its_mirror_image(rec, photos, tmp_path, capsys, trained):
     from genre_backend.geometry.voxels import mirror_voxels
     from genre_backend.nets.model import mean_probability_logits

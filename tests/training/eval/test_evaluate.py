@@ -673,6 +673,28 @@ def test_weights_that_mirror_average_every_learned_row_with_its_own_model(tiny):
     assert torch.equal(both[REPRESENTATION]["prob"], plain[REPRESENTATION]["prob"])  # the truth is left as it is
 
 
+def test_weights_on_a_plain_backdrop_show_every_learned_row_the_painted_picture(tiny):
+    import dataclasses
+
+    from genre_backend.photo.preprocess import on_plain_backdrop
+    from training.eval.protocol import REPRESENTATION
+    from training.eval.rows import Models, predict, sweep_row
+
+    genre, completion, sample = _tiny_genre_completion_and_a_view(tiny)
+    painted = dict(sample, rgb=on_plain_backdrop(sample["rgb"], sample["mask"]))
+    assert not torch.equal(painted["rgb"], sample["rgb"])  # the render's background is not the neutral grey
+    want = predict(Models(genre, completion, None, wanted=ROWS), painted, "cpu")
+    swept = predict(Models(genre, completion, None, wanted=ROWS, sweeps=(("plain_backdrop", True),)), sample, "cpu")
+    plain = dataclasses.replace(genre.config.geometry, plain_backdrop=True)
+    genre.config = dataclasses.replace(genre.config, geometry=plain)
+    got = predict(Models(genre, completion, None, wanted=ROWS), sample, "cpu")
+    for row in ("GenRe", "GenRe-Oracle", "GenRe-SphOracle", "3D Completion", "3D Completion-Oracle"):
+        assert torch.equal(got[row]["prob"], want[row]["prob"]), row
+    assert torch.equal(swept[sweep_row("plain_backdrop", True)]["prob"], want["GenRe"]["prob"])
+    assert not torch.allclose(swept["GenRe"]["prob"], want["GenRe"]["prob"], atol=1e-4)  # the tiny nets read the background
+    assert torch.equal(got[REPRESENTATION]["prob"], want[REPRESENTATION]["prob"])
+
+
 def test_cd_split_parts_add_up_to_genre_evals_cd_of_each_view_and_row(tiny, tmp_path):
     """scripts/cd_split.py: the four parts of every view and row sum to the CD genre eval scores there."""
     root, views, run = tiny
