@@ -1,6 +1,6 @@
 """Typed configuration: every resolution, width and threshold of the project.
 
-Two presets share one code path:
+Three presets share one code path:
 
 * ``paper``   -- the numbers of the original GenRe (256² images, 128² spherical
   maps padded to 160², 128³ voxels).
@@ -226,13 +226,10 @@ class GeometryConfig:
         False, kind="bool", distance_only=True, label="Fill Visible Holes",
         help="fill the holes the model leaves in the side the photo shows with the estimated depth's surface",
         chosen="scripts/visible_fusion.py on seen-test views")
-    # Pits in the face the camera sees (geometry.visible_front.seal_pits): a blurry front wall whose
-    # crossing falls through onto the inside of the back leaves a narrow, deep well, dark in a render
-    # (real photos: the apple's and the orange's fronts).  The basins of the grid's own visible front
-    # deeper than 2 voxels and at most about twice this many voxels across are filled with the front
-    # around them before the mesh is made, in reconstruction and in evaluation (every row with a mask
-    # alike, after any fusion).  0: off.  Chosen by the rule in results/decisions.md (genre eval --sweep;
-    # docs/lab/reconstruct-settings.md, "Pits in the side the photo shows").  Weights stored without the key: 0.
+    # Pits in the face the camera sees (geometry.visible_front.seal_pits): a blurry front wall falling through onto
+    # the back's inside leaves a narrow, deep well; basins of the visible front deeper than 2 voxels and at most about
+    # twice this across are filled with the front around them, in reconstruction and evaluation, after any fusion
+    # (docs/lab/reconstruct-settings.md, "Pits in the side the photo shows").  Weights stored without the key: 0.
     pit_sealing: int = _setting(
         0, kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", distance_only=True, metavar="K", label="Seal Pits",
         help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
@@ -241,8 +238,7 @@ class GeometryConfig:
     # ellipsoid fitted to the mask's outline, the mesh and the depth when its disagreement (1 - the IoU of
     # its silhouette with the mask, or twice the mesh's mean distance to it over its diagonal, whichever
     # is larger) is at most this; in reconstruction and in evaluation (every row with a depth map alike).
-    # 0: off.  Chosen on training-split views by scripts/primitive_snap.py; stored only by the rule in
-    # results/decisions.md.  Weights stored without the key: 0 (off).
+    # Stored only by the rule in results/decisions.md.  Weights stored without the key: 0 (off).
     primitive_snap: float = _setting(
         0.0, kind="float", lo=0.0, hi=1.0, hi_open=True, metavar="TOL", label="Snap Shapes",
         help="replace the mesh by a fitted box, cylinder, cone, torus or ellipsoid when its silhouette matches the mask "
@@ -257,11 +253,8 @@ class GeometryConfig:
         False, kind="bool", label="Mirror Average",
         help="also run the photo's mirror image and average the two (about twice the networks' time)",
         chosen="results/decisions.md")
-    # The photo around the mask painted plain (photo.preprocess.on_plain_backdrop): where the networks are given a
-    # mask (a file, the alpha, a box, strokes, the salient net; not the depth net's own silhouette), every pixel
-    # outside it is set to the neutral grey before any net sees the picture, in reconstruction and in evaluation
-    # (every learned row alike).  Solid backdrops are among the training renders' backgrounds.  Turned on only by the
-    # rule in results/decisions.md.  Weights stored without the key: off.
+    # The photo outside a given mask (not the depth net's own silhouette) painted grey before any net sees it
+    # (photo.preprocess.on_plain_backdrop), in reconstruction and evaluation alike.  Weights without the key: off.
     plain_backdrop: bool = _setting(
         False, kind="bool", label="Plain Backdrop",
         help="paint the photo outside the mask plain grey before the networks see it (a mask from a file, the alpha, "

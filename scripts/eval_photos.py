@@ -224,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-gallery", action="store_true", help="skip the Blender renders")
     parser.add_argument("--visible-fusion", action=argparse.BooleanOptionalAction, default=None,
                         help="fill the holes in the visible side from the depth (default: the weights' config)")
+    parser.add_argument("--plain-backdrop", action=argparse.BooleanOptionalAction, default=None,
+                        help="paint the photo outside the mask grey before the nets (default: the weights' config)")
     parser.add_argument("--size", type=int, default=200, help="gallery render size in pixels")
     parser.add_argument("--samples", type=int, default=16, help="Cycles samples of the gallery renders")
     args = parser.parse_args(argv)
@@ -242,14 +244,14 @@ def main(argv: list[str] | None = None) -> int:
         image = load_image(photo)
         hand_mask = load_mask(hand_path, image)
         try:
-            before = rec.run(photo, MaskGuidance(refine=False), visible_fusion=args.visible_fusion)
+            before = rec.run(photo, MaskGuidance(refine=False), visible_fusion=args.visible_fusion, plain_backdrop=args.plain_backdrop)
             before_mask, before_warning = before.photo_mask, before.mask_warning
         except ImageError as exc:  # the depth net sees nothing here: its silhouette is empty (IoU 0, cover 0)
             if exc.code != "no_object":
                 raise
             before_mask, before_warning = np.zeros_like(hand_mask), "the depth net's silhouette is empty"
-        auto = rec.run(photo, visible_fusion=args.visible_fusion)
-        hand = rec.run(photo, MaskGuidance(mask=hand_path), visible_fusion=args.visible_fusion)
+        auto = rec.run(photo, visible_fusion=args.visible_fusion, plain_backdrop=args.plain_backdrop)
+        hand = rec.run(photo, MaskGuidance(mask=hand_path), visible_fusion=args.visible_fusion, plain_backdrop=args.plain_backdrop)
         tilt_deg, roll_deg, defined = tilt(hand.vertices, hand.faces)
         row = {
             "name": name,

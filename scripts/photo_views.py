@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from genre_backend.arguments import add_seed
 from training.data.dataset import composite_alpha, photometric
 from training.data.photo_backgrounds import BackgroundBank
 
@@ -49,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("src", type=Path, help="a folder of rendered views with targets")
     p.add_argument("out", type=Path, help="the new folder (made; views already in it are left as they are)")
     p.add_argument("--backgrounds", type=Path, required=True, help="the background bank ('genre data backgrounds')")
-    p.add_argument("--seed", type=int, default=81, help="seed of the backgrounds and faults (default 81)")
+    add_seed(p, default=81, help="seed of the backgrounds and faults (default 81)")
     args = p.parse_args(argv)
     if not args.src.is_dir():
         print(f"photo_views: {args.src} is not a folder", file=sys.stderr)

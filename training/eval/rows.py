@@ -111,6 +111,25 @@ class Models:
                 raise WeightsError(f"{name}: its weights were made for another preset than GenRe's ({net.config.preset} vs {self.config.preset})")
 
 
+def after_networks(out: dict[str, dict], mask: torch.Tensor, config, opts: MeshOptions) -> None:
+    """The steps after the networks, genre reconstruct's own (options.py), on every learned row of ``out`` in place.
+
+    A row with a ``"depth"`` map is learned; its depth and map go either way (no row keeps them), its ``"prob"``
+    becomes the shaped grid, and a row the regular-shape stage snaps (fitted to the mesh at the weights' level)
+    gains ``"mesh"``, that shape at every level.
+    """
+    for row in out.values():
+        if isinstance(row, dict) and "depth" in row:
+            view = View(mask, row.pop("depth"), config.camera, row.pop("sph", None))
+            o, geometry = row.pop("options", opts), row.get("geometry", config.geometry)
+            row["prob"] = o.shape_grid(row["prob"], view, geometry)
+            if o.primitive_snap > 0:
+                _, v, f, _ = o.mesh(row["prob"], geometry, clean=False)
+                v, f, fit = o.snap_mesh(v, f, view)
+                if fit is not None:
+                    row["mesh"] = (v, f)
+
+
 @torch.no_grad()
 def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str, dict]:
     """Every row's prediction for one view: {row: {"prob": (N³) or "points": (P, 3)}}, plus "depth_abs_err".
@@ -178,17 +197,7 @@ def predict(models: Models, sample: dict[str, torch.Tensor], device) -> dict[str
 
         logits = mirror_averaged(onestep, rgb, mask) if mirror else onestep(rgb, mask, None, None)
         out["GenRe-1step"] = {"prob": torch.sigmoid(logits)[0, 0].cpu(), "depth": pred_depth[0].cpu(), "sph": own_map[0].cpu()}
-    camera = m.config.camera
-    for row in out.values():  # the steps after the networks, genre reconstruct's own (options.py), every learned row alike
-        if isinstance(row, dict) and "depth" in row:  # (the depth maps go either way: no row after this point carries one)
-            view = View(mask[0], row.pop("depth"), camera, row.pop("sph", None))
-            o, geometry = row.pop("options", opts), row.get("geometry", m.config.geometry)
-            row["prob"] = o.shape_grid(row["prob"], view, geometry)
-            if o.primitive_snap > 0:  # fitted to the mesh at the weights' level; a snapped row is that shape at every level
-                _, v, f, _ = o.mesh(row["prob"], geometry, clean=False)
-                v, f, fit = o.snap_mesh(v, f, view)
-                if fit is not None:
-                    row["mesh"] = (v, f)
+    after_networks(out, mask[0], m.config, opts)
     if REPRESENTATION in models.wanted:
         out[REPRESENTATION] = {"prob": sample["voxels"]}
     if models.nearest is not None:
