@@ -35,6 +35,10 @@ samples has its picture, film alpha and depth scaled left to right about the ima
 the camera's x axis is the image scaled by ``s`` across, at the same planar depth: so a stretched sample is the
 exact picture and depth of a wider or narrower object (only its shading keeps the old surface's normals), a
 new shape for a depth net whose unseen error follows the number of shapes it saw.
+
+**Plain-backdrop samples** (``backdrop`` > 0, training only): that share of the samples has every pixel outside its
+mask painted the neutral grey after the camera's faults, the picture the networks are given in use with the mesh
+option ``geometry.plain_backdrop`` on (:func:`genre_backend.photo.preprocess.on_plain_backdrop`).
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ import torch
 from genre_backend.config import GenreConfig
 from genre_backend.geometry.spherical import mirror_sph
 from genre_backend.geometry.voxels import mirror_voxels
+from genre_backend.photo.preprocess import on_plain_backdrop
 
 from .targets import load_targets
 from .views import ViewRef, find_views, view_paths
@@ -210,7 +215,8 @@ class ViewDataset(torch.utils.data.Dataset):
     """Samples of a list of views; ``sample(i, seed)`` applies seeded augmentation when ``augment``."""
 
     def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True,
-                 backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0, stretch: float = 0.0):
+                 backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0, stretch: float = 0.0,
+                 backdrop: float = 0.0):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
         if not 0.0 <= photo_fraction <= 1.0:
@@ -219,6 +225,8 @@ class ViewDataset(torch.utils.data.Dataset):
             raise ValueError(f"mirror: expected a share in [0, 1], got {mirror!r}")
         if isinstance(stretch, bool) or not 0.0 <= stretch <= 1.0:
             raise ValueError(f"stretch: expected a share in [0, 1], got {stretch!r}")
+        if isinstance(backdrop, bool) or not 0.0 <= backdrop <= 1.0:
+            raise ValueError(f"backdrop: expected a share in [0, 1], got {backdrop!r}")
         if stretch > 0 and targets:
             raise ValueError("stretch: only samples without targets (the depth stage's) can be stretched")
         if photo_fraction > 0 and backgrounds is None:
@@ -231,6 +239,7 @@ class ViewDataset(torch.utils.data.Dataset):
         self.photo_fraction = photo_fraction
         self.mirror = mirror  # the share of seeded samples mirrored (independent of ``augment``: it is geometric)
         self.stretch = stretch  # the share of seeded samples stretched across (geometric too)
+        self.backdrop = backdrop  # the share of seeded samples painted grey outside the mask
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -267,6 +276,10 @@ class ViewDataset(torch.utils.data.Dataset):
                 if float(torch.rand((), generator=gen)) < self.photo_fraction:
                     rgb = composite_alpha(rgb, alpha, self.backgrounds.sample(gen, size))
                 rgb = photometric(augment_rgb(rgb, gen), gen)
+        if self.backdrop > 0 and seed is not None:  # its own seeded draw, as the mirror's
+            coin = torch.rand((), generator=torch.Generator().manual_seed((seed * 3266489917 + 61) % (1 << 63)))
+            if float(coin) < self.backdrop:
+                rgb = on_plain_backdrop(rgb, mask)
         sample = {
             "rgb": rgb,
             "depth": torch.where(mask, depth, torch.zeros_like(depth)),  # 0 where either says background

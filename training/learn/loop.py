@@ -123,7 +123,8 @@ def _datasets(tcfg: TrainConfig, config: GenreConfig) -> tuple[ViewDataset, View
         bank = BackgroundBank(tcfg.backgrounds)
     train_set = ViewDataset(train_refs, config, augment=tcfg.augment and (tcfg.stage == "depth" or photo > 0),
                             targets=need_targets, backgrounds=bank, photo_fraction=photo,
-                            mirror=tcfg.mirror if tcfg.augment else 0.0, stretch=tcfg.stretch if tcfg.augment else 0.0)
+                            mirror=tcfg.mirror if tcfg.augment else 0.0, stretch=tcfg.stretch if tcfg.augment else 0.0,
+                            backdrop=tcfg.backdrop if tcfg.augment else 0.0)
     val_set = ViewDataset(val_refs, config, targets=need_targets) if val_refs else None
     return train_set, val_set, photo
 

@@ -52,7 +52,7 @@ class StageRecipe:
     Each field's ``help`` (its metadata) says what it does; ``genre train --help`` prints it.  Photo compositing:
     :mod:`training.data.dataset`; ``mirror`` is an exact augmentation (:func:`training.data.dataset.mirror_sample`);
     ``stretch`` (:func:`training.data.dataset.stretch_sample`) too; ``sph_teacher``, ``depth_dropout``, ``mirror`` and
-    ``stretch`` touch neither validation nor inference.
+    ``stretch`` (and ``backdrop``) touch neither validation nor inference.
     """
 
     lr: float = field(metadata={"help": "Adam's learning rate"})
@@ -87,6 +87,8 @@ class StageRecipe:
     stretch: float = documented(0.0, "depth: the share of training samples whose object is stretched across (a new "
                                      "object's exact view: picture, depth and mask scaled left to right about the "
                                      "image centre by a factor log-uniform in [0.7, 1.4], kept inside the frame)")
+    backdrop: float = documented(0.0, "the share of training samples painted the neutral grey outside their mask, as the "
+                                      "mesh option plain_backdrop paints a photo (after the camera's faults)")
     hull_grad_width: float = documented(1.0, "refine, joint, for weights that store sph_hull_carve: the trim's gradient "
                                              "reaches voxels within half this many voxels of the map's hull (a ramp this "
                                              "wide, straight through; the forward pass stays the mesh option's)")
@@ -106,7 +108,7 @@ class StageRecipe:
                 raise ValueError(f"{name}: expected a number in [0, 1), got {getattr(self, name)!r}")
         if not (math.isfinite(self.surface_weight) and self.surface_weight >= 0):
             raise ValueError(f"surface_weight: expected a finite number >= 0, got {self.surface_weight!r}")
-        for name in ("photo_fraction", "sph_teacher", "depth_dropout", "mirror", "stretch"):
+        for name in ("photo_fraction", "sph_teacher", "depth_dropout", "mirror", "stretch", "backdrop"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name}: expected a number in [0, 1], got {value!r}")

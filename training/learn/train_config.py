@@ -43,6 +43,7 @@ class TrainConfig:
     depth_dropout: float | None = None
     mirror: float | None = None
     stretch: float | None = None
+    backdrop: float | None = None
     hull_grad_width: float | None = None
     depth_lr_scale: float | None = None
     target: str | None = documented(None, f"the voxel representation to train (GeometryConfig.target: {' or '.join(TARGETS)}); "

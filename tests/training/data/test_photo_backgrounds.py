@@ -118,3 +118,36 @@ def test_photo_like_samples_keep_the_object_and_change_the_background(tmp_path, 
     assert spread > 0.3, spread
     with pytest.raises(ValueError, match="backgrounds"):
         ViewDataset(refs, cfg, augment=True, targets=False, photo_fraction=0.5)
+
+
+def test_backdrop_samples_are_grey_outside_the_mask_and_keep_everything_else(tmp_path, bank):
+    """--backdrop P: that share of the seeded samples is painted the neutral grey outside its mask, after the photo
+    and the camera's faults, exactly as the mesh option plain_backdrop paints a photo; inside the mask, and the
+    samples it leaves alone, are the pixels without it (its coin is a draw of its own)."""
+    from genre_backend.photo.preprocess import NEUTRAL_BACKGROUND
+
+    cfg = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, image_size=32))
+    s = 32
+    rgb = np.random.default_rng(0).integers(0, 256, (s, s, 3), dtype=np.uint8)
+    mask = np.zeros((s, s), np.float32)
+    mask[6:20, 10:26] = 1.0
+    depth = np.where(mask > 0, 2.0, 0.0).astype(np.float32)
+    (tmp_path / "v" / "shape").mkdir(parents=True)
+    write_view(tmp_path / "v" / "shape", 0, rgb, depth, mask, {"image_size": s})
+    refs = find_views(tmp_path / "v", None, targets=False)
+    common = dict(augment=True, targets=False, backgrounds=bank, photo_fraction=1.0)
+    without = ViewDataset(refs, cfg, **common)
+    always = ViewDataset(refs, cfg, backdrop=1.0, **common)
+    a, b = always.sample(0, 11), without.sample(0, 11)
+    inside = a["mask"]
+    assert int(inside.sum()) == 14 * 16
+    assert torch.equal(a["rgb"][:, inside], b["rgb"][:, inside])
+    grey = torch.tensor(NEUTRAL_BACKGROUND).view(3, 1)
+    assert torch.equal(a["rgb"][:, ~inside], grey.expand(3, int((~inside).sum())))
+    assert float((b["rgb"][:, ~inside] - grey).abs().mean()) > 0.05  # the photo was there before
+    assert torch.equal(always[0]["rgb"], without[0]["rgb"])  # unseeded (validation) samples: never painted
+    half = ViewDataset(refs, cfg, backdrop=0.5, **common)
+    painted = [bool((half.sample(0, k)["rgb"][:, ~inside] == grey).all()) for k in range(200)]
+    assert 70 <= sum(painted) <= 130, sum(painted)  # about half, each seed's coin its own
+    with pytest.raises(ValueError, match="backdrop"):
+        ViewDataset(refs, cfg, backdrop=1.5, **common)
