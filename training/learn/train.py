@@ -49,6 +49,7 @@ from pathlib import Path
 
 from genre_backend.config import PRESETS, GenreConfig
 from genre_backend.arguments import add_out
+from genre_backend.weights_file import WeightsError, resolve_weights
 
 from .batches import StepBatches
 from .checkpoint import CheckpointMismatch
@@ -86,7 +87,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                         help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets'); a folder "
                              "named twice is drawn twice as often (the mix of a run)")
     add_out(parser, required=True, help="run folder; this stage writes OUT/STAGE/")
-    parser.add_argument("--init", help="weights to start from (e.g. OUT/depth/best.safetensors); default: fresh weights of --preset")
+    parser.add_argument("--init", help="weights to start from: a file (e.g. OUT/depth/best.safetensors) or a shipped name (default, protocol); "
+                             "default: fresh weights of --preset")
     parser.add_argument("--recipe", choices=sorted(RECIPES), default="paper",
                         help="named training recipe (training/learn/recipe.py); the options below override its values")
     parser.add_argument("--preset", choices=sorted(PRESETS), default=None, help="model preset (default: the recipe's)")
@@ -117,10 +119,16 @@ def parse_args(argv: list[str], prog: str = "genre train") -> TrainSpec:
         config = TrainConfig(**values, augment=not args.no_augment, progress=not args.no_progress)
     except ValueError as exc:
         parser.error(str(exc))
-    if not args.dry_run:
-        for name in ("init", "inpaint_from"):
-            if getattr(config, name) and not Path(getattr(config, name)).is_file():
-                parser.error(f"--{name.replace('_', '-')}: no such weights file: {getattr(config, name)}")
+    for name in ("init", "inpaint_from"):  # a shipped name (default, protocol) is its file, as --weights takes it
+        given = getattr(config, name)
+        if not given:
+            continue
+        try:
+            config = dataclasses.replace(config, **{name: str(resolve_weights(given))})
+        except WeightsError as exc:
+            parser.error(f"--{name.replace('_', '-')}: {exc}")
+        if not args.dry_run and not Path(getattr(config, name)).is_file():
+            parser.error(f"--{name.replace('_', '-')}: no such weights file: {given}")
     model_config = None
     if args.model_config and not args.dry_run:
         try:

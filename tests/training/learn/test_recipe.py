@@ -156,6 +156,21 @@ def test_train_arguments_become_a_frozen_spec(tmp_path):
         parse_args(["depth", "--data", "d", "--out", "o", "--model-config", str(bad)])
 
 
+def test_train_init_takes_a_shipped_name_as_weights_does(tmp_path, capsys):
+    from genre_backend.weights_file import named_weights
+    from training.learn.train import parse_args
+
+    spec = parse_args(["depth", "--data", "d", "--out", "o", "--init", "default", "--inpaint-from", "protocol"])
+    assert spec.config.init == str(named_weights("default")) and Path(spec.config.init).is_file()
+    assert spec.config.inpaint_from == str(named_weights("protocol"))
+    with pytest.raises(SystemExit):  # a bare word that is neither a name nor a file: the usage error, naming the choices
+        parse_args(["depth", "--data", "d", "--out", "o", "--init", "defualt"])
+    assert "give a name (default, protocol)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a path that is not there
+        parse_args(["depth", "--data", "d", "--out", "o", "--init", str(tmp_path / "gone.safetensors")])
+    assert "no such weights file" in capsys.readouterr().err
+
+
 def _flags_as_fields(flags: list[str]) -> dict:
     out = {}
     for name, value in zip(flags[::2], flags[1::2]):
