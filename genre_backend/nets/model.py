@@ -33,7 +33,7 @@ from ..geometry.voxels import mirror_voxels, points_to_voxels
 from ..weights_file import (INT8_SCALE_SUFFIX, STORAGES, WeightsError, check_state, pack_int8, read_weights, save_weights,
                             stored_config)
 
-__all__ = ["GenRe", "mirror_averaged", "mean_probability_logits", "grow_refiner", "with_inpaint_net", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError", "MAX_PARAMETERS"]
+__all__ = ["GenRe", "mirror_averaged", "mean_probability_logits", "grow_refiner", "with_inpaint_net", "with_inpaint_net_of", "with_depth_net_of", "save_model", "load_model", "WEIGHTS_FORMAT", "WeightsError", "MAX_PARAMETERS"]
 
 WEIGHTS_FORMAT = "genre-weights/1"
 
@@ -208,6 +208,30 @@ def with_inpaint_net_of(model: GenRe, donor: GenRe) -> GenRe:
     new = GenRe(config).to(next(model.parameters()).device)
     new.depth_net.load_state_dict(model.depth_net.state_dict())
     new.inpaint_net.load_state_dict(donor.inpaint_net.state_dict())
+    new.refiner.load_state_dict(model.refiner.state_dict())
+    return new.train(model.training)
+
+
+def with_depth_net_of(model: GenRe, donor: GenRe) -> GenRe:
+    """``model`` with ``donor``'s trained depth net: its widths, decoder blocks, output scale and weights.
+
+    The inpainting net, the refiner and the rest of the config (the mesh
+    settings among it) are ``model``'s.  This reads a depth-stage run (whose
+    files hold the other nets it started from) under later weights' other
+    nets.  The two must share the picture's size and the camera (ValueError).
+    """
+    mg, dg = model.config.geometry, donor.config.geometry
+    if mg.image_size != dg.image_size or model.config.camera != donor.config.camera:
+        raise ValueError(f"the donor's depth net sees {dg.image_size} px through {donor.config.camera}, the model's "
+                         f"{mg.image_size} px through {model.config.camera}: a depth net cannot move between them")
+    net, dnet = model.config.network, donor.config.network
+    config = dataclasses.replace(
+        model.config, network=dataclasses.replace(net, depth_widths=tuple(dnet.depth_widths),
+                                                  depth_decoder_blocks=dnet.depth_decoder_blocks,
+                                                  depth_output_scale=dnet.depth_output_scale))
+    new = GenRe(config).to(next(model.parameters()).device)
+    new.depth_net.load_state_dict(donor.depth_net.state_dict())
+    new.inpaint_net.load_state_dict(model.inpaint_net.state_dict())
     new.refiner.load_state_dict(model.refiner.state_dict())
     return new.train(model.training)
 

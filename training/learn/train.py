@@ -81,7 +81,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description="Train one GenRe stage (resumes automatically; "
                                      "'genre train burst --help': a GPU burst from a training pack; 'genre train average --help': "
                                      "the mean of several weights files; 'genre train batch-norm --help': a weights file's batch-norm statistics "
-                                     "re-estimated).")
+                                     "re-estimated; 'genre train graft --help': a weights file with another's depth or inpainting net).")
     parser.add_argument("stage", choices=STAGES)
     parser.add_argument("--data", required=True, nargs="+",
                         help="folder(s) of rendered views with targets ('genre data render' + 'genre data targets'); a folder "
@@ -174,6 +174,10 @@ def main(argv: list[str] | None = None, prog: str = "genre train") -> int:
         from . import average
 
         return average.main(argv[1:], prog=f"{prog} average")
+    if argv[:1] == ["graft"]:  # one weights file made of another's nets, net by net (training/learn/graft.py)
+        from . import graft
+
+        return graft.main(argv[1:], prog=f"{prog} graft")
     if argv[:1] == ["batch-norm"]:  # a weights file's batch-norm statistics re-estimated (training/learn/batchnorm.py)
         from . import batchnorm
 
