@@ -185,6 +185,15 @@ def with_inpaint_net(model: GenRe, *, head: str | None = None, widths: tuple[int
     return new.train(model.training)
 
 
+def _with_net_of(model: GenRe, donor: GenRe, config: GenreConfig, part: str) -> GenRe:
+    """A model of ``config`` holding ``donor``'s net ``part`` and ``model``'s other nets, on ``model``'s device and
+    in its training mode."""
+    new = GenRe(config).to(next(model.parameters()).device)
+    for name in ("depth_net", "inpaint_net", "refiner"):
+        getattr(new, name).load_state_dict(getattr(donor if name == part else model, name).state_dict())
+    return new.train(model.training)
+
+
 def with_inpaint_net_of(model: GenRe, donor: GenRe) -> GenRe:
     """``model`` with ``donor``'s trained inpainting net: its head, widths, weights and hit decision level.
 
@@ -205,11 +214,7 @@ def with_inpaint_net_of(model: GenRe, donor: GenRe) -> GenRe:
         network=dataclasses.replace(net, inpaint_head=dnet.inpaint_head, inpaint_widths=tuple(dnet.inpaint_widths),
                                     inpaint_decoder_blocks=dnet.inpaint_decoder_blocks),
         geometry=dataclasses.replace(mg, sph_hit_probability=dg.sph_hit_probability))
-    new = GenRe(config).to(next(model.parameters()).device)
-    new.depth_net.load_state_dict(model.depth_net.state_dict())
-    new.inpaint_net.load_state_dict(donor.inpaint_net.state_dict())
-    new.refiner.load_state_dict(model.refiner.state_dict())
-    return new.train(model.training)
+    return _with_net_of(model, donor, config, "inpaint_net")
 
 
 def with_depth_net_of(model: GenRe, donor: GenRe) -> GenRe:
@@ -229,11 +234,7 @@ def with_depth_net_of(model: GenRe, donor: GenRe) -> GenRe:
         model.config, network=dataclasses.replace(net, depth_widths=tuple(dnet.depth_widths),
                                                   depth_decoder_blocks=dnet.depth_decoder_blocks,
                                                   depth_output_scale=dnet.depth_output_scale))
-    new = GenRe(config).to(next(model.parameters()).device)
-    new.depth_net.load_state_dict(donor.depth_net.state_dict())
-    new.inpaint_net.load_state_dict(model.inpaint_net.state_dict())
-    new.refiner.load_state_dict(model.refiner.state_dict())
-    return new.train(model.training)
+    return _with_net_of(model, donor, config, "depth_net")
 
 
 def _half_if_it_fits(name: str, tensor: torch.Tensor) -> torch.Tensor:
