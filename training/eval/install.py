@@ -174,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
           + (", chosen on seen-test views)" if args.thresholds is not None else ", as given)"))
     if refresh:
         print(f"also wrote {interim}: the interim 'default' weights stay a copy of 'protocol' until the product model is installed")
+    if out.resolve() == interim.resolve() or refresh:  # the add-on shows the default's settings before its backend starts
+        print("the add-on's blender_addon/options_schema.json holds the default weights' settings: "
+              "run python build_addon.py --schema (the build refuses a stale one)")
     return 0
 
 
