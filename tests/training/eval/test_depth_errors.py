@@ -76,7 +76,43 @@ def test_follows_is_one_when_deeper_views_get_deeper_reliefs_and_minus_one_when_
             v = dict(view, depth=np.where(view["mask"] > 0, 2.0 + slope * np.arange(32)[None, :].repeat(32, 0), 0.0).astype(np.float32))
             errors.append(depth_errors.view_errors(_Predicts(2.0 + scale(k) * (v["depth"] - 2.0)), v))
         rows[name] = depth_errors.summary_cells(errors, np.zeros(6))
-    assert rows["in order"][0] == "6" and rows["in order"][3] == "0.50" and rows["in order"][-1] == "1.00"
-    assert rows["reversed"][-1] == "-1.00"  # the steepest view predicted as the gentlest, and so on
+    assert rows["in order"][0] == "6" and rows["in order"][3] == "0.50" and rows["in order"][-2] == "1.00"
+    assert rows["reversed"][-2] == "-1.00"  # the steepest view predicted as the gentlest, and so on
     flat = depth_errors.summary_cells([depth_errors.view_errors(None, view)] * 3, np.zeros(3), flat_plane=True)
-    assert flat[4] == "–" and flat[-1] == "–" and flat[3] == "0.00"
+    assert flat[4] == "–" and flat[-2] == "–" and flat[3] == "0.00" and flat[-1] == "–"
+
+
+def _from_above(slope: float, size: int = 32) -> dict:
+    """A card seen from straight above (camera frame = object frame), its top tilted: planar depth falls by ``slope``
+    a column, so its height along the object's up is ``slope`` times the silhouette's 24 columns."""
+    view = _ramp_view(size)
+    cols = np.arange(size)[None, :].repeat(size, 0)
+    view["depth"] = np.where(view["mask"] > 0, 2.2 - slope * cols, 0.0).astype(np.float32)
+    view["camera"] = {"rotation_cam_to_obj": np.eye(3).tolist()}
+    return view
+
+
+def test_the_seen_surface_twice_as_tilted_is_twice_as_high_for_its_width_and_a_level_one_is_right():
+    view = _from_above(0.002)
+    width = np.ptp(np.percentile(depth_errors.depth_to_points(torch.from_numpy(view["depth"])[None],
+                                                              depth_errors.CameraConfig())[0, 4:28, 4:28, 0], [1, 99]))
+    # the truth's height: 0.002 a column; the 1st and 99th percentiles of 24 columns of 24 pixels are the first
+    # and last columns, 23 apart (the width, the larger of the spreads along x and y, moves by under 1 % with the depth
+    # across the card)
+    assert np.isclose(depth_errors.up_over_width(view["depth"], view), 0.002 * 23 / width, rtol=0.01)
+    assert np.isclose(depth_errors.seen_up_ratio(_Predicts(view["depth"]), view), 1.0)
+    steeper = _from_above(0.004)["depth"]
+    assert np.isclose(depth_errors.seen_up_ratio(_Predicts(steeper), view), 2.0, rtol=0.03)
+    # the same card with the object's up along the camera's y (seen from the side, standing): its height is its 24
+    # rows, as tall as it is wide
+    side = dict(view, camera={"rotation_cam_to_obj": [[1, 0, 0], [0, 0, 1], [0, 1, 0]]})
+    assert depth_errors.up_over_width(view["depth"], side) > 0.9  # 24 rows tall, 24 columns wide
+
+
+def test_the_plain_backdrop_greys_only_what_lies_outside_the_silhouette():
+    view = _ramp_view()
+    view["rgb"] = np.full((32, 32, 3), (200, 30, 60), np.uint8)
+    grey = depth_errors.on_backdrop(view)["rgb"]
+    inside = view["mask"] > 0
+    assert np.array_equal(grey[inside], view["rgb"][inside])
+    assert np.all(grey[~inside] == 128)  # the neutral grey, 0.5 of 255 rounded
