@@ -15,7 +15,6 @@ is the **relief** error:
 * ``better``: on how many views the weights beat the first weights named (relief MAE);
 * ``follows``: Spearman's rank correlation, over the folder's views, of the predicted relief's interquartile range
   with the true one's: whether a view that is deeper gets a deeper relief (1: in the same order; 0: no relation).
-
 * ``seen up ÷ width``: the seen surface alone (the depth map inside the render's silhouette, back-projected into
   the object's frame) measured as ``genre eval`` measures a mesh: its height along the object's up over its widest
   spread across it (1st–99th percentiles), the prediction's over the truth's, median over views.  For a flat thing
