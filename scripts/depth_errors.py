@@ -91,16 +91,18 @@ def up_over_width(depth: np.ndarray, view: dict, camera: CameraConfig | None = N
     return spread(obj[:, 2]) / max(spread(obj[:, 0]), spread(obj[:, 1]), 1e-9)
 
 
-def seen_up_ratio(net, view: dict) -> float:
-    """The prediction's seen up ÷ width over the truth's (:func:`up_over_width`)."""
-    return up_over_width(predict(net, view), view) / max(up_over_width(view["depth"], view), 1e-9)
+def seen_up_ratio(net, view: dict, depth: np.ndarray | None = None) -> float:
+    """The prediction's seen up ÷ width over the truth's (:func:`up_over_width`); ``depth``: the net's map of the
+    view when already made."""
+    pred = predict(net, view) if depth is None else depth
+    return up_over_width(pred, view) / max(up_over_width(view["depth"], view), 1e-9)
 
 
-def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float, float] | None:
+def view_errors(net, view: dict, erode: int = 2, depth: np.ndarray | None = None) -> tuple[float, float, float, float] | None:
     """(relief MAE, relief IQR ÷ the truth's, |offset|, the true relief's IQR) of one view, or None when the eroded silhouette is too small.
 
     ``net`` None: the flat plane, a constant depth (relief MAE: the true relief's mean deviation from its median;
-    ratio 0; its offset is not a prediction, so NaN).
+    ratio 0; its offset is not a prediction, so NaN).  ``depth``: the net's map of the view when already made.
     """
     inner = binary_erosion(view["mask"] > 0.5, iterations=erode)
     if inner.sum() < 20:
@@ -109,7 +111,7 @@ def view_errors(net, view: dict, erode: int = 2) -> tuple[float, float, float, f
     iqr = lambda x: float(np.subtract(*np.percentile(x, [75, 25])))  # noqa: E731
     if net is None:
         return float(np.mean(np.abs(true - np.median(true)))), 0.0, float("nan"), iqr(true)
-    pred = predict(net, view)[inner]
+    pred = (predict(net, view) if depth is None else depth)[inner]
     err = pred - true
     offset = float(np.median(err))
     return float(np.mean(np.abs(err - offset))), iqr(pred) / max(iqr(true), 1e-6), abs(offset), iqr(true)
@@ -157,13 +159,15 @@ def main(argv: list[str] | None = None) -> int:
             if args.plain_backdrop:
                 view = on_backdrop(view)
             flat = flat_coloured(view) if args.silhouette_only else None
-            got = [view_errors(net, flat if p else view) for net, p in zip(rowed, painted)]
+            seen = [flat if p else view for p in painted]
+            maps = [None if net is None else predict(net, v) for net, v in zip(rowed, seen)]  # each net once a view
+            got = [view_errors(net, v, depth=d) for net, v, d in zip(rowed, seen, maps)]
             if any(g is None for g in got):
                 continue
-            for k, (g, net, p) in enumerate(zip(got, rowed, painted)):
+            for k, (g, net, v, d) in enumerate(zip(got, rowed, seen, maps)):
                 rows[k].append(g)
                 if net is not None:
-                    ups[k].append(seen_up_ratio(net, flat if p else view))
+                    ups[k].append(seen_up_ratio(net, v, depth=d))
         first = np.array([r[0] for r in rows[0]])
         for w, r, u in zip(names + [FLAT_PLANE], rows, ups):
             cells = summary_cells(r, first, w == FLAT_PLANE, u)
