@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from genre_backend.atomic import atomic_write_text
-from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, resolve_weights, weights_extra
+from genre_backend.weights_file import DEFAULT_WEIGHTS_NAME, named_weights, resolve_weights, weights_extra
 from genre_backend.inference.options import BY_NAME, MeshOptions, OptionError
 from genre_backend.nets.model import WeightsError, load_model
 from genre_backend.arguments import add_device, add_jobs, add_out, add_weights
@@ -320,6 +320,23 @@ def _figures(args: argparse.Namespace, out: Path, per_class, models: Models, vie
     return "\n## Figures\n\n" + "\n".join(notes) + "\n" if notes else ""
 
 
+def _shipped_note(path: Path | None, shipped_as: str | None) -> str:
+    """The report's word on a weights file that records a shipped name: the shipped file itself, or one made from it.
+
+    A file grafted, averaged or re-estimated from a shipped one keeps its record (``"model": NAME``), so the name
+    alone does not say that it is the shipped file; the path does.
+    """
+    if path is None or not shipped_as:
+        return ""
+    try:
+        shipped = named_weights(shipped_as)
+    except ValueError:  # a name installed under another word: not a shipped file of this checkout
+        return f" (made from weights installed as '{shipped_as}')"
+    if Path(path).resolve() == shipped.resolve():
+        return f" (the shipped '{shipped_as}' weights)"
+    return f" (made from the shipped '{shipped_as}' weights, not that file)"
+
+
 def _prepare(args: argparse.Namespace, prog: str) -> tuple:
     """Everything before the scoring: (rows, groups, weights' paths, needed, the shipped name, views, models, out)."""
     rows_wanted, groups = _rows_and_groups(args)
@@ -368,7 +385,7 @@ def main(argv: list[str] | None = None, prog: str = "genre eval") -> int:
     n_shapes = len({v.shape_dir.name for v in views})
     header = (f"# GenRe evaluation: {out.name}\n\n{len(views)} views of {n_shapes} shapes; preset {genre.config.preset} "
               f"(voxel target: {genre.config.geometry.target}); weights {paths['genre']}"
-              + (f" (the shipped '{shipped_as}' weights)" if shipped_as else "") + ".\n\n"
+              + _shipped_note(paths["genre"], shipped_as) + ".\n\n"
               f"Command: `genre eval {' '.join(argv if argv is not None else sys.argv[1:])}`\n\n"
               f"Scoring the views took {t_views / 60:.1f} min in this invocation ({args.jobs} process{'es' if args.jobs > 1 else ''}; "
               "views already in `per_view.csv` from an earlier invocation are not scored again, nor counted).\n")

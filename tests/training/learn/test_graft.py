@@ -67,3 +67,17 @@ def test_the_command_keeps_the_bases_record_and_names_its_donors(tmp_path, capsy
     # a shipped name is a base too; the product model's pictures are not the tiny net's size
     assert main(["default", "--depth-from", str(depth), "--out", str(tmp_path / "z.safetensors")]) == 2
     assert "cannot move between them" in capsys.readouterr().err
+
+
+def test_a_grafted_file_keeps_its_shipped_record_but_the_eval_report_does_not_call_it_the_shipped_file(tmp_path):
+    from genre_backend.weights_file import named_weights
+    from training.eval.cli import _shipped_note
+    base = save_model(_model(SETTINGS, 1), tmp_path / "base.safetensors", {"model": "default"})
+    depth = save_model(_model(SETTINGS, 2), tmp_path / "depth.safetensors")
+    out = tmp_path / "grafted.safetensors"
+    assert main([str(base), "--depth-from", str(depth), "--out", str(out)]) == 0
+    assert weights_extra(out)["model"] == "default"  # the record says what it was made from
+    assert _shipped_note(out, "default") == " (made from the shipped 'default' weights, not that file)"
+    assert _shipped_note(named_weights("default"), "default") == " (the shipped 'default' weights)"
+    assert _shipped_note(out, "mine") == " (made from weights installed as 'mine')"
+    assert _shipped_note(out, None) == "" and _shipped_note(None, "default") == ""
