@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from genre_backend.nets.model import GenRe, load_model, save_model, with_depth_net_of
-from genre_backend.weights_file import weights_extra
+from genre_backend.weights_file import named_weights, weights_extra
 from support.tiny_data import TINY
+from training.eval.cli import _shipped_note
 from training.learn.graft import main
 
 WIDE_DEPTH = dc.replace(TINY, network=dc.replace(TINY.network, depth_widths=(12, 24, 48, 96), depth_decoder_blocks=1,
@@ -70,8 +71,6 @@ def test_the_command_keeps_the_bases_record_and_names_its_donors(tmp_path, capsy
 
 
 def test_a_grafted_file_keeps_its_shipped_record_but_the_eval_report_does_not_call_it_the_shipped_file(tmp_path):
-    from genre_backend.weights_file import named_weights
-    from training.eval.cli import _shipped_note
     base = save_model(_model(SETTINGS, 1), tmp_path / "base.safetensors", {"model": "default"})
     depth = save_model(_model(SETTINGS, 2), tmp_path / "depth.safetensors")
     out = tmp_path / "grafted.safetensors"
