@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -216,7 +217,7 @@ class ViewDataset(torch.utils.data.Dataset):
 
     def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True,
                  backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0, stretch: float = 0.0,
-                 backdrop: float = 0.0):
+                 backdrop: float = 0.0, depth_only: str | Path | None = None):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
         if not 0.0 <= photo_fraction <= 1.0:
@@ -240,6 +241,11 @@ class ViewDataset(torch.utils.data.Dataset):
         self.mirror = mirror  # the share of seeded samples mirrored (independent of ``augment``: it is geometric)
         self.stretch = stretch  # the share of seeded samples stretched across (geometric too)
         self.backdrop = backdrop  # the share of seeded samples painted grey outside the mask
+        # the views under the folder ``depth_only`` (TrainConfig.depth_only): every sample says whether it is one of them
+        self.depth_only = None
+        if depth_only is not None:
+            root = Path(depth_only).resolve()
+            self.depth_only = {i for i, r in enumerate(self.refs) if r.shape_dir.parent.resolve() == root}
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -295,4 +301,6 @@ class ViewDataset(torch.utils.data.Dataset):
             coin = torch.rand((), generator=torch.Generator().manual_seed((seed * 2654435761 + 97) % (1 << 63)))
             if float(coin) < self.mirror:
                 sample = mirror_sample(sample)
+        if self.depth_only is not None:
+            sample["depth_only"] = torch.tensor(index in self.depth_only)
         return sample

@@ -124,8 +124,10 @@ def _datasets(tcfg: TrainConfig, config: GenreConfig) -> tuple[ViewDataset, View
     train_set = ViewDataset(train_refs, config, augment=tcfg.augment and (tcfg.stage == "depth" or photo > 0),
                             targets=need_targets, backgrounds=bank, photo_fraction=photo,
                             mirror=tcfg.mirror if tcfg.augment else 0.0, stretch=tcfg.stretch if tcfg.augment else 0.0,
-                            backdrop=tcfg.backdrop if tcfg.augment else 0.0)
-    val_set = ViewDataset(val_refs, config, targets=need_targets) if val_refs else None
+                            backdrop=tcfg.backdrop if tcfg.augment else 0.0, depth_only=tcfg.depth_only)
+    val_set = ViewDataset(val_refs, config, targets=need_targets, depth_only=tcfg.depth_only) if val_refs else None
+    if tcfg.depth_only is not None and not train_set.depth_only:
+        raise ValueError(f"depth_only: no complete training views (render + targets) in {tcfg.depth_only}")
     return train_set, val_set, photo
 
 

@@ -201,26 +201,39 @@ class StageModule(nn.Module):
         pad = m.config.geometry.sph_pad
         if self.stage == "inpaint":
             return self.sph_loss(self._net("inpaint", m.inpaint_net.forward_parts, pad_sph(partial[:, None], pad)), batch)
+        # the joint stage's depth-only samples (TrainConfig.depth_only) train the depth net's own loss alone: the map and
+        # the grid are made and scored for the other samples only
+        rest, rest_weight = batch, 1.0
+        if self.stage == "joint" and "depth_only" in batch:
+            keep = ~batch["depth_only"].bool()
+            if not bool(keep.any()):  # the nets still run (every rank's gradients cover every parameter), weighted 0
+                rest_weight = 0.0
+            elif not bool(keep.all()):
+                rest = {k: v[keep] for k, v in batch.items()}
+                depth, partial = depth[keep], partial[keep]
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
             sph_parts = self._net("inpaint", m.inpaint_net.forward_parts, pad_sph(partial[:, None], pad))
             full = crop_sph(sph_parts["map"], pad)[:, 0]
-            if self.training and "coin" in batch and self.sph_teacher > 0:
-                full = torch.where((batch["coin"][:, 0] < self.sph_teacher)[:, None, None], batch["full_sph"], full)
+            if self.training and "coin" in rest and self.sph_teacher > 0:
+                full = torch.where((rest["coin"][:, 0] < self.sph_teacher)[:, None, None], rest["full_sph"], full)
             vox_sph, vox_depth = m.sph_voxels(full), m.depth_voxels(depth)
-        if self.training and "coin" in batch and self.depth_dropout > 0:
-            keep = (batch["coin"][:, 1] >= self.depth_dropout).to(vox_depth.dtype)
+        if self.training and "coin" in rest and self.depth_dropout > 0:
+            keep = (rest["coin"][:, 1] >= self.depth_dropout).to(vox_depth.dtype)
             vox_depth = vox_depth * keep.view(-1, *([1] * (vox_depth.dim() - 1)))
         logits = self._net("refiner", m.refiner, torch.cat([vox_sph, vox_depth], dim=1))
         if m.config.geometry.sph_hull_carve:  # trained as the weights are used: trimmed to the map's hull
             logits = hull_trimmed(logits, full, m.config.geometry, self.hull_grad_width)
-        loss, terms = self.voxel_loss(logits, batch)
+        loss, terms = self.voxel_loss(logits, rest)
         if self.outline_weight > 0:
-            terms["outline_bce"] = outline_loss(logits, batch["voxels"], m.config.camera)
+            terms["outline_bce"] = outline_loss(logits, rest["voxels"], m.config.camera)
             loss = loss + self.outline_weight * terms["outline_bce"]
         if self.stage == "joint":
-            l_sph, sph_terms = self.sph_loss(sph_parts, batch)
+            l_sph, sph_terms = self.sph_loss(sph_parts, rest)
             terms.update(sph_terms)
             loss = loss + l_sph
+        if rest_weight != 1.0:
+            loss = loss * rest_weight
+        if self.stage == "joint":
             if self.depth_weight > 0:
                 l_depth, depth_terms = self.depth_loss(depth_out, batch)
                 terms.update(depth_terms)

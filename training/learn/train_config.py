@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 
 from genre_backend.config import INPAINT_HEADS, TARGETS
@@ -56,6 +57,8 @@ class TrainConfig:
                                                                     "(as --inpaint-head); none: the model's")
     inpaint_from: str | None = documented(None, "weights whose trained inpainting net replaces --init's (a resumed stage: "
                                                 "the checkpoint wins)")
+    depth_only: str | None = documented(None, "the joint stage: one of --data's folders whose samples train the depth net's "
+                                              "own loss alone (the map's and the grid's losses leave them out)")
     backgrounds: str | None = documented(None, "a 'genre data backgrounds' folder (needed when photo_fraction > 0)")
     val_fraction: float = documented(0.05, "the share of shapes held out for validation")
     val_every: int = documented(200, "validate every this many steps")
@@ -98,6 +101,14 @@ class TrainConfig:
             if not self.data:
                 raise ValueError("data: expected at least one views folder")
             self.data = [str(d) for d in self.data]
+        if self.depth_only is not None:
+            if self.stage != "joint":
+                raise ValueError(f"depth_only: only the joint stage trains the depth net with the others, not {self.stage!r}")
+            folders = [self.data] if isinstance(self.data, str) else self.data
+            if os.path.normpath(self.depth_only) not in {os.path.normpath(d) for d in folders}:
+                raise ValueError(f"depth_only: {self.depth_only!r} is not one of the --data folders {folders}")
+            if self.depth_weight <= 0:
+                raise ValueError("depth_only: its samples train the depth net's own loss alone; set depth_weight > 0")
         if self.target is None:
             self.target = recipe.target
         if self.target is not None and self.target not in TARGETS:

@@ -141,6 +141,67 @@ def test_joint_depth_weight_adds_exactly_the_depth_loss(tiny_views):
     assert torch.allclose(weighted - plain, 2.5 * own, rtol=1e-5, atol=1e-6)
 
 
+def test_depth_only_samples_train_the_depth_net_s_own_loss_alone(tiny_views, tmp_path):
+    """A joint batch with depth-only samples: their depth loss counts, the map's and the grid's losses are those of
+    the other samples alone (each computed independently here), and a batch of depth-only samples still reaches
+    every net, with zero gradient outside the depth net."""
+    import shutil
+
+    from training.data.dataset import ViewDataset
+    from training.data.views import gather_views
+
+    thin = tmp_path / "thin"
+    shutil.copytree(tiny_views, thin)
+    data = ViewDataset(gather_views([tiny_views, thin]), TINY, depth_only=thin)
+    flags = [bool(data[i]["depth_only"]) for i in range(len(data))]
+    assert flags == [False] * 4 + [True] * 4  # the second folder's four views
+    torch.manual_seed(0)
+    model = GenRe(TINY).eval()
+    stack = lambda idx, keys: {k: torch.stack([data[i][k] for i in idx]) for k in keys}  # noqa: E731
+    mixed = stack([0, 5, 2], data[0].keys())
+    plain = {k: v for k, v in stack([0, 2], data[0].keys()).items() if k != "depth_only"}
+    with torch.no_grad():
+        loss, terms = StageModule(model, "joint", 0.1, "mse", 2.0).eval()(mixed)
+        others, other_terms = StageModule(model, "joint", 0.1, "mse", 0.0).eval()(plain)
+        own, _ = StageModule(model, "depth", 0.1).eval().depth_loss(model.depth_net(mixed["rgb"]), mixed)
+    assert torch.allclose(loss, others + 2.0 * own, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(terms["voxel_bce"], other_terms["voxel_bce"], rtol=1e-5)
+    # every sample depth-only: the depth loss alone, and zero (not missing) gradients for the other nets
+    only = stack([4, 5], data[0].keys())
+    module = StageModule(model, "joint", 0.1, "mse", 2.0).eval()
+    loss, _ = module(only)
+    own, _ = module.depth_loss(model.depth_net(only["rgb"]), only)
+    assert torch.allclose(loss, 2.0 * own, rtol=1e-5, atol=1e-6)
+    loss.backward()
+    for net in (model.inpaint_net, model.refiner):
+        grads = [p.grad for p in net.parameters()]
+        assert all(g is not None for g in grads) and all(float(g.abs().max()) == 0.0 for g in grads)
+    assert sum(float(p.grad.abs().sum()) for p in model.depth_net.parameters() if p.grad is not None) > 0
+
+
+def test_depth_only_is_a_joint_stage_folder_of_data_with_a_depth_loss(tiny_views, tmp_path):
+    import shutil
+
+    thin = tmp_path / "thin"
+    shutil.copytree(tiny_views, thin)
+    for stage in ("depth", "refine"):
+        with pytest.raises(ValueError, match="only the joint stage"):
+            _cfg(stage, tiny_views, tmp_path / "run", data=[str(tiny_views), str(thin)], depth_only=str(thin))
+    with pytest.raises(ValueError, match="not one of the --data folders"):
+        _cfg("joint", tiny_views, tmp_path / "run", depth_only=str(thin), depth_weight=1.0)
+    with pytest.raises(ValueError, match="depth_weight > 0"):
+        _cfg("joint", tiny_views, tmp_path / "run", data=[str(tiny_views), str(thin)], depth_only=str(thin), depth_weight=0.0)
+    # a run with them: every view trains, and a folder without targets is refused, not silently dropped
+    s = train(_cfg("joint", tiny_views, tmp_path / "run", data=[str(tiny_views), str(thin)], depth_only=str(thin),
+                   depth_weight=1.0, steps=2), TINY)
+    assert s["train_views"] == 8
+    for f in thin.rglob("*_targets.npz"):
+        f.unlink()
+    with pytest.raises(ValueError, match="no complete training views"):
+        train(_cfg("joint", tiny_views, tmp_path / "bare", data=[str(tiny_views), str(thin)], depth_only=str(thin),
+                   depth_weight=1.0, steps=1), TINY)
+
+
 def test_weights_that_trim_to_the_map_s_hull_are_trained_trimmed(tiny_views):
     """With ``geometry.sph_hull_carve`` the refine and joint stages score the refiner's logits capped by the hull of
     the map it read (as inference caps its probabilities), and the voxel loss reaches the inpainting net through it."""
