@@ -205,12 +205,12 @@ class StageModule(nn.Module):
         # the grid are made and scored for the other samples only
         rest, rest_weight = batch, 1.0
         if self.stage == "joint" and "depth_only" in batch:
-            keep = ~batch["depth_only"].bool()
-            if not bool(keep.any()):  # the nets still run (every rank's gradients cover every parameter), weighted 0
+            kept = ~batch["depth_only"].bool()
+            if not bool(kept.any()):  # the nets still run (every rank's gradients cover every parameter), weighted 0
                 rest_weight = 0.0
-            elif not bool(keep.all()):
-                rest = {k: v[keep] for k, v in batch.items()}
-                depth, partial = depth[keep], partial[keep]
+            elif not bool(kept.all()):
+                rest = {k: v[kept] for k, v in batch.items()}
+                depth, partial = depth[kept], partial[kept]
         with torch.set_grad_enabled(self.stage == "joint" and torch.is_grad_enabled()):
             sph_parts = self._net("inpaint", m.inpaint_net.forward_parts, pad_sph(partial[:, None], pad))
             full = crop_sph(sph_parts["map"], pad)[:, 0]
@@ -230,10 +230,7 @@ class StageModule(nn.Module):
         if self.stage == "joint":
             l_sph, sph_terms = self.sph_loss(sph_parts, rest)
             terms.update(sph_terms)
-            loss = loss + l_sph
-        if rest_weight != 1.0:
-            loss = loss * rest_weight
-        if self.stage == "joint":
+            loss = rest_weight * (loss + l_sph)
             if self.depth_weight > 0:
                 l_depth, depth_terms = self.depth_loss(depth_out, batch)
                 terms.update(depth_terms)

@@ -157,7 +157,10 @@ def test_depth_only_samples_train_the_depth_net_s_own_loss_alone(tiny_views, tmp
     assert flags == [False] * 4 + [True] * 4  # the second folder's four views
     torch.manual_seed(0)
     model = GenRe(TINY).eval()
-    stack = lambda idx, keys: {k: torch.stack([data[i][k] for i in idx]) for k in keys}  # noqa: E731
+
+    def stack(idx, keys):
+        return {k: torch.stack([data[i][k] for i in idx]) for k in keys}
+
     mixed = stack([0, 5, 2], data[0].keys())
     plain = {k: v for k, v in stack([0, 2], data[0].keys()).items() if k != "depth_only"}
     with torch.no_grad():
