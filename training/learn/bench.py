@@ -93,8 +93,9 @@ class StepTimer:
 
     def __init__(self, weights: str, stage: str, way: str, batch: int, seed: int = 0):
         self.stage, (self.channels_last, self.bf16, _) = stage, WAYS[way]
-        self.model = apply_speed(load_model(resolve_weights(weights)), Speed.from_way(way))
-        self.opt = torch.optim.Adam([p for n in _trained(self.model, stage) for p in n.parameters()], lr=1e-5)
+        speed = Speed.from_way(way)
+        self.model = apply_speed(load_model(resolve_weights(weights)), speed)
+        self.opt = speed.optimiser([p for n in _trained(self.model, stage) for p in n.parameters()], lr=1e-5)
         self.model.train()
         self.x = _inputs(self.model, batch, torch.Generator().manual_seed(seed))
 

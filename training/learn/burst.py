@@ -423,6 +423,9 @@ class Speed:
     refiner_compile: bool = False
     depth_channels_last: bool = False  # the depth net (the stage trainer's depth and joint stages)
     depth_bf16: bool = False
+    # Adam's update as one fused kernel over every tensor (``torch.optim.Adam(fused=True)``) instead of a Python loop
+    # over the 313 weight tensors: 6x faster on the 2-core AVX2 EPYC (77 -> 13 ms a step, ~4 % of a joint step)
+    fused_adam: bool = False
 
     @classmethod
     def for_device(cls, device: torch.device) -> Speed:
@@ -435,11 +438,37 @@ class Speed:
             raise ValueError(f"speed: one of {', '.join(WAYS)}, got {way!r}")
         cl, bf16, compiled = WAYS[way]
         return cls(inpaint_channels_last=cl, inpaint_bf16=bf16, refiner_channels_last=cl, refiner_bf16=bf16,
-                   refiner_compile=compiled, depth_channels_last=cl, depth_bf16=bf16)
+                   refiner_compile=compiled, depth_channels_last=cl, depth_bf16=bf16, fused_adam=way != "fp32")
+
+    def optimiser(self, params, lr: float, betas: tuple[float, float] = (0.9, 0.999),
+                  weight_decay: float = 0.0) -> torch.optim.Adam:
+        """Adam; with a weight decay, decoupled as in AdamW (the weights shrink by lr × weight_decay a step, apart
+        from the gradient's moments); fused where :attr:`fused_adam` says (the same update to float rounding)."""
+        opt = torch.optim.Adam(params, lr=lr, betas=betas, weight_decay=weight_decay,
+                               decoupled_weight_decay=weight_decay > 0, fused=self.fused_adam or None)
+        if self.fused_adam:
+            opt.register_step_pre_hook(_layouts_of_the_weights)
+        return opt
 
     def autocast(self, net: str, device: torch.device) -> torch.autocast:
         """bf16 autocast for ``net`` ("depth", "inpaint" or "refiner") where this speed has it on."""
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=getattr(self, f"{net}_bf16"))
+
+
+def _layouts_of_the_weights(opt: torch.optim.Optimizer, args, kwargs) -> None:
+    """Give each weight's gradient and moments the weight's own memory layout before a fused Adam step.  torch
+    2.13's fused CPU kernel pairs a weight's numbers with its gradient's and moments' by memory offset and never
+    checks their strides (CUDA's refuses a mismatch): a channels-last weight beside moments restored contiguous from
+    a checkpoint got scrambled updates (``test_a_checkpoint_of_either_adam_resumes_...``).  Checking is ~1 ms a step;
+    a copy happens only where the layouts differ."""
+    for group in opt.param_groups:
+        for p in group["params"]:
+            if p.grad is not None and p.grad.stride() != p.stride():
+                p.grad = torch.empty_like(p).copy_(p.grad)
+            state = opt.state.get(p)
+            for k, v in (state or {}).items():
+                if torch.is_tensor(v) and v.shape == p.shape and v.stride() != p.stride():
+                    state[k] = torch.empty_like(p, dtype=v.dtype).copy_(v)
 
 
 # way → (channels-last, bf16 autocast, the refiner compiled with torch.compile), for every net alike
@@ -568,7 +597,7 @@ def run_burst(spec: BurstSpec, say=print) -> dict:
     for p in model.depth_net.parameters():
         p.requires_grad_(False)
     params = [p for net in (model.inpaint_net, model.refiner) for p in net.parameters()]
-    opt = torch.optim.AdamW(params, lr=recipe.lr, betas=(recipe.beta1, recipe.beta2), weight_decay=recipe.weight_decay)
+    opt = Speed.for_device(device).optimiser(params, recipe.lr, (recipe.beta1, recipe.beta2), recipe.weight_decay)
     model.train()
     model.depth_net.eval()
     gen = torch.Generator().manual_seed(spec.seed)

@@ -148,13 +148,22 @@ def optimizer_state(tensors: dict[str, torch.Tensor], meta: dict) -> dict[int, d
     return state
 
 
-def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
-    state = optimizer_state(tensors, meta)
-    groups = meta["param_groups"]
+# how the update runs (one fused kernel, a loop over tensors) is the running trainer's choice, never the checkpoint's:
+# a state written by the single-tensor Adam resumes fused, and back (the state's tensors are the same)
+IMPLEMENTATION = ("fused", "foreach")
+
+
+def load_optimizer_state(opt: torch.optim.Optimizer, state: dict, keep: tuple[str, ...] = IMPLEMENTATION) -> None:
+    """Load ``state`` (``{"state", "param_groups"}``) into ``opt``; for the settings named in ``keep`` this run's
+    values win over the saved ones."""
+    groups = [dict(saved) for saved in state["param_groups"]]
     for saved, current in zip(groups, opt.param_groups):
-        # this run's settings win over the checkpoint's: a stage continued with another --lr (or betas)
-        # trains with it, as log.csv says (the Adam moments carry on)
-        saved["lr"], saved["betas"] = current["lr"], current["betas"]
-        if "lr_scale" in current:  # (a net's share of the rate: StageModule.param_groups)
-            saved["lr_scale"] = current["lr_scale"]
-    opt.load_state_dict({"state": state, "param_groups": groups})
+        saved.update({k: current[k] for k in keep if k in current})
+    opt.load_state_dict({"state": state["state"], "param_groups": groups})
+
+
+def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    # this run's settings win over the checkpoint's: a stage continued with another --lr (or betas) trains with it,
+    # as log.csv says (the Adam moments carry on); so does a net's share of the rate (StageModule.param_groups)
+    load_optimizer_state(opt, {"state": optimizer_state(tensors, meta), "param_groups": meta["param_groups"]},
+                         keep=("lr", "betas", "lr_scale") + IMPLEMENTATION)

@@ -226,10 +226,8 @@ def _start(tcfg: TrainConfig, model_config: GenreConfig | None) -> _Run:
     apply_speed(model, speed)
     if speed.depth_channels_last:  # a training-only head on the depth net's features runs as the depth net does
         module.aux.to(memory_format=torch.channels_last)
-    # Adam, or with a weight decay AdamW (decoupled: the weights shrink by lr * weight_decay a step, apart from the
-    # gradient's moments)
-    optimiser = torch.optim.AdamW if tcfg.weight_decay > 0 else torch.optim.Adam
-    opt = optimiser(module.param_groups(tcfg.weight_decay), lr=tcfg.learning_rate, betas=(tcfg.beta1, tcfg.beta2))
+    opt = speed.optimiser(module.param_groups(tcfg.weight_decay), tcfg.learning_rate, (tcfg.beta1, tcfg.beta2),
+                          tcfg.weight_decay)
     stage_dir = Path(tcfg.out) / tcfg.stage
     if rank == 0:
         stage_dir.mkdir(parents=True, exist_ok=True)

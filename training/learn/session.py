@@ -61,7 +61,7 @@ from genre_backend.arguments import add_device, add_out, add_seed, add_threads
 
 from ..data.pack import read_pack
 from .burst import Speed, ViewMaker, _step_loss, apply_speed, run_command
-from .checkpoint import cpu_seconds, optimizer_state, optimizer_tensors, read_state, write_state
+from .checkpoint import cpu_seconds, load_optimizer_state, optimizer_state, optimizer_tensors, read_state, write_state
 from .recipe import BURST_RECIPES, BurstRecipe, get_burst_recipe
 from .stop import StopSignals
 from .view_bank import ViewBank, load_view_bank
@@ -240,9 +240,9 @@ def _set_up(spec: SessionSpec, recipe: BurstRecipe, device: torch.device, folder
     params = [p for net in trained for p in net.parameters()]
     for p in params:
         p.requires_grad_(True)
-    opt = torch.optim.AdamW(params, lr=recipe.lr, betas=(recipe.beta1, recipe.beta2), weight_decay=recipe.weight_decay)
+    opt = Speed.for_device(device).optimiser(params, recipe.lr, (recipe.beta1, recipe.beta2), recipe.weight_decay)
     if opt_state is not None:
-        opt.load_state_dict(opt_state)
+        load_optimizer_state(opt, opt_state)
     model.eval()
     for net in trained:
         net.train()
