@@ -570,5 +570,8 @@ def test_weights_that_keep_the_seen_side_keep_it_in_reconstruction_as_in_the_mod
     assert torch.equal(inter["full_sph"][seen], inter["partial_sph"][seen])
     with torch.no_grad():
         out = keep.eval()(inter["rgb"][None], mask=inter["mask"][None])
-    assert torch.allclose(inter["full_sph"], out.full_sph[0], atol=1e-6)
-    assert torch.allclose(inter["logits"], out.logits[0, 0], atol=1e-4)
+    # the same map and grid to float rounding: the two paths' convolutions round differently (with the tiny weights
+    # trained by fused Adam, measured up to 8e-6 on 7 of 1,024 radii of ~0.9 and 1.2e-4 on 7 of 32,768 logits up to
+    # 4.6; a different map would be off by 1e-2 or more)
+    assert torch.allclose(inter["full_sph"], out.full_sph[0], atol=2e-5)
+    assert torch.allclose(inter["logits"], out.logits[0, 0], atol=5e-4)
