@@ -582,8 +582,54 @@ def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) ->
     print(f"  mesh sha256: {shas[labels[0]][0][:16]}… " + ("(the same from every checkout and run)" if same else f"DIFFERS: {shas}"))
 
 
+def layers_benchmark(preset: str, batch: int = 8, repeats: int = 5) -> list[dict]:
+    """Forward and backward of each of the preset refiner's stride-2 transposed convolutions, torch's and by phases.
+
+    Each layer at its own input resolution and widths, random input and weights, in both
+    layouts; the phase form (:class:`genre_backend.nets.phase_conv.PhaseConvTranspose3d`)
+    keeps torch's backward, so its rows differ from torch's in the forward.
+    """
+    from genre_backend.nets.phase_conv import PhaseConvTranspose3d
+    from genre_backend.nets.refiner import VoxelRefiner
+
+    cfg = get_preset(preset)
+    g, n = cfg.geometry, cfg.network
+    refiner = VoxelRefiner(g.voxel_size, n.refiner_nf, n.refiner_fc, n.refiner_full_nf, n.refiner_max_width)
+    convs = [m for m in refiner.modules() if isinstance(m, torch.nn.ConvTranspose3d)]
+    sizes = {}
+    hooks = [m.register_forward_pre_hook(lambda mod, inp: sizes.update({mod: inp[0].shape[2]})) for m in convs]
+    with torch.no_grad():
+        refiner.eval()(torch.zeros(1, 2, g.voxel_size, g.voxel_size, g.voxel_size))
+    for h in hooks:
+        h.remove()
+    rows = []
+    for conv in convs:
+        cin, cout, n = conv.in_channels, conv.out_channels, sizes[conv]
+        torch_conv = torch.nn.ConvTranspose3d(cin, cout, 4, 2, 1, bias=conv.bias is not None)
+        phase_conv = PhaseConvTranspose3d(cin, cout, bias=conv.bias is not None)
+        for layout in (torch.contiguous_format, torch.channels_last_3d):
+            x = torch.randn(batch, cin, n, n, n).contiguous(memory_format=layout).requires_grad_()
+            grad = torch.randn(batch, cout, 2 * n, 2 * n, 2 * n).contiguous(memory_format=layout)
+            row = {"layer": f"{cin}→{cout} at {n}³→{2 * n}³", "layout": "channels-last" if layout != torch.contiguous_format else "contiguous"}
+            for name, module in (("torch", torch_conv), ("phases", phase_conv)):
+                module.to(memory_format=layout)
+                row[name + " fwd"] = _median_time(lambda m=module, x=x: m(x), repeats)
+                row[name + " fwd+bwd"] = _median_time(lambda m=module, x=x, g=grad: m(x).backward(g), repeats)
+            rows.append(row)
+    return rows
+
+
+def _print_layers(rows: list[dict], preset: str, batch: int) -> None:
+    print(f"refiner transposed convolutions, preset {preset}, batch {batch}: median ms (torch | by phases)")
+    print(f"{'layer':<22} {'layout':<14} {'fwd':>17} {'fwd+bwd':>17} {'fwd+bwd ratio':>14}")
+    for r in rows:
+        fwd = f"{r['torch fwd'] * 1e3:7.1f} | {r['phases fwd'] * 1e3:7.1f}"
+        both = f"{r['torch fwd+bwd'] * 1e3:7.1f} | {r['phases fwd+bwd'] * 1e3:7.1f}"
+        print(f"{r['layer']:<22} {r['layout']:<14} {fwd:>17} {both:>17} {r['torch fwd+bwd'] / r['phases fwd+bwd']:13.2f}×")
+
+
 def _parser(prog: str) -> argparse.ArgumentParser:
-    """The command line of ``genre bench``: its ``geometry``, ``inference``, ``reconstruct`` and internal worker commands."""
+    """The command line of ``genre bench``: its ``geometry``, ``layers``, ``inference``, ``reconstruct`` and internal worker commands."""
     parser = argparse.ArgumentParser(prog=prog, description="Print speed figures of the project's operations.")
     sub = parser.add_subparsers(dest="what", required=True)
     geo = sub.add_parser("geometry", help="time the geometry core at the default and paper resolutions")
@@ -599,6 +645,11 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     inf.add_argument("--test-time-mirror", action="store_true",
                      help="also time each preset with test-time mirroring (the nets run on the mirror image too)")
     inf.add_argument("--json", action="store_true", help="also print the raw figures as JSON")
+    lay = sub.add_parser("layers", help="time the refiner's transposed convolutions, torch's and by phases")
+    lay.add_argument("--preset", choices=list(PRESETS), default="default")
+    lay.add_argument("--batch", type=int, default=8, help="batch size (default 8, one training rank's)")
+    lay.add_argument("--repeats", type=int, default=5, help="timed runs per layer (median reported)")
+    add_threads(lay)
     user = sub.add_parser("reconstruct", help="time `genre reconstruct` of a photo with the shipped weights and their own options, warm and cold")
     user.add_argument("--image", default=str(_REPO / "examples" / "sofa.png"), help="the photo (default: examples/sofa.png)")
     add_weights(user, default="default", help="shipped weights' name or a file (default: default)")
@@ -703,4 +754,10 @@ def main(argv: list[str], prog: str = "genre bench") -> int:
         return 0
     if args.what == "inference":
         return _main_inference(parser, args, prog)
+    if args.what == "layers":
+        if args.batch < 1:
+            parser.error("--batch must be at least 1")
+        print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device cpu")
+        _print_layers(layers_benchmark(args.preset, args.batch, args.repeats), args.preset, args.batch)
+        return 0
     return _main_geometry(args)

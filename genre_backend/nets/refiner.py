@@ -51,6 +51,7 @@ import torch
 from torch import nn
 
 from ..validation import check_tensor
+from .phase_conv import PhaseConvTranspose3d
 
 __all__ = ["VoxelRefiner"]
 
@@ -93,7 +94,7 @@ class VoxelRefiner(nn.Module):
             w_out = widths[k - 1]
             self.up.append(_block(nn.ConvTranspose3d(widths[k], w_out, 4, 2, 1, bias=False), w_out))
             self.fuse.append(_block(nn.Conv3d(2 * w_out, w_out, 3, 1, 1, bias=False), w_out))
-        self.out = nn.ConvTranspose3d(widths[0], 1, 4, 2, 1)
+        self.out = PhaseConvTranspose3d(widths[0], 1)  # nn.ConvTranspose3d(widths[0], 1, 4, 2, 1), its forward ~5× faster on the CPU
         self.skip = nn.Conv3d(2, 1, 3, 1, 1, bias=False)  # the input grids at full resolution
         # Start it as a dilation of the input hits (a voxel next to projected surface is likely
         # shell): with Adam at lr 1e-4 a randomly initialised tap would take ~10⁴ steps to get there.
