@@ -102,7 +102,7 @@ def test_the_benchmarks_stand_apart_and_genre_bench_finds_them():
             "print(out.getvalue())\n")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert "usage: genre bench" in proc.stdout and "{geometry,inference,reconstruct" in proc.stdout, proc.stdout
+    assert "usage: genre bench" in proc.stdout and "{geometry,inference,layers,reconstruct" in proc.stdout, proc.stdout
 
 
 def _imports_any(module: str) -> set[str]:
