@@ -30,6 +30,7 @@ sha256.
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import statistics
 import sys
@@ -582,12 +583,16 @@ def _print_reconstruct(summaries: dict[str, dict], image: Path, weights: str) ->
     print(f"  mesh sha256: {shas[labels[0]][0][:16]}… " + ("(the same from every checkout and run)" if same else f"DIFFERS: {shas}"))
 
 
+_LAYOUTS = {"contiguous": torch.contiguous_format, "channels-last": torch.channels_last_3d}
+
+
 def layers_benchmark(preset: str, batch: int = 8, repeats: int = 5) -> list[dict]:
     """Forward and backward of each of the preset refiner's stride-2 transposed convolutions, torch's and by phases.
 
     Each layer at its own input resolution and widths, random input and weights, in both
     layouts; the phase form (:class:`genre_backend.nets.phase_conv.PhaseConvTranspose3d`)
-    keeps torch's backward, so its rows differ from torch's in the forward.
+    keeps torch's backward, so its rows differ from torch's in the forward.  Then the whole
+    refiner with its last layer each way (sparse random input grids, training mode).
     """
     from genre_backend.nets.phase_conv import PhaseConvTranspose3d
     from genre_backend.nets.refiner import VoxelRefiner
@@ -605,18 +610,31 @@ def layers_benchmark(preset: str, batch: int = 8, repeats: int = 5) -> list[dict
     rows = []
     for conv in convs:
         cin, cout, n = conv.in_channels, conv.out_channels, sizes[conv]
-        torch_conv = torch.nn.ConvTranspose3d(cin, cout, 4, 2, 1, bias=conv.bias is not None)
-        phase_conv = PhaseConvTranspose3d(cin, cout, bias=conv.bias is not None)
-        for layout in (torch.contiguous_format, torch.channels_last_3d):
+        pair = (torch.nn.ConvTranspose3d(cin, cout, 4, 2, 1, bias=conv.bias is not None),
+                PhaseConvTranspose3d(cin, cout, bias=conv.bias is not None))
+        for layout_name, layout in _LAYOUTS.items():
             x = torch.randn(batch, cin, n, n, n).contiguous(memory_format=layout).requires_grad_()
-            grad = torch.randn(batch, cout, 2 * n, 2 * n, 2 * n).contiguous(memory_format=layout)
-            row = {"layer": f"{cin}→{cout} at {n}³→{2 * n}³", "layout": "channels-last" if layout != torch.contiguous_format else "contiguous"}
-            for name, module in (("torch", torch_conv), ("phases", phase_conv)):
-                module.to(memory_format=layout)
-                row[name + " fwd"] = _median_time(lambda m=module, x=x: m(x), repeats)
-                row[name + " fwd+bwd"] = _median_time(lambda m=module, x=x, g=grad: m(x).backward(g), repeats)
-            rows.append(row)
+            rows.append(_time_pair(f"{cin}→{cout} at {n}³→{2 * n}³", layout_name, pair, x, repeats))
+    # the whole refiner (training mode), its last layer torch's against by phases, on sparse input grids
+    plain = copy.deepcopy(refiner)
+    plain.out = torch.nn.ConvTranspose3d(refiner.out.in_channels, 1, 4, 2, 1)
+    plain.out.load_state_dict(refiner.out.state_dict())
+    x = (torch.rand(batch, 2, g.voxel_size, g.voxel_size, g.voxel_size) > 0.9).float()
+    for layout_name, layout in _LAYOUTS.items():
+        rows.append(_time_pair("whole refiner", layout_name, (plain.train(), refiner.train()),
+                               x.contiguous(memory_format=layout), repeats))
     return rows
+
+
+def _time_pair(layer: str, layout: str, pair: tuple[torch.nn.Module, torch.nn.Module], x: torch.Tensor, repeats: int) -> dict:
+    """Median seconds of the forward, and of forward + backward, of torch's module and the one by phases."""
+    row = {"layer": layer, "layout": layout}
+    for name, module in zip(("torch", "phases"), pair):
+        module.to(memory_format=_LAYOUTS[layout])
+        grad = torch.randn_like(module(x).detach())
+        row[name + " fwd"] = _median_time(lambda m=module: m(x), repeats)
+        row[name + " fwd+bwd"] = _median_time(lambda m=module, g=grad: m(x).backward(g), repeats)
+    return row
 
 
 def _print_layers(rows: list[dict], preset: str, batch: int) -> None:

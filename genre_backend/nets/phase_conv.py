@@ -39,7 +39,7 @@ def phase_kernel(weight: torch.Tensor) -> torch.Tensor:
     """(in, out, 4, 4, 4) transposed-convolution kernel → (out·8, in, 3, 3, 3) convolution kernel.
 
     Output channel ``c·8 + rz·4 + ry·2 + rx`` is channel ``c`` at phase ``(rz, ry, rx)``.
-    Differentiable (a zero pad and three gathers), so the phase form trains the same weight.
+    (A zero pad and three gathers; the module's backward is torch's own, so it is not differentiated.)
     """
     cin, cout = weight.shape[:2]
     taps = _TAPS.flatten().to(weight.device)
