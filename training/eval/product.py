@@ -18,7 +18,8 @@ regular primitives         the procedural cubes, cylinders, cones and tori (rand
 ``python -m training.eval.product fit`` writes the fit diagnostic (CD on a fixed
 sample of training views beside CD on the test split, each against its noise
 floor: while the two are alike and far from the floor, the model underfits);
-``python -m training.eval.product curve`` appends one point (cumulative
+``python -m training.eval.product verdict`` applies the install rule (:class:`ProductRule`) to two folders of the
+rule's score sets; ``python -m training.eval.product curve`` appends one point (cumulative
 processor hours of a product run, its mean CD on the product test split) to
 the learning curve and plots it.
 """
@@ -31,6 +32,7 @@ import json
 import math
 import sys
 from collections import defaultdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +43,8 @@ from genre_backend.arguments import add_out
 from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key
 
-__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "rule_figures", "curve_point", "fit_table", "main"]
+__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "rule_figures", "RULE_SETS", "ProductRule", "flat_ratio",
+           "verdict", "verdict_text", "curve_point", "fit_table", "main"]
 
 PRIMITIVE_KINDS = ("cube", "cylinder", "cone", "torus")  # the issue's regular primitives
 GROUPS = ("all", "seen by protocol", "unseen by protocol", "procedural", "regular primitives")
@@ -199,6 +202,79 @@ def rule_figures(installed_dir: Path, candidate_dir: Path, threshold: float | No
     return out
 
 
+RULE_SETS = {"photo-like": ("product_eval_photo", "product_up_photo"), "as rendered": ("product_eval", "product_up"),
+             "primitives": ("primitives_eval",)}
+"""The rule's score sets: ``genre eval`` folders of these names under one folder a weights file (the product test's
+views below 45° and from 45–88°, made photo-like by ``scripts/photo_views.py`` and as rendered; the primitives)."""
+
+
+@dataclass(frozen=True)
+class ProductRule:
+    """The install rule of ``results/decisions.md`` (2026-12-04 14:04), as data: bars on the change in percent of a
+    candidate's per-view mean CD against the installed file's, each set at ``level``.  Installed only if every bar
+    holds.  ``flat_no_worse``: the flat-from-above group's median depth ÷ width ratio (``flat/`` beside the sets) may
+    not exceed the installed file's, as the reads since 2026-12-05 name it."""
+
+    level: float = 0.45
+    photo_mean_max: float = -1.0  # (a) the mean of the photo-like halves' changes
+    rendered_half_max: float = 2.0  # (b) each half as rendered
+    rendered_mean_max: float = -1.0  # (b) the mean of the halves as rendered
+    primitives_max: float = 1.0  # (b) the primitives
+    flat_no_worse: bool = True
+
+
+def flat_ratio(eval_dir: Path, level: float, row: str = "GenRe") -> float:
+    """The flat-from-above group's median over views of the mesh's depth ÷ width over the truth's
+    (:func:`training.eval.report.flatness_table`'s ratio) at ``level``, from a ``genre eval`` folder's per_view.csv."""
+    t = threshold_key(level)
+    ratios = []
+    with (Path(eval_dir) / "per_view.csv").open(newline="") as fh:
+        for rec in csv.DictReader(fh):
+            if rec["row"] == row and "flat-from-above" in rec["groups"].split("|"):
+                ratios.append(float(rec[f"dw@{t}"]) / float(rec["dw_true"]))
+    ratios = [r for r in ratios if math.isfinite(r)]
+    if not ratios:
+        raise ValueError(f"{eval_dir}: no flat-from-above view of row {row!r} with a depth ÷ width at {t}")
+    return float(np.median(ratios))
+
+
+def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = ProductRule()) -> dict:
+    """The rule applied: each set's figures (:func:`rule_figures`), each part's figure against its bar, and
+    ``"install"``, true only if every part holds.  The roots hold one ``genre eval`` folder per :data:`RULE_SETS`
+    name, and ``flat/`` when ``rule.flat_no_worse``."""
+    sets = {name: rule_figures(Path(installed_root) / name, Path(candidate_root) / name, rule.level)
+            for names in RULE_SETS.values() for name in names}
+    photo, rendered = ([sets[n]["change_percent"] for n in RULE_SETS[k]] for k in ("photo-like", "as rendered"))
+    parts = {
+        "photo-like mean": (float(np.mean(photo)), rule.photo_mean_max),
+        **{f"as rendered, {n}": (sets[n]["change_percent"], rule.rendered_half_max) for n in RULE_SETS["as rendered"]},
+        "as rendered mean": (float(np.mean(rendered)), rule.rendered_mean_max),
+        "primitives": (sets["primitives_eval"]["change_percent"], rule.primitives_max),
+    }
+    out = {"rule": asdict(rule), "sets": sets,
+           "parts": {k: {"figure": v, "bar": bar, "holds": v <= bar} for k, (v, bar) in parts.items()}}
+    if rule.flat_no_worse:
+        a, b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
+        out["parts"]["flat group depth ÷ width ratio"] = {"figure": b, "bar": a, "holds": b <= a}
+    out["install"] = all(p["holds"] for p in out["parts"].values())
+    return out
+
+
+def verdict_text(v: dict) -> str:
+    """:func:`verdict` as Markdown: the sets, then the parts with their bars, then the outcome."""
+    lines = ["| set | views | installed | candidate | change | lower on |", "|---|---|---|---|---|---|"]
+    lines += [f"| {n} | {f['views']} | {f['installed']:.5f} | {f['candidate']:.5f} | {f['change_percent']:+.2f} % | "
+              f"{f['better']} |" for n, f in v["sets"].items()]
+    lines += ["", "| part | figure | bar | holds |", "|---|---|---|---|"]
+    for name, p in v["parts"].items():
+        unit = "×" if "ratio" in name else " %"
+        sign = "" if "ratio" in name else "+"
+        lines.append(f"| {name} | {p['figure']:{sign}.2f}{unit} | ≤ {p['bar']:{sign}.2f}{unit} | "
+                     f"{'yes' if p['holds'] else '**no**'} |")
+    lines += ["", f"install: {'yes' if v['install'] else 'no'} (level {v['rule']['level']})"]
+    return "\n".join(lines) + "\n"
+
+
 def _stage_cpu_seconds(stage_dir: Path) -> tuple[int, float]:
     """(steps, processor seconds) a stage has trained so far, from its checkpoint (0, 0 without one)."""
     state = stage_dir / "checkpoint" / "state.json"
@@ -338,6 +414,14 @@ def main(argv: list[str] | None = None) -> int:
                    "of 'genre eval --sweep visible_fusion=on'); default --row")
     r.add_argument("--by-kind", metavar="MANIFEST",
                    help="the shapes' manifest: also a line per kind (a primitive's kind, else the class)")
+    v = sub.add_parser("verdict", help="the install rule (ProductRule, results/decisions.md) applied to a candidate's "
+                                       "score sets against the installed file's; prints each part and the outcome")
+    v.add_argument("--installed", required=True, help="folder of the installed file's score sets (" +
+                   ", ".join(n for ns in RULE_SETS.values() for n in ns) + ", flat)")
+    v.add_argument("--candidate", required=True, help="the same folder of the candidate's")
+    v.add_argument("--level", type=float, default=ProductRule.level, help="the level both are scored at (default %(default)s)")
+    v.add_argument("--no-flat", action="store_true", help="leave out the flat group's part (no flat/ folders)")
+    v.add_argument("--json", help="also write the figures here")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
                                  "leave out for the starting point (0 hours)")
@@ -367,6 +451,12 @@ def main(argv: list[str] | None = None) -> int:
             for label, g in [(None, f), *f.get("by_kind", {}).items()]:
                 print(f"{'  ' + label + ': ' if label else ''}{g['views']} views: candidate {g['candidate']:.5f} against "
                       f"installed {g['installed']:.5f} ({g['change_percent']:+.2f} %), lower on {g['better']}")
+        elif args.cmd == "verdict":
+            result = verdict(Path(args.installed), Path(args.candidate),
+                             ProductRule(level=args.level, flat_no_worse=not args.no_flat))
+            if args.json:
+                atomic_write_text(Path(args.json), json.dumps(result, indent=1) + "\n")
+            print(verdict_text(result), end="")
         elif args.cmd == "fit":
             text = fit_table([(label, Path(tr), Path(te)) for label, tr, te in args.model], args.threshold)
             atomic_write_text(Path(args.out), text)

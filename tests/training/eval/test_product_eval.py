@@ -175,3 +175,56 @@ def test_rule_figures_by_kind_show_where_a_change_lands(tmp_path, capsys):
     assert product.main(["rule", "--installed", str(a), "--candidate", str(b), "--by-kind", str(manifest)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("5 views:") and "  cube: 1 views: candidate 0.06000 against installed 0.04000 (+50.00 %), lower on 0" in lines
+
+
+def _flat_dir(path, ratios):
+    """A 'genre eval' folder of the flat group: one view per ratio, truth's depth ÷ width 0.1, the mesh's ratio × 0.1."""
+    path.mkdir(parents=True)
+    cols = ["key", "shape", "view", "class", "groups", "row", "dw_true", "dw@0.45", "dw@0.50"]
+    with (path / "per_view.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols)
+        w.writeheader()
+        for i, r in enumerate(ratios):
+            for row, dw in (("GenRe", 0.1 * r), (FLOOR, 0.1)):
+                w.writerow({"key": f"flat-plate-{i:03d}/000", "shape": f"flat-plate-{i:03d}", "view": "000",
+                            "class": "thin-plate", "groups": "flat-from-above", "row": row, "dw_true": 0.1,
+                            "dw@0.45": dw, "dw@0.50": 99.0})  # another level's figure: never read at 0.45
+    return path
+
+
+def _rule_root(root, scale, flat_ratios):
+    """One folder of the rule's score sets: every set's GenRe CDs the base ones times ``scale[set]``."""
+    base = {"plane": [0.10, 0.20], "lamp": [0.11], "procedural-primitive-000": [0.04], "procedural-lathe-000": [0.10]}
+    for names in product.RULE_SETS.values():
+        for name in names:
+            _eval_dir(root / name, 0.45, _rows({k: [c * scale.get(name, 1.0) for c in v] for k, v in base.items()}))
+    _flat_dir(root / "flat", flat_ratios)
+    return root
+
+
+def test_the_verdict_applies_every_bar_of_the_rule(tmp_path, capsys):
+    installed = _rule_root(tmp_path / "i", {}, [8.0, 9.0, 10.0])
+    # photo-like halves -1.5 % and -0.6 % (mean -1.05 %), as rendered -3 % and +1 % (mean -1 %), primitives +0.9 %,
+    # the flat group's median ratio 6 against 9: every bar holds, two of them just
+    good = {"product_eval_photo": 0.985, "product_up_photo": 0.994, "product_eval": 0.97, "product_up": 1.01,
+            "primitives_eval": 1.009}
+    v = product.verdict(installed, _rule_root(tmp_path / "good", good, [6.0, 6.0, 12.0]))
+    assert v["install"] and all(p["holds"] for p in v["parts"].values())
+    assert v["parts"]["photo-like mean"]["figure"] == pytest.approx(-1.05)
+    assert v["parts"]["as rendered mean"]["figure"] == pytest.approx(-1.0)
+    assert v["parts"]["flat group depth ÷ width ratio"]["figure"] == pytest.approx(6.0)
+    assert v["parts"]["flat group depth ÷ width ratio"]["bar"] == pytest.approx(9.0)
+    # each bar broken alone fails the whole
+    for name, worse in [("product_up_photo", 0.999), ("product_up", 1.021), ("product_eval", 1.001),
+                        ("primitives_eval", 1.011)]:
+        v = product.verdict(installed, _rule_root(tmp_path / f"bad-{name}", {**good, name: worse}, [6.0]))
+        assert not v["install"], name
+    assert not product.verdict(installed, _rule_root(tmp_path / "thick", good, [9.5]))["install"]
+    assert product.verdict(installed, tmp_path / "thick", product.ProductRule(flat_no_worse=False))["install"]
+    assert product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "good"),
+                         "--json", str(tmp_path / "v.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| photo-like mean | -1.05 % | ≤ -1.00 % | yes |" in out and out.rstrip().endswith("install: yes (level 0.45)")
+    assert json.loads((tmp_path / "v.json").read_text())["install"] is True
+    assert product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "bad-product_up")]) == 0
+    assert "| as rendered, product_up | +2.10 % | ≤ +2.00 % | **no** |" in capsys.readouterr().out
