@@ -386,7 +386,7 @@ def fit_table(models: list[tuple[str, Path, Path]], threshold: float | None = No
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m training.eval.product", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("compare", help="side-by-side table of two 'genre eval --groups product-test' folders")
@@ -436,6 +436,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="the scored weights were installed as 'default' (drawn on the curve's line; others are branches)")
     k.add_argument("--base-hours", type=float, default=0.0,
                    help="processor hours behind the weights the run started from (earlier runs), added to the point's hours")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = _parser()
     args = p.parse_args(argv)
     try:
         if args.cmd == "compare":
