@@ -44,7 +44,7 @@ from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key
 
 __all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "rule_figures", "RULE_SETS", "ProductRule", "flat_ratio",
-           "verdict", "verdict_text", "curve_point", "fit_table", "main"]
+           "flat_photos", "verdict", "verdict_text", "curve_point", "fit_table", "main"]
 
 PRIMITIVE_KINDS = ("cube", "cylinder", "cone", "torus")  # the issue's regular primitives
 GROUPS = ("all", "seen by protocol", "unseen by protocol", "procedural", "regular primitives")
@@ -238,6 +238,19 @@ def flat_ratio(eval_dir: Path, level: float, row: str = "GenRe") -> float:
     return float(np.median(ratios))
 
 
+def flat_photos(root: Path) -> dict[str, dict]:
+    """``{photo: {"thinnest", "truth"}}``: each real flat photo's mesh depth ÷ width along its thinnest axis and the
+    judged truth, from ``photos_flat/photos.csv`` under ``root`` (``scripts/eval_photos.py --photos examples/flat``);
+    empty when there is none."""
+    path = Path(root) / "photos_flat" / "photos.csv"
+    if not path.is_file():
+        return {}
+    with path.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    i = rows[0].index("thinnest depth/width")  # the judged truth is the column after it
+    return {r[0]: {"thinnest": float(r[i]), "truth": float(r[i + 1])} for r in rows[1:] if r and r[0] != "mean"}
+
+
 def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = ProductRule()) -> dict:
     """The rule applied: each set's figures (:func:`rule_figures`), each part's figure against its bar, and
     ``"install"``, true only if every part holds.  The roots hold one ``genre eval`` folder per :data:`RULE_SETS`
@@ -257,6 +270,9 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
         a, b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
         out["parts"]["flat group depth ÷ width ratio"] = {"figure": b, "bar": a, "holds": b <= a}
     out["install"] = all(p["holds"] for p in out["parts"].values())
+    a, b = flat_photos(installed_root), flat_photos(candidate_root)
+    out["beside"] = {name: {"installed": a[name]["thinnest"], "candidate": b[name]["thinnest"],
+                            "truth": b[name]["truth"]} for name in sorted(set(a) & set(b))}
     return out
 
 
@@ -272,6 +288,10 @@ def verdict_text(v: dict) -> str:
         lines.append(f"| {name} | {p['figure']:{sign}.2f}{unit} | ≤ {p['bar']:{sign}.2f}{unit} | "
                      f"{'yes' if p['holds'] else '**no**'} |")
     lines += ["", f"install: {'yes' if v['install'] else 'no'} (level {v['rule']['level']})"]
+    if v.get("beside"):
+        lines += ["", "Beside, choosing nothing: the real flat photos' thinnest depth ÷ width, installed → candidate "
+                  "(judged truth): " + ", ".join(f"{n} {f['installed']:.2f} → {f['candidate']:.2f} ({f['truth']:.2f})"
+                                                for n, f in v["beside"].items())]
     return "\n".join(lines) + "\n"
 
 

@@ -4,6 +4,7 @@ import csv
 import json
 import math
 
+import numpy as np
 import pytest
 
 from training.eval import product
@@ -199,6 +200,11 @@ def _rule_root(root, scale, flat_ratios):
         for name in names:
             _eval_dir(root / name, 0.45, _rows({k: [c * scale.get(name, 1.0) for c in v] for k, v in base.items()}))
     _flat_dir(root / "flat", flat_ratios)
+    (root / "photos_flat").mkdir()
+    thinnest = 0.1 * float(np.median(flat_ratios))  # eval_photos.py's columns, "judged true" twice as it writes them
+    (root / "photos_flat" / "photos.csv").write_text(
+        "photo,depth/width (hand mask),judged true,thinnest depth/width,judged true,tilt°\n"
+        f"plate,0.7,0.85,{thinnest:.2f},0.20,+34\n")
     return root
 
 
@@ -214,6 +220,8 @@ def test_the_verdict_applies_every_bar_of_the_rule(tmp_path, capsys):
     assert v["parts"]["as rendered mean"]["figure"] == pytest.approx(-1.0)
     assert v["parts"]["flat group depth ÷ width ratio"]["figure"] == pytest.approx(6.0)
     assert v["parts"]["flat group depth ÷ width ratio"]["bar"] == pytest.approx(9.0)
+    assert v["beside"] == {"plate": {"installed": 0.9, "candidate": 0.6, "truth": 0.2}}  # reported, not a part
+    assert product.flat_photos(tmp_path / "nowhere") == {}  # no photos scored: nothing beside
     # each bar broken alone fails the whole
     for name, worse in [("product_up_photo", 0.999), ("product_up", 1.021), ("product_eval", 1.001),
                         ("primitives_eval", 1.011)]:
@@ -224,7 +232,8 @@ def test_the_verdict_applies_every_bar_of_the_rule(tmp_path, capsys):
     assert product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "good"),
                          "--json", str(tmp_path / "v.json")]) == 0
     out = capsys.readouterr().out
-    assert "| photo-like mean | -1.05 % | ≤ -1.00 % | yes |" in out and out.rstrip().endswith("install: yes (level 0.45)")
+    assert "| photo-like mean | -1.05 % | ≤ -1.00 % | yes |" in out and "\ninstall: yes (level 0.45)\n" in out
+    assert out.rstrip().endswith("plate 0.90 → 0.60 (0.20)")
     assert json.loads((tmp_path / "v.json").read_text())["install"] is True
     assert product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "bad-product_up")]) == 0
     assert "| as rendered, product_up | +2.10 % | ≤ +2.00 % | **no** |" in capsys.readouterr().out
