@@ -13,7 +13,8 @@
 # 4. the real flat photos (examples/flat) into $GENRE_HOME/scores/NAME/photos_flat/table.md;
 # 5. with INSTALLED (a name under $GENRE_HOME/scores scored the same way), the verdict into
 #    $GENRE_HOME/scores/NAME/verdict.md and verdict.json.
-# About 18 minutes on two cores. JOBS (default 2) sets genre eval's worker processes.
+# Run from the repository root with its .venv active. About 18 minutes on two cores. JOBS (default 2) sets genre
+# eval's worker processes.
 set -euo pipefail
 H=${GENRE_HOME:?set GENRE_HOME}
 SNAP=${1:?snapshot}; NAME=${2:?name}; INSTALLED=${3:-}

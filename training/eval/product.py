@@ -265,10 +265,10 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
         "primitives": (sets["primitives_eval"]["change_percent"], rule.primitives_max),
     }
     out = {"rule": asdict(rule), "sets": sets,
-           "parts": {k: {"figure": v, "bar": bar, "holds": v <= bar} for k, (v, bar) in parts.items()}}
+           "parts": {k: {"figure": v, "bar": bar, "holds": v <= bar, "unit": "%"} for k, (v, bar) in parts.items()}}
     if rule.flat_no_worse:
         a, b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
-        out["parts"]["flat group depth ÷ width ratio"] = {"figure": b, "bar": a, "holds": b <= a}
+        out["parts"]["flat group depth ÷ width ratio"] = {"figure": b, "bar": a, "holds": b <= a, "unit": "×"}
     out["install"] = all(p["holds"] for p in out["parts"].values())
     a, b = flat_photos(installed_root), flat_photos(candidate_root)
     out["beside"] = {name: {"installed": a[name]["thinnest"], "candidate": b[name]["thinnest"],
@@ -283,10 +283,8 @@ def verdict_text(v: dict) -> str:
               f"{f['better']} |" for n, f in v["sets"].items()]
     lines += ["", "| part | figure | bar | holds |", "|---|---|---|---|"]
     for name, p in v["parts"].items():
-        unit = "×" if "ratio" in name else " %"
-        sign = "" if "ratio" in name else "+"
-        lines.append(f"| {name} | {p['figure']:{sign}.2f}{unit} | ≤ {p['bar']:{sign}.2f}{unit} | "
-                     f"{'yes' if p['holds'] else '**no**'} |")
+        fmt = (lambda x: f"{x:+.2f} %") if p["unit"] == "%" else (lambda x: f"{x:.2f}×")  # changes signed, ratios not
+        lines.append(f"| {name} | {fmt(p['figure'])} | ≤ {fmt(p['bar'])} | {'yes' if p['holds'] else '**no**'} |")
     lines += ["", f"install: {'yes' if v['install'] else 'no'} (level {v['rule']['level']})"]
     if v.get("beside"):
         lines += ["", "Beside, choosing nothing: the real flat photos' thinnest depth ÷ width, installed → candidate "
