@@ -252,8 +252,9 @@ def flat_photos(root: Path) -> dict[str, dict]:
 
 
 def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = ProductRule()) -> dict:
-    """The rule applied: each set's figures (:func:`rule_figures`), each part's figure against its bar, and
-    ``"install"``, true only if every part holds.  The roots hold one ``genre eval`` folder per :data:`RULE_SETS`
+    """The rule applied: each set's figures (:func:`rule_figures`), each part's figure against its bar,
+    ``"install"``, true only if every part holds, and beside them (choosing nothing) ``"product_mean"``, the mean of
+    the four product sets' changes (how near a read came to the bars, joint-80's measure).  The roots hold one ``genre eval`` folder per :data:`RULE_SETS`
     name, and ``flat/`` when ``rule.flat_no_worse``."""
     sets = {name: rule_figures(Path(installed_root) / name, Path(candidate_root) / name, rule.level)
             for names in RULE_SETS.values() for name in names}
@@ -264,7 +265,7 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
         "as rendered mean": (float(np.mean(rendered)), rule.rendered_mean_max),
         "primitives": (sets["primitives_eval"]["change_percent"], rule.primitives_max),
     }
-    out = {"rule": asdict(rule), "sets": sets,
+    out = {"rule": asdict(rule), "sets": sets, "product_mean": float(np.mean(photo + rendered)),
            "parts": {k: {"figure": v, "bar": bar, "holds": v <= bar, "unit": "%"} for k, (v, bar) in parts.items()}}
     if rule.flat_no_worse:
         a, b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
@@ -285,7 +286,8 @@ def verdict_text(v: dict) -> str:
     for name, p in v["parts"].items():
         fmt = (lambda x: f"{x:+.2f} %") if p["unit"] == "%" else (lambda x: f"{x:.2f}×")  # changes signed, ratios not
         lines.append(f"| {name} | {fmt(p['figure'])} | ≤ {fmt(p['bar'])} | {'yes' if p['holds'] else '**no**'} |")
-    lines += ["", f"install: {'yes' if v['install'] else 'no'} (level {v['rule']['level']})"]
+    lines += ["", f"install: {'yes' if v['install'] else 'no'} (level {v['rule']['level']})",
+              "", f"Beside: the mean of the four product sets' changes {v['product_mean']:+.2f} %"]
     if v.get("beside"):
         lines += ["", "Beside, choosing nothing: the real flat photos' thinnest depth ÷ width, installed → candidate "
                   "(judged truth): " + ", ".join(f"{n} {f['installed']:.2f} → {f['candidate']:.2f} ({f['truth']:.2f})"

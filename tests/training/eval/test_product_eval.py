@@ -220,6 +220,7 @@ def test_the_verdict_applies_every_bar_of_the_rule(tmp_path, capsys):
     assert v["parts"]["as rendered mean"]["figure"] == pytest.approx(-1.0)
     assert v["parts"]["flat group depth ÷ width ratio"]["figure"] == pytest.approx(6.0)
     assert v["parts"]["flat group depth ÷ width ratio"]["bar"] == pytest.approx(9.0)
+    assert v["product_mean"] == pytest.approx((-1.5 - 0.6 - 3.0 + 1.0) / 4)
     assert v["beside"] == {"plate": {"installed": 0.9, "candidate": 0.6, "truth": 0.2}}  # reported, not a part
     assert product.flat_photos(tmp_path / "nowhere") == {}  # no photos scored: nothing beside
     # each bar broken alone fails the whole
@@ -233,6 +234,7 @@ def test_the_verdict_applies_every_bar_of_the_rule(tmp_path, capsys):
                          "--json", str(tmp_path / "v.json")]) == 0
     out = capsys.readouterr().out
     assert "| photo-like mean | -1.05 % | ≤ -1.00 % | yes |" in out and "\ninstall: yes (level 0.45)\n" in out
+    assert "\nBeside: the mean of the four product sets' changes -1.02 %\n" in out
     assert out.rstrip().endswith("plate 0.90 → 0.60 (0.20)")
     assert json.loads((tmp_path / "v.json").read_text())["install"] is True
     assert product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "bad-product_up")]) == 0
