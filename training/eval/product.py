@@ -42,6 +42,7 @@ from genre_backend.arguments import add_out
 
 from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key
+from .report import depth_width_ratios
 
 __all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "rule_figures", "RULE_SETS", "ProductRule", "flat_ratio",
            "flat_photos", "verdict", "verdict_text", "curve_point", "fit_table", "main"]
@@ -226,15 +227,12 @@ class ProductRule:
 def flat_ratio(eval_dir: Path, level: float, row: str = "GenRe") -> float:
     """The flat-from-above group's median over views of the mesh's depth ÷ width over the truth's
     (:func:`training.eval.report.flatness_table`'s ratio) at ``level``, from a ``genre eval`` folder's per_view.csv."""
-    t = threshold_key(level)
-    ratios = []
     with (Path(eval_dir) / "per_view.csv").open(newline="") as fh:
-        for rec in csv.DictReader(fh):
-            if rec["row"] == row and "flat-from-above" in rec["groups"].split("|"):
-                ratios.append(float(rec[f"dw@{t}"]) / float(rec["dw_true"]))
-    ratios = [r for r in ratios if math.isfinite(r)]
-    if not ratios:
-        raise ValueError(f"{eval_dir}: no flat-from-above view of row {row!r} with a depth ÷ width at {t}")
+        ratios = depth_width_ratios(list(csv.DictReader(fh)), row, level)[2]
+    ratios = ratios[np.isfinite(ratios)]
+    if not len(ratios):
+        raise ValueError(f"{eval_dir}: no flat-from-above view of row {row!r} with a depth ÷ width at "
+                         f"{threshold_key(level)}")
     return float(np.median(ratios))
 
 

@@ -93,6 +93,20 @@ def format_table(per_class: list[dict], groups: dict, choice: dict, rows: list[s
     return "\n".join(lines) + "\n"
 
 
+def depth_width_ratios(records: list[dict], row: str, level: float, group: str = "flat-from-above"):
+    """(prediction, truth, ratio) arrays of the depth ÷ width of ``row``'s views of ``group`` at ``level``, from
+    ``per_view.csv`` records (``dw@t`` and ``dw_true``, :func:`genre_backend.geometry.metrics.depth_over_width`);
+    a ratio is the prediction's over the truth's (nan where either is undefined)."""
+    import numpy as np
+
+    t = threshold_key(level)
+    recs = [r for r in records if r["row"] == row and group in r["groups"].split("|")]
+    pred = np.array([float(r[f"dw@{t}"]) for r in recs])
+    true = np.array([float(r["dw_true"]) for r in recs])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return pred, true, pred / true
+
+
 def flatness_table(records: list[dict], choice: dict, rows: list[str], group: str = "flat-from-above") -> str:
     """Depth ÷ width of the views of ``group`` (Markdown, empty when none): per row, at its seen t*.
 
@@ -115,9 +129,7 @@ def flatness_table(records: list[dict], choice: dict, rows: list[str], group: st
         if not recs or row not in choice["seen"]:
             continue
         t = threshold_key(choice["seen"][row])
-        pred = np.array([float(r[f"dw@{t}"]) for r in recs])
-        true = np.array([float(r["dw_true"]) for r in recs])
-        ratio = pred / true
+        pred, true, ratio = depth_width_ratios(recs, row, choice["seen"][row], group)
         ok = np.isfinite(ratio)
         within = int(((ratio >= 0.5) & (ratio <= 2.0) & ok).sum())
         cd = float(np.mean([float(r[f"cd1k@{t}"]) for r in recs]))
