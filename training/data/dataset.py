@@ -38,7 +38,9 @@ new shape for a depth net whose unseen error follows the number of shapes it saw
 
 **Plain-backdrop samples** (``backdrop`` > 0, training only): that share of the samples has every pixel outside its
 mask painted the neutral grey after the camera's faults, the picture the networks are given in use with the mesh
-option ``geometry.plain_backdrop`` on (:func:`genre_backend.photo.preprocess.on_plain_backdrop`).
+option ``geometry.plain_backdrop`` on (:func:`genre_backend.photo.preprocess.on_plain_backdrop`).  With
+``plain_backdrop`` every sample is painted so, seeded or not: a training run validates a model whose
+``geometry.plain_backdrop`` is on on the picture ``genre eval`` and ``genre reconstruct`` show its nets.
 """
 
 from __future__ import annotations
@@ -217,7 +219,7 @@ class ViewDataset(torch.utils.data.Dataset):
 
     def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True,
                  backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0, stretch: float = 0.0,
-                 backdrop: float = 0.0, depth_only: str | Path | None = None):
+                 backdrop: float = 0.0, depth_only: str | Path | None = None, plain_backdrop: bool = False):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
         if not 0.0 <= photo_fraction <= 1.0:
@@ -241,6 +243,8 @@ class ViewDataset(torch.utils.data.Dataset):
         self.mirror = mirror  # the share of seeded samples mirrored (independent of ``augment``: it is geometric)
         self.stretch = stretch  # the share of seeded samples stretched across (geometric too)
         self.backdrop = backdrop  # the share of seeded samples painted grey outside the mask
+        # every sample painted so, seeded or not: the validation views of weights that paint their photos in use
+        self.plain_backdrop = plain_backdrop
         # the views under the folder ``depth_only`` (TrainConfig.depth_only): every sample says whether it is one of them
         self.depth_only = None
         if depth_only is not None:
@@ -286,6 +290,8 @@ class ViewDataset(torch.utils.data.Dataset):
             coin = torch.rand((), generator=torch.Generator().manual_seed((seed * 3266489917 + 61) % (1 << 63)))
             if float(coin) < self.backdrop:
                 rgb = on_plain_backdrop(rgb, mask)
+        elif self.plain_backdrop:
+            rgb = on_plain_backdrop(rgb, mask)
         sample = {
             "rgb": rgb,
             "depth": torch.where(mask, depth, torch.zeros_like(depth)),  # 0 where either says background

@@ -125,7 +125,9 @@ def _datasets(tcfg: TrainConfig, config: GenreConfig) -> tuple[ViewDataset, View
                             targets=need_targets, backgrounds=bank, photo_fraction=photo,
                             mirror=tcfg.mirror if tcfg.augment else 0.0, stretch=tcfg.stretch if tcfg.augment else 0.0,
                             backdrop=tcfg.backdrop if tcfg.augment else 0.0, depth_only=tcfg.depth_only)
-    val_set = ViewDataset(val_refs, config, targets=need_targets, depth_only=tcfg.depth_only) if val_refs else None
+    # validated on the picture the nets are shown in use (painted when the model paints: genre eval, reconstruct)
+    val_set = ViewDataset(val_refs, config, targets=need_targets, depth_only=tcfg.depth_only,
+                          plain_backdrop=config.geometry.plain_backdrop) if val_refs else None
     if tcfg.depth_only is not None and not train_set.depth_only:
         raise ValueError(f"depth_only: no complete training views (render + targets) in {tcfg.depth_only}")
     return train_set, val_set, photo

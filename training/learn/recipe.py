@@ -52,7 +52,8 @@ class StageRecipe:
     Each field's ``help`` (its metadata) says what it does; ``genre train --help`` prints it.  Photo compositing:
     :mod:`training.data.dataset`; ``mirror`` is an exact augmentation (:func:`training.data.dataset.mirror_sample`);
     ``stretch`` (:func:`training.data.dataset.stretch_sample`) too; ``sph_teacher``, ``depth_dropout``, ``mirror`` and
-    ``stretch`` (and ``backdrop``) touch neither validation nor inference.
+    ``stretch`` touch neither validation nor inference; ``backdrop``'s share does not either, but a model whose
+    ``geometry.plain_backdrop`` is on is validated on painted pictures, as it is shown them in use.
     """
 
     lr: float = field(metadata={"help": "Adam's learning rate"})

@@ -124,7 +124,7 @@ def test_backdrop_samples_are_grey_outside_the_mask_and_keep_everything_else(tmp
     """--backdrop P: that share of the seeded samples is painted the neutral grey outside its mask, after the photo
     and the camera's faults, exactly as the mesh option plain_backdrop paints a photo; inside the mask, and the
     samples it leaves alone, are the pixels without it (its coin is a draw of its own)."""
-    from genre_backend.photo.preprocess import NEUTRAL_BACKGROUND
+    from genre_backend.photo.preprocess import NEUTRAL_BACKGROUND, on_plain_backdrop
 
     cfg = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, image_size=32))
     s = 32
@@ -145,9 +145,44 @@ def test_backdrop_samples_are_grey_outside_the_mask_and_keep_everything_else(tmp
     grey = torch.tensor(NEUTRAL_BACKGROUND).view(3, 1)
     assert torch.equal(a["rgb"][:, ~inside], grey.expand(3, int((~inside).sum())))
     assert float((b["rgb"][:, ~inside] - grey).abs().mean()) > 0.05  # the photo was there before
-    assert torch.equal(always[0]["rgb"], without[0]["rgb"])  # unseeded (validation) samples: never painted
+    assert torch.equal(always[0]["rgb"], without[0]["rgb"])  # unseeded samples: the share's coin never paints
+    # the validation views of a model that paints its photos: every sample painted, seeded or not
+    val = ViewDataset(refs, cfg, targets=False, plain_backdrop=True)
+    raw = ViewDataset(refs, cfg, targets=False).sample(0, None)
+    assert torch.equal(val.sample(0, None)["rgb"], on_plain_backdrop(raw["rgb"], raw["mask"]))
+    assert torch.equal(val.sample(0, None)["rgb"][:, ~inside], grey.expand(3, int((~inside).sum())))
     half = ViewDataset(refs, cfg, backdrop=0.5, **common)
     painted = [bool((half.sample(0, k)["rgb"][:, ~inside] == grey).all()) for k in range(200)]
     assert 70 <= sum(painted) <= 130, sum(painted)  # about half, each seed's coin its own
     with pytest.raises(ValueError, match="backdrop"):
         ViewDataset(refs, cfg, backdrop=1.5, **common)
+
+
+def test_a_run_validates_a_painting_model_on_painted_pictures(tmp_path):
+    """The training loop's validation views are painted grey outside their mask exactly when the model's
+    geometry.plain_backdrop is on, as genre eval and genre reconstruct show its nets; its training views are left to
+    --backdrop's share."""
+    from training.learn.loop import _datasets
+    from training.learn.train import parse_args
+
+    cfg = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, image_size=32))
+    rgb = np.random.default_rng(1).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    mask = np.zeros((32, 32), np.float32)
+    mask[8:24, 8:24] = 1.0
+    for k in range(8):
+        (tmp_path / "v" / f"shape{k}").mkdir(parents=True)
+        write_view(tmp_path / "v" / f"shape{k}", 0, rgb, np.where(mask > 0, 2.0, 0.0).astype(np.float32), mask,
+                   {"image_size": 32})
+    tcfg = parse_args(["depth", "--data", str(tmp_path / "v"), "--out", str(tmp_path / "run"), "--photo-fraction", "0",
+                       "--backdrop", "0"]).config
+    tcfg = dataclasses.replace(tcfg, val_fraction=0.5)
+    for paints in (True, False):
+        model_cfg = dataclasses.replace(cfg, geometry=dataclasses.replace(cfg.geometry, plain_backdrop=paints))
+        train_set, val_set, _ = _datasets(tcfg, model_cfg)
+        assert len(train_set) and len(val_set), (len(train_set), len(val_set))
+        def one_colour_outside(sample):
+            outside = sample["rgb"][:, ~sample["mask"]]
+            return bool((outside == outside[:, :1]).all())
+
+        assert val_set.plain_backdrop is paints and one_colour_outside(val_set.sample(0, None)) is paints
+        assert not train_set.plain_backdrop and not one_colour_outside(train_set.sample(0, 3))
