@@ -32,6 +32,13 @@ recipe's (:mod:`training.learn.recipe`), never the chain's.
   corpus, the product test split's views (from below 45° and, in
   ``views/product_up``, from 45–88°) and its primitives', and the
   flat-from-above group's shapes and views.
+* ``train-views`` — the training views of the product runs since 2026-12-04
+  (``views/fresh88``, ``fresh_prim``, ``thin74``, with their targets), made
+  again on a fresh machine with the seeds their commands used.
+* ``product-cycle`` — one cycle of the product weights from the installed
+  file (recipe ``cycle``): those views, the depth stage, its depth net grafted
+  into the installed file, the refine stage, the joint stage.  Reads and
+  installs stay deliberate steps (``results/decisions.md``).
 
 Every command resumes by itself (a stage from its checkpoint, renders and
 scores view by view), so running a chain again continues it.  A step that
@@ -61,7 +68,8 @@ from genre_backend.atomic import atomic_write, atomic_write_json
 from .data.corpus import REPO_ROOT, data_dir
 from .learn.recipe import get_recipe
 
-__all__ = ["Run", "Train", "Copy", "Step", "Chain", "ProtocolChain", "ProductChain", "EvalViewsChain", "CHAINS", "ChainFailed",
+__all__ = ["Run", "Train", "Copy", "Step", "Chain", "ProtocolChain", "ProductChain", "EvalViewsChain", "TrainViewsChain",
+           "CycleChain", "CHAINS", "ChainFailed",
            "plan_lines", "run_chain", "is_finished", "finished_prefix", "parse_args", "main"]
 
 GENRE = "genre_backend.cli"  # `python -m genre_backend.cli` is `genre`
@@ -108,16 +116,26 @@ class Train:
     steps: int | None = None
     backgrounds: Path | None = None
     options: tuple[str, ...] = ()
+    processes: int = 1  # > 1: data-parallel, torchrun with this many one-thread processes (each its batch)
+
+    def __post_init__(self):
+        if self.processes < 1:
+            raise ValueError(f"processes: expected an int >= 1, got {self.processes!r}")
 
     def _run(self) -> Run:
-        args = ["train", "--recipe", self.recipe, self.stage, "--data", *map(str, self.data), "--out", str(self.out)]
+        args = ["--recipe", self.recipe, self.stage, "--data", *map(str, self.data), "--out", str(self.out)]
         if self.init is not None:
             args += ["--init", str(self.init)]
         if self.steps is not None:
             args += ["--steps", str(self.steps)]
         if self.backgrounds is not None:
             args += ["--backgrounds", str(self.backgrounds)]
-        return Run(GENRE, (*args, "--no-progress", *self.options))
+        args += ["--no-progress", *self.options]
+        if self.processes == 1:
+            return Run(GENRE, ("train", *args))
+        # torchrun gives each process one thread (OMP_NUM_THREADS=1) unless the environment names another count
+        return Run("torch.distributed.run", ("--standalone", f"--nproc_per_node={self.processes}",
+                                             "-m", "training.learn.train", *args))
 
     def command(self) -> tuple[str, ...]:
         return self._run().command()
@@ -408,6 +426,84 @@ class EvalViewsChain:
 
 
 @dataclass(frozen=True)
+class TrainViewsChain:
+    """The training views every product run since 2026-12-04 learns from, made again on a fresh machine: every
+    product-train shape twice (``views/fresh88``), its primitives four times more (``views/fresh_prim``) and the
+    thin shapes lying on the ground twice (``genre data thin``, ``views/thin74``), all from -10 to 88 degrees with
+    their targets; the seeds are the ones the runs' documented commands used (docs/training.md)."""
+
+    elevation: tuple[int, int] = (-10, 88)
+
+    def steps(self, home: Path) -> list[Step]:
+        v = _CycleViews(home)
+        thin_manifest = home / "thin_train" / "manifest.json"
+        return [*_corpus(home), _backgrounds(home),
+                _render("render_fresh88", home, "product-train", v.fresh88, 2, seed=21, elevation=self.elevation),
+                _targets("targets_fresh88", v.fresh88),
+                _render("render_fresh_prim", home, "product-train", v.fresh_prim, 4, seed=22, classes="primitive",
+                        elevation=self.elevation),
+                _targets("targets_fresh_prim", v.fresh_prim),
+                _genre("thin", "data", "thin", "--out", home / "thin_train", writes=(thin_manifest,)),
+                _render("render_thin74", home, "product-train", v.thin74, 2, seed=74, manifest=thin_manifest,
+                        elevation=self.elevation),
+                _targets("targets_thin74", v.thin74)]
+
+    def build(self, name: str, home: Path) -> Chain:
+        return Chain(name, tuple(self.steps(home)))
+
+
+@dataclass(frozen=True)
+class _CycleViews:
+    home: Path
+
+    @property
+    def fresh88(self) -> Path:
+        return self.home / "views" / "fresh88"
+
+    @property
+    def fresh_prim(self) -> Path:
+        return self.home / "views" / "fresh_prim"
+
+    @property
+    def thin74(self) -> Path:
+        return self.home / "views" / "thin74"
+
+
+@dataclass(frozen=True)
+class CycleChain:
+    """One cycle of the product weights from ``init`` (recipe ``cycle``), the sequence behind the installed file
+    since 2026-12-05 (depth-76-half → refine-77 → joint-78; depth-82-half → refine-83 → joint-84): the training
+    views (:class:`TrainViewsChain`); the depth stage on them with the thin renders at about 8 % of the samples
+    (``fresh88`` named twice); its depth net grafted into ``init`` (stored int8, as the installed file is); the refine
+    stage from that file; the joint stage from the refine stage's, the thin renders there counting in the depth net's
+    own loss alone (``--depth-only``).  The refine and joint stages train data-parallel, ``processes`` one-thread
+    processes of the recipe's batch each.  Nothing is scored or installed here: each stage's weights are read by
+    ``scripts/read_candidate.sh`` under a rule written before the read (``results/decisions.md``)."""
+
+    recipe: str = "cycle"
+    init: str = "default"
+    run: str = "cycle"  # $GENRE_HOME/runs/RUN
+    processes: int = 2
+
+    def build(self, name: str, home: Path) -> Chain:
+        v, run = _CycleViews(home), home / "runs" / self.run
+        init, grafted = _weights(self.init), run / "graft" / "depth_grafted.safetensors"
+        common = dict(recipe=self.recipe, out=run, backgrounds=home / "backgrounds")
+        steps = [*TrainViewsChain().steps(home),
+                 _train("depth", Train("depth", init=init, data=(v.fresh88, v.fresh88, v.fresh_prim, v.thin74),
+                                       **common)),
+                 _genre("graft", "train", "graft", init, "--depth-from", run / "depth" / "final.safetensors",
+                        "--storage", "int8", "--out", grafted,
+                        reads=(init, run / "depth" / "final.safetensors"), writes=(grafted,)),
+                 _train("refine", Train("refine", init=grafted, data=(v.fresh88, v.fresh_prim),
+                                        processes=self.processes, **common)),
+                 _train("joint", Train("joint", init=run / "refine" / "final.safetensors",
+                                       data=(v.fresh88, v.fresh88, v.fresh_prim, v.fresh_prim, v.thin74),
+                                       options=("--depth-only", str(v.thin74)), processes=self.processes, **common))]
+        return Chain(name, tuple(steps))
+
+
+@dataclass(frozen=True)
 class _ProductPaths:
     home: Path
     run: Path
@@ -437,7 +533,7 @@ class _ProductPaths:
         return REPO_ROOT / "results" / "product"
 
 
-CHAINS: dict[str, ProtocolChain | ProductChain | EvalViewsChain] = {
+CHAINS: dict[str, ProtocolChain | ProductChain | EvalViewsChain | TrainViewsChain | CycleChain] = {
     "protocol": ProtocolChain("shipped"),
     "protocol-photo": ProtocolChain("photo"),
     "protocol-sharp": ProtocolChain("sharp"),
@@ -445,6 +541,8 @@ CHAINS: dict[str, ProtocolChain | ProductChain | EvalViewsChain] = {
     "product-continue": ProductChain(first="none", rounds=3, base_hours=2.44, curve_prefix="s2_"),
     "product-full": ProductChain(recipe="product_full", first="refine", rounds=0, run="product_full"),
     "eval-views": EvalViewsChain(),
+    "train-views": TrainViewsChain(),
+    "product-cycle": CycleChain(),
 }
 
 

@@ -16,6 +16,8 @@ _PROTOCOL_TAIL = ["inpaint", "refine", "joint", "render_eval", "render_eval_unse
                   "completion", "onestep", "eval", "install"]
 _PRODUCT_VIEWS = ["backgrounds", "render", "targets", "render_eval", "targets_eval", "render_primitives", "targets_primitives",
                   "render_primitives_eval", "targets_primitives_eval"]
+_TRAIN_VIEWS = ["backgrounds", "render_fresh88", "targets_fresh88", "render_fresh_prim", "targets_fresh_prim", "thin",
+                "render_thin74", "targets_thin74"]
 _START = ["eval_protocol", "eval_primitives_protocol", "eval_start", "eval_primitives_start", "curve_start"]
 
 
@@ -35,6 +37,8 @@ EXPECTED = {
     "eval-views": [*_DATA, "render_eval", "targets_eval", "render_eval_up", "targets_eval_up", "render_primitives_eval",
                    "targets_primitives_eval", "flat_test",
                    "render_flat_eval", "targets_flat_eval"],
+    "train-views": [*_DATA, *_TRAIN_VIEWS],
+    "product-cycle": [*_DATA, *_TRAIN_VIEWS, "depth", "graft", "refine", "joint"],
 }
 
 
@@ -86,6 +90,23 @@ def test_the_steps_run_with_this_interpreter_and_no_shell():
             argv = step.action.argv()
             assert argv[:2] == [sys.executable, "-m"] and ".venv" not in " ".join(argv[2:])
             assert argv[2] in ("genre_backend.cli", "training.eval.product", "training.eval.install")
+
+
+def test_data_parallel_stages_run_torchrun_with_this_interpreter(tmp_path):
+    chain = CHAINS["product-cycle"].build("product-cycle", tmp_path)
+    trains = {s.name: s.action for s in chain.steps if isinstance(s.action, Train)}
+    assert trains["depth"].argv()[:4] == [sys.executable, "-m", "genre_backend.cli", "train"]
+    for name in ("refine", "joint"):
+        argv = trains[name].argv()
+        assert argv[:7] == [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m",
+                            "training.learn.train"]
+        assert argv[7:9] == ["--recipe", "cycle"] and name in argv
+    graft = next(s for s in chain.steps if s.name == "graft")
+    depth_final = trains["depth"].out / "depth" / "final.safetensors"
+    assert graft.reads[1] == depth_final and graft.action.args[graft.action.args.index("--depth-from") + 1] == str(depth_final)
+    assert graft.writes == (trains["refine"].init,) and trains["joint"].init == trains["refine"].out / "refine" / "final.safetensors"
+    with pytest.raises(ValueError, match="processes"):
+        Train("joint", "cycle", (tmp_path,), tmp_path, processes=0)
 
 
 def _tiny_chain(views, home, config_json, steps: int) -> Chain:

@@ -25,6 +25,9 @@ its value.  The named recipes:
 * ``product_full``: ``product`` with the refiner grown by a non-linear
   full-resolution branch (``NetworkConfig.refiner_full_nf``), trained in a
   refine stage from the installed default weights before the joint rounds.
+* ``cycle``: one cycle of the product weights from the installed file (``genre chain product-cycle``): the
+  depth, refine and joint stages in the installed file's own regime (lr 3e-5, every picture on the grey
+  backdrop), the settings of the runs behind the installed weights since 2026-12-05 (``results/decisions.md``).
 * ``photo``: ``shipped`` with the depth stage continued (``--init`` the
   shipped weights) on renders composited over real photographs, so that the
   silhouette and depth work on photos.
@@ -235,7 +238,29 @@ _PRODUCT_FULL = Recipe(
     stages={**_PRODUCT.stages, "refine": replace(_PRODUCT.stages["refine"], steps=2400, lr_halflife=800)},
 )
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO, _SHARP, _PRODUCT, _PRODUCT_FULL)}
+# the settings every stage has trained the installed product weights with since the grey-backdrop joint stage
+# (C73b; results/decisions.md 2026-12-04 and 2026-12-05): a low rate, batch 8 a process, every picture on the grey
+# backdrop, as the installed file paints photos (geometry.plain_backdrop)
+_CYCLE_COMMON = dict(lr=3e-5, lr_halflife=3000, batch_size=8, photo_fraction=0.8, backdrop=1.0)
+_CYCLE = Recipe(
+    name="cycle",
+    preset="default",
+    target="distance",
+    description="one cycle of the product weights from the installed file (genre chain product-cycle): the depth "
+                "stage 3,000 steps (the depth's gradient term at 2, half the pictures mirrored, weight decay 0.5), "
+                "the refine stage 2,400 steps on that depth, then the joint stage 8,000 steps; every stage at lr 3e-5 "
+                "halving every 3,000 steps, batch 8 a process, 80 % of the pictures over photos and every picture on "
+                "the grey backdrop",
+    stages={
+        **_PRODUCT.stages,
+        "depth": replace(_PRODUCT.stages["depth"], **_CYCLE_COMMON, steps=3000, depth_gradient_weight=2.0, mirror=0.5,
+                         weight_decay=0.5),
+        "refine": replace(_PRODUCT.stages["refine"], **_CYCLE_COMMON, steps=2400),
+        "joint": replace(_PRODUCT.stages["joint"], **_CYCLE_COMMON, steps=8000, depth_gradient_weight=2.0, mirror=0.5),
+    },
+)
+
+RECIPES: dict[str, Recipe] = {r.name: r for r in (_PAPER, _SHIPPED, _PHOTO, _SHARP, _PRODUCT, _PRODUCT_FULL, _CYCLE)}
 
 
 def get_recipe(name: str) -> Recipe:
