@@ -435,38 +435,26 @@ class TrainViewsChain:
     elevation: tuple[int, int] = (-10, 88)
 
     def steps(self, home: Path) -> list[Step]:
-        v = _CycleViews(home)
+        fresh88, fresh_prim, thin74 = _train_views(home)
         thin_manifest = home / "thin_train" / "manifest.json"
         return [*_corpus(home), _backgrounds(home),
-                _render("render_fresh88", home, "product-train", v.fresh88, 2, seed=21, elevation=self.elevation),
-                _targets("targets_fresh88", v.fresh88),
-                _render("render_fresh_prim", home, "product-train", v.fresh_prim, 4, seed=22, classes="primitive",
+                _render("render_fresh88", home, "product-train", fresh88, 2, seed=21, elevation=self.elevation),
+                _targets("targets_fresh88", fresh88),
+                _render("render_fresh_prim", home, "product-train", fresh_prim, 4, seed=22, classes="primitive",
                         elevation=self.elevation),
-                _targets("targets_fresh_prim", v.fresh_prim),
+                _targets("targets_fresh_prim", fresh_prim),
                 _genre("thin", "data", "thin", "--out", home / "thin_train", writes=(thin_manifest,)),
-                _render("render_thin74", home, "product-train", v.thin74, 2, seed=74, manifest=thin_manifest,
+                _render("render_thin74", home, "product-train", thin74, 2, seed=74, manifest=thin_manifest,
                         elevation=self.elevation),
-                _targets("targets_thin74", v.thin74)]
+                _targets("targets_thin74", thin74)]
 
     def build(self, name: str, home: Path) -> Chain:
         return Chain(name, tuple(self.steps(home)))
 
 
-@dataclass(frozen=True)
-class _CycleViews:
-    home: Path
-
-    @property
-    def fresh88(self) -> Path:
-        return self.home / "views" / "fresh88"
-
-    @property
-    def fresh_prim(self) -> Path:
-        return self.home / "views" / "fresh_prim"
-
-    @property
-    def thin74(self) -> Path:
-        return self.home / "views" / "thin74"
+def _train_views(home: Path) -> tuple[Path, Path, Path]:
+    """``views/fresh88``, ``fresh_prim`` and ``thin74``: the training views :class:`TrainViewsChain` makes."""
+    return home / "views" / "fresh88", home / "views" / "fresh_prim", home / "views" / "thin74"
 
 
 @dataclass(frozen=True)
@@ -486,20 +474,20 @@ class CycleChain:
     processes: int = 2
 
     def build(self, name: str, home: Path) -> Chain:
-        v, run = _CycleViews(home), home / "runs" / self.run
+        (fresh88, fresh_prim, thin74), run = _train_views(home), home / "runs" / self.run
         init, grafted = _weights(self.init), run / "graft" / "depth_grafted.safetensors"
         common = dict(recipe=self.recipe, out=run, backgrounds=home / "backgrounds")
         steps = [*TrainViewsChain().steps(home),
-                 _train("depth", Train("depth", init=init, data=(v.fresh88, v.fresh88, v.fresh_prim, v.thin74),
+                 _train("depth", Train("depth", init=init, data=(fresh88, fresh88, fresh_prim, thin74),
                                        **common)),
                  _genre("graft", "train", "graft", init, "--depth-from", run / "depth" / "final.safetensors",
                         "--storage", "int8", "--out", grafted,
                         reads=(init, run / "depth" / "final.safetensors"), writes=(grafted,)),
-                 _train("refine", Train("refine", init=grafted, data=(v.fresh88, v.fresh_prim),
+                 _train("refine", Train("refine", init=grafted, data=(fresh88, fresh_prim),
                                         processes=self.processes, **common)),
                  _train("joint", Train("joint", init=run / "refine" / "final.safetensors",
-                                       data=(v.fresh88, v.fresh88, v.fresh_prim, v.fresh_prim, v.thin74),
-                                       options=("--depth-only", str(v.thin74)), processes=self.processes, **common))]
+                                       data=(fresh88, fresh88, fresh_prim, fresh_prim, thin74),
+                                       options=("--depth-only", str(thin74)), processes=self.processes, **common))]
         return Chain(name, tuple(steps))
 
 

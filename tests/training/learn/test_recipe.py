@@ -307,6 +307,7 @@ def test_the_cycle_chain_trains_with_the_cycle_runs_flags(tmp_path, capsys):
     chain = CHAINS["product-cycle"].build("product-cycle", home)
     trains = [s.action for s in chain.steps if isinstance(s.action, Train)]
     assert [t.stage for t in trains] == ["depth", "refine", "joint"]
+    resolved = {}
     for t in trains:
         command = t.command()
         # the depth stage in this process's threads; the refine and joint stages data-parallel over two processes
@@ -324,8 +325,8 @@ def test_the_cycle_chain_trains_with_the_cycle_runs_flags(tmp_path, capsys):
                          *(("--depth-only", got["depth_only"]) if got["depth_only"] else ()), *CYCLE_FLAGS[t.stage])
         assert got.pop("recipe") == "cycle" and flags.pop("recipe") == "product"
         assert got == flags
-    depth, refine, joint = (dataclasses.asdict(parse_args([*(t.command()[2:] if t.stage == "depth" else t.command()[5:]),
-                                                           "--dry-run"]).config) for t in trains)
+        resolved[t.stage] = got
+    depth, refine, joint = resolved["depth"], resolved["refine"], resolved["joint"]
     views = home / "views"
     assert depth["data"] == [str(views / "fresh88"), str(views / "fresh88"), str(views / "fresh_prim"), str(views / "thin74")]
     assert depth["init"] == str(REPO / "genre_backend" / "weights" / "default.safetensors")
