@@ -384,15 +384,24 @@ def _agree_across_ranks(run: _Run, summary: dict) -> None:
 def train(tcfg: TrainConfig, model_config: GenreConfig | None = None) -> dict:
     """Run (or resume) one stage; returns a summary with timings and losses.  SIGINT or SIGTERM stops it after the
     step in progress with a checkpoint of that step and no final weights; the summary then has ``stopped``."""
-    run = _start(tcfg, model_config)
-    _run_steps(run)
-    if run.stopped:  # SIGINT/SIGTERM: the checkpoint holds the last step; the same command resumes from it
-        return {**_summary_head(run), "stopped": f"signal {run.stopped}", "signal": run.stopped,
-                "checkpoint_step": run.stopped_at}
-    summary = _finish(run)
-    if run.world > 1:
-        _agree_across_ranks(run, summary)
-    return summary
+    import torch.distributed as dist
+
+    # a process group this call joins, it leaves: one left to the interpreter's exit can abort the process
+    # (gloo's threads outlive Python; "terminate called without an active exception", SIGABRT)
+    joins_group = dist_info()[1] > 1 and not dist.is_initialized()
+    try:
+        run = _start(tcfg, model_config)
+        _run_steps(run)
+        if run.stopped:  # SIGINT/SIGTERM: the checkpoint holds the last step; the same command resumes from it
+            return {**_summary_head(run), "stopped": f"signal {run.stopped}", "signal": run.stopped,
+                    "checkpoint_step": run.stopped_at}
+        summary = _finish(run)
+        if run.world > 1:
+            _agree_across_ranks(run, summary)
+        return summary
+    finally:
+        if joins_group and dist.is_initialized():
+            dist.destroy_process_group()
 
 
 def weights_digest(model: nn.Module, buffers: bool = True) -> str:
