@@ -22,9 +22,9 @@ PAUSE=${PAUSE:-train joint}
 OUT=$H/scores/$NAME; W=$H/cand/$NAME.safetensors
 while [ ! -f "$SNAP" ]; do sleep 20; done
 sleep 30
-resume() { pgrep -f "$PAUSE" | xargs -r kill -CONT; }
+resume() { { pgrep -f "$PAUSE" || true; } | xargs -r kill -CONT; }
 trap resume EXIT
-pgrep -f "$PAUSE" | xargs -r kill -STOP
+{ pgrep -f "$PAUSE" || true; } | xargs -r kill -STOP  # nothing to pause is no error (pipefail)
 mkdir -p "$H/cand" "$OUT"
 [ -f "$W" ] || python -c "import sys; from genre_backend.nets.model import load_model, save_model; \
 save_model(load_model(sys.argv[1]), sys.argv[2], storage='int8')" "$SNAP" "$W"
