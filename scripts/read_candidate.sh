@@ -11,7 +11,8 @@
 #    and the flat group ($GENRE_HOME/views/flat_eval, $GENRE_HOME/flat_test/manifest.json), into
 #    $GENRE_HOME/scores/NAME/SET (a set already scored is kept, so a stopped read resumes);
 # 4. the real flat photos (examples/flat) into $GENRE_HOME/scores/NAME/photos_flat/table.md;
-# 5. with INSTALLED (a name under $GENRE_HOME/scores scored the same way), the verdict into
+# 5. with INSTALLED (a name under $GENRE_HOME/scores scored the same way), the verdict (ProductRule and the second
+#    path, ParetoRule: `verdict --pareto`) into
 #    $GENRE_HOME/scores/NAME/verdict.md and verdict.json.
 # Run from the repository root with its .venv active. About 18 minutes on two cores. JOBS (default 2) sets genre
 # eval's worker processes.
@@ -44,6 +45,6 @@ python scripts/eval_photos.py --photos examples/flat --no-gallery --weights "$W"
   > "$OUT/photos_flat.log" 2>&1
 if [ -n "$INSTALLED" ]; then
   python -m training.eval.product verdict --installed "$H/scores/$INSTALLED" --candidate "$OUT" \
-    --json "$OUT/verdict.json" | tee "$OUT/verdict.md"
+    --pareto --json "$OUT/verdict.json" | tee "$OUT/verdict.md"
 fi
 echo done > "$OUT/read.done"

@@ -44,7 +44,7 @@ from ..data.corpus import SEEN_CLASSES
 from .protocol import FLOOR, REPRESENTATION, threshold_key
 from .report import depth_width_ratios
 
-__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "rule_figures", "RULE_SETS", "ProductRule", "flat_ratio",
+__all__ = ["PRIMITIVE_KINDS", "GROUPS", "group_of_shape", "load_scores", "compare_table", "rule_figures", "RULE_SETS", "ProductRule", "ParetoRule", "pooled_change", "flat_ratio",
            "flat_photos", "verdict", "verdict_text", "curve_point", "fit_table", "main"]
 
 PRIMITIVE_KINDS = ("cube", "cylinder", "cone", "torus")  # the issue's regular primitives
@@ -224,6 +224,66 @@ class ProductRule:
     flat_no_worse: bool = True
 
 
+@dataclass(frozen=True)
+class ParetoRule:
+    """The second install path of ``results/decisions.md`` (2026-12-06 08:42), as data: a candidate no worse on the
+    product sets and clearly flatter on the flat-from-above group, where :class:`ProductRule` asks for a product gain
+    of 1 % that a change of a few tenths cannot show through the views' noise.  Every bar must hold: the upper end of
+    the 95 % interval of the four product sets' pooled change (:func:`pooled_change`, shapes resampled) at most
+    ``product_upper_max`` percent; no product set's own change above ``set_max``; the primitives' change at most
+    ``primitives_max`` (the issue's "no worse"); the flat group's median depth ÷ width ratio at most ``flat_share`` of
+    the installed file's."""
+
+    level: float = 0.45
+    product_upper_max: float = 0.5
+    set_max: float = 1.0
+    primitives_max: float = 0.0
+    flat_share: float = 0.85
+    resamples: int = 2000
+    seed: int = 0
+
+
+def pooled_change(installed_dirs: list[Path], candidate_dirs: list[Path], level: float, resamples: int = 2000,
+                  seed: int = 0) -> dict:
+    """The change in percent of the summed CD of several sets' views (each pair of ``genre eval`` folders over the
+    views both hold, at ``level``), and its 95 % interval by resampling the *shapes* with replacement (a shape's views
+    in every set go together: the sets show the same shapes, so their views are not independent).  ``{"change",
+    "low", "high", "shapes", "views"}``."""
+    sums: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
+    views = 0
+    for di, dc in zip(installed_dirs, candidate_dirs, strict=True):
+        a, b = load_scores(di, threshold=level), load_scores(dc, threshold=level)
+        for k in sorted(set(a) & set(b)):
+            if math.isfinite(a[k]["cd"]) and math.isfinite(b[k]["cd"]):
+                s = sums[a[k]["shape"]]
+                s[0] += a[k]["cd"]
+                s[1] += b[k]["cd"]
+                views += 1
+    if not sums:
+        raise ValueError("the folders share no scored view")
+    sa, sb = np.array(list(sums.values())).T
+    pick = np.random.default_rng(seed).integers(0, len(sa), size=(resamples, len(sa)))
+    boot = 100.0 * (sb[pick].sum(1) / sa[pick].sum(1) - 1.0)
+    low, high = np.percentile(boot, [2.5, 97.5])
+    return {"change": float(100.0 * (sb.sum() / sa.sum() - 1.0)), "low": float(low), "high": float(high),
+            "shapes": len(sa), "views": views}
+
+
+def pareto_parts(installed_root: Path, candidate_root: Path, sets: dict, rule: ParetoRule) -> dict:
+    """:class:`ParetoRule`'s parts (figure, bar, holds, unit), given :func:`verdict`'s per-set figures."""
+    names = [n for k in ("photo-like", "as rendered") for n in RULE_SETS[k]]
+    pooled = pooled_change([Path(installed_root) / n for n in names], [Path(candidate_root) / n for n in names],
+                           rule.level, rule.resamples, rule.seed)
+    worst = max(names, key=lambda n: sets[n]["change_percent"])
+    flat_a, flat_b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
+    parts = {"product sets pooled, upper 95 %": (pooled["high"], rule.product_upper_max, "%"),
+             f"worst product set ({worst})": (sets[worst]["change_percent"], rule.set_max, "%"),
+             "primitives": (sets["primitives_eval"]["change_percent"], rule.primitives_max, "%"),
+             "flat group depth ÷ width ratio": (flat_b, rule.flat_share * flat_a, "×")}
+    return {"rule": asdict(rule), "pooled": pooled,
+            "parts": {k: {"figure": f, "bar": bar, "holds": f <= bar, "unit": u} for k, (f, bar, u) in parts.items()}}
+
+
 def flat_ratio(eval_dir: Path, level: float, row: str = "GenRe") -> float:
     """The flat-from-above group's median over views of the mesh's depth ÷ width over the truth's
     (:func:`training.eval.report.flatness_table`'s ratio) at ``level``, from a ``genre eval`` folder's per_view.csv."""
@@ -249,11 +309,14 @@ def flat_photos(root: Path) -> dict[str, dict]:
     return {r[0]: {"thinnest": float(r[i]), "truth": float(r[i + 1])} for r in rows[1:] if r and r[0] != "mean"}
 
 
-def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = ProductRule()) -> dict:
+def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = ProductRule(),
+            pareto: ParetoRule | None = None) -> dict:
     """The rule applied: each set's figures (:func:`rule_figures`), each part's figure against its bar,
     ``"install"``, true only if every part holds, and beside them (choosing nothing) ``"product_mean"``, the mean of
     the four product sets' changes (how near a read came to the bars, joint-80's measure).  The roots hold one ``genre eval`` folder per :data:`RULE_SETS`
-    name, and ``flat/`` when ``rule.flat_no_worse``."""
+    name, and ``flat/`` when ``rule.flat_no_worse``.  With ``pareto``, the second path too (:func:`pareto_parts`,
+    under ``"pareto"`` with its own ``"install"``): ``"install"`` is then true if either path's parts all hold, and
+    ``"product_rule_install"`` keeps the first path's outcome."""
     sets = {name: rule_figures(Path(installed_root) / name, Path(candidate_root) / name, rule.level)
             for names in RULE_SETS.values() for name in names}
     photo, rendered = ([sets[n]["change_percent"] for n in RULE_SETS[k]] for k in ("photo-like", "as rendered"))
@@ -269,10 +332,20 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
         a, b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
         out["parts"]["flat group depth ÷ width ratio"] = {"figure": b, "bar": a, "holds": b <= a, "unit": "×"}
     out["install"] = all(p["holds"] for p in out["parts"].values())
+    if pareto is not None:
+        out["pareto"] = pareto_parts(installed_root, candidate_root, sets, pareto)
+        out["pareto"]["install"] = all(p["holds"] for p in out["pareto"]["parts"].values())
+        out["product_rule_install"] = out["install"]
+        out["install"] = out["install"] or out["pareto"]["install"]
     a, b = flat_photos(installed_root), flat_photos(candidate_root)
     out["beside"] = {name: {"installed": a[name]["thinnest"], "candidate": b[name]["thinnest"],
                             "truth": b[name]["truth"]} for name in sorted(set(a) & set(b))}
     return out
+
+
+def _part_line(name: str, p: dict) -> str:
+    fmt = (lambda x: f"{x:+.2f} %") if p["unit"] == "%" else (lambda x: f"{x:.2f}×")  # changes signed, ratios not
+    return f"| {name} | {fmt(p['figure'])} | ≤ {fmt(p['bar'])} | {'yes' if p['holds'] else '**no**'} |"
 
 
 def verdict_text(v: dict) -> str:
@@ -281,9 +354,15 @@ def verdict_text(v: dict) -> str:
     lines += [f"| {n} | {f['views']} | {f['installed']:.5f} | {f['candidate']:.5f} | {f['change_percent']:+.2f} % | "
               f"{f['better']} |" for n, f in v["sets"].items()]
     lines += ["", "| part | figure | bar | holds |", "|---|---|---|---|"]
-    for name, p in v["parts"].items():
-        fmt = (lambda x: f"{x:+.2f} %") if p["unit"] == "%" else (lambda x: f"{x:.2f}×")  # changes signed, ratios not
-        lines.append(f"| {name} | {fmt(p['figure'])} | ≤ {fmt(p['bar'])} | {'yes' if p['holds'] else '**no**'} |")
+    lines += [_part_line(name, p) for name, p in v["parts"].items()]
+    if "pareto" in v:
+        pooled = v["pareto"]["pooled"]
+        lines += ["", f"Second path (ParetoRule): the four product sets pooled {pooled['change']:+.2f} % "
+                  f"(95 % interval {pooled['low']:+.2f} to {pooled['high']:+.2f} %, {pooled['shapes']} shapes "
+                  f"resampled, {pooled['views']} views)", "", "| part | figure | bar | holds |", "|---|---|---|---|"]
+        lines += [_part_line(name, p) for name, p in v["pareto"]["parts"].items()]
+        lines += ["", f"by ProductRule: {'yes' if v['product_rule_install'] else 'no'}; by ParetoRule: "
+                  f"{'yes' if v['pareto']['install'] else 'no'}"]
     lines += ["", f"install: {'yes' if v['install'] else 'no'} (level {v['rule']['level']})",
               "", f"Beside: the mean of the four product sets' changes {v['product_mean']:+.2f} %"]
     if v.get("beside"):
@@ -439,6 +518,9 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--candidate", required=True, help="the same folder of the candidate's")
     v.add_argument("--level", type=float, default=ProductRule.level, help="the level both are scored at (default %(default)s)")
     v.add_argument("--no-flat", action="store_true", help="leave out the flat group's part (no flat/ folders)")
+    v.add_argument("--pareto", action="store_true",
+                   help="apply the second path too (ParetoRule: no worse on the product sets, flatter on the flat "
+                        "group); install if either path holds")
     v.add_argument("--json", help="also write the figures here")
     k = sub.add_parser("curve", help="append a point to the learning curve (CSV + PNG beside it)")
     k.add_argument("--run", help="the product training run (its stages' checkpoints hold their processor time); "
@@ -475,8 +557,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{'  ' + label + ': ' if label else ''}{g['views']} views: candidate {g['candidate']:.5f} against "
                       f"installed {g['installed']:.5f} ({g['change_percent']:+.2f} %), lower on {g['better']}")
         elif args.cmd == "verdict":
+            if args.pareto and args.no_flat:
+                p.error("--pareto reads the flat group: it cannot go with --no-flat")
             result = verdict(Path(args.installed), Path(args.candidate),
-                             ProductRule(level=args.level, flat_no_worse=not args.no_flat))
+                             ProductRule(level=args.level, flat_no_worse=not args.no_flat),
+                             ParetoRule(level=args.level) if args.pareto else None)
             if args.json:
                 atomic_write_text(Path(args.json), json.dumps(result, indent=1) + "\n")
             print(verdict_text(result), end="")

@@ -239,3 +239,55 @@ def test_the_verdict_applies_every_bar_of_the_rule(tmp_path, capsys):
     assert json.loads((tmp_path / "v.json").read_text())["install"] is True
     assert product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "bad-product_up")]) == 0
     assert "| as rendered, product_up | +2.10 % | ≤ +2.00 % | **no** |" in capsys.readouterr().out
+
+
+def _two_shape_root(root, cds):
+    """The four product sets, each one view of shapes s1 and s2 with GenRe CDs ``cds`` (s1, s2)."""
+    for names in (product.RULE_SETS["photo-like"], product.RULE_SETS["as rendered"]):
+        for name in names:
+            _eval_dir(root / name, 0.45, [(f"{s}/000", s, "lamp", "GenRe", c) for s, c in zip(("s1", "s2"), cds)])
+    return root
+
+
+def test_the_pooled_change_resamples_shapes_so_its_interval_spans_the_shapes_own_changes(tmp_path):
+    installed = _two_shape_root(tmp_path / "i", (0.10, 0.10))
+    names = [n for k in ("photo-like", "as rendered") for n in product.RULE_SETS[k]]
+    dirs = lambda root: [root / n for n in names]  # noqa: E731
+    # s1 10 % lower, s2 6 % higher: pooled -2 %. Two shapes drawn with replacement give s1 twice (1/4: -10 %), one
+    # of each (1/2: -2 %) or s2 twice (1/4: +6 %), so the 2.5 and 97.5 percentiles are the shapes' own changes
+    f = product.pooled_change(dirs(installed), dirs(_two_shape_root(tmp_path / "c", (0.09, 0.106))), 0.45)
+    assert f["change"] == pytest.approx(-2.0) and (f["shapes"], f["views"]) == (2, 8)
+    assert f["low"] == pytest.approx(-10.0) and f["high"] == pytest.approx(6.0)
+    # every view 0.3 % lower: every resample says so, and the interval closes on the change
+    f = product.pooled_change(dirs(installed), dirs(_two_shape_root(tmp_path / "even", (0.0997, 0.0997))), 0.45)
+    assert f["low"] == pytest.approx(-0.3) and f["high"] == pytest.approx(-0.3)
+
+
+def test_the_second_path_installs_a_candidate_no_worse_and_flatter_and_nothing_else(tmp_path, capsys):
+    installed = _rule_root(tmp_path / "i", {}, [8.0, 9.0, 10.0])
+    # every product set 0.3 % lower (ProductRule's 1 % not reached), primitives no worse, flat 7.6 against 9 (0.84)
+    even = {"product_eval_photo": 0.997, "product_up_photo": 0.997, "product_eval": 0.997, "product_up": 0.997,
+            "primitives_eval": 1.0}
+    v = product.verdict(installed, _rule_root(tmp_path / "even", even, [7.6]), pareto=product.ParetoRule())
+    assert not v["product_rule_install"] and v["pareto"]["install"] and v["install"]
+    parts = v["pareto"]["parts"]
+    assert parts["product sets pooled, upper 95 %"]["figure"] == pytest.approx(-0.3)
+    assert parts["flat group depth ÷ width ratio"]["bar"] == pytest.approx(0.85 * 9.0)
+    # each bar broken alone: one set 1.2 % worse (pooled still lower), the primitives 0.1 % worse, the flat group
+    # only 0.87 of the installed file's, every set 0.6 % worse
+    for name, scale, flat in [("one set", {**even, "product_up": 1.012}, [7.6]),
+                              ("primitives", {**even, "primitives_eval": 1.001}, [7.6]),
+                              ("flat", even, [7.83]),
+                              ("product", {k: (1.006 if k != "primitives_eval" else 1.0) for k in even}, [7.6])]:
+        v = product.verdict(installed, _rule_root(tmp_path / name.replace(" ", "-"), scale, flat),
+                            pareto=product.ParetoRule())
+        assert not v["pareto"]["install"] and not v["install"], name
+    assert product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "even"),
+                         "--pareto"]) == 0
+    out = capsys.readouterr().out
+    assert "Second path (ParetoRule): the four product sets pooled -0.30 %" in out
+    assert "| flat group depth ÷ width ratio | 7.60× | ≤ 7.65× | yes |" in out
+    assert "by ProductRule: no; by ParetoRule: yes" in out and "\ninstall: yes (level 0.45)\n" in out
+    with pytest.raises(SystemExit):
+        product.main(["verdict", "--installed", str(installed), "--candidate", str(tmp_path / "even"), "--pareto",
+                      "--no-flat"])
