@@ -269,7 +269,7 @@ def pooled_change(installed_dirs: list[Path], candidate_dirs: list[Path], level:
             "shapes": len(sa), "views": views}
 
 
-def pareto_parts(installed_root: Path, candidate_root: Path, sets: dict, rule: ParetoRule) -> dict:
+def _pareto_parts(installed_root: Path, candidate_root: Path, sets: dict, rule: ParetoRule) -> dict:
     """:class:`ParetoRule`'s parts (figure, bar, holds, unit), given :func:`verdict`'s per-set figures."""
     names = [n for k in ("photo-like", "as rendered") for n in RULE_SETS[k]]
     pooled = pooled_change([Path(installed_root) / n for n in names], [Path(candidate_root) / n for n in names],
@@ -314,7 +314,7 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
     """The rule applied: each set's figures (:func:`rule_figures`), each part's figure against its bar,
     ``"install"``, true only if every part holds, and beside them (choosing nothing) ``"product_mean"``, the mean of
     the four product sets' changes (how near a read came to the bars, joint-80's measure).  The roots hold one ``genre eval`` folder per :data:`RULE_SETS`
-    name, and ``flat/`` when ``rule.flat_no_worse``.  With ``pareto``, the second path too (:func:`pareto_parts`,
+    name, and ``flat/`` when ``rule.flat_no_worse``.  With ``pareto``, the second path too (:func:`_pareto_parts`,
     under ``"pareto"`` with its own ``"install"``): ``"install"`` is then true if either path's parts all hold, and
     ``"product_rule_install"`` keeps the first path's outcome."""
     sets = {name: rule_figures(Path(installed_root) / name, Path(candidate_root) / name, rule.level)
@@ -333,7 +333,7 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
         out["parts"]["flat group depth ÷ width ratio"] = {"figure": b, "bar": a, "holds": b <= a, "unit": "×"}
     out["install"] = all(p["holds"] for p in out["parts"].values())
     if pareto is not None:
-        out["pareto"] = pareto_parts(installed_root, candidate_root, sets, pareto)
+        out["pareto"] = _pareto_parts(installed_root, candidate_root, sets, pareto)
         out["pareto"]["install"] = all(p["holds"] for p in out["pareto"]["parts"].values())
         out["product_rule_install"] = out["install"]
         out["install"] = out["install"] or out["pareto"]["install"]
