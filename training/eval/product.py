@@ -18,8 +18,8 @@ regular primitives         the procedural cubes, cylinders, cones and tori (rand
 ``python -m training.eval.product fit`` writes the fit diagnostic (CD on a fixed
 sample of training views beside CD on the test split, each against its noise
 floor: while the two are alike and far from the floor, the model underfits);
-``python -m training.eval.product verdict`` applies the install rule (:class:`ProductRule`) to two folders of the
-rule's score sets; ``python -m training.eval.product curve`` appends one point (cumulative
+``python -m training.eval.product verdict`` applies the install rule (:class:`ProductRule`; with ``--pareto`` also the
+second path, :class:`ParetoRule`) to two folders of the rule's score sets; ``python -m training.eval.product curve`` appends one point (cumulative
 processor hours of a product run, its mean CD on the product test split) to
 the learning curve and plots it.
 """
