@@ -269,13 +269,15 @@ def pooled_change(installed_dirs: list[Path], candidate_dirs: list[Path], level:
             "shapes": len(sa), "views": views}
 
 
-def _pareto_parts(installed_root: Path, candidate_root: Path, sets: dict, rule: ParetoRule) -> dict:
-    """:class:`ParetoRule`'s parts (figure, bar, holds, unit), given :func:`verdict`'s per-set figures."""
+def _pareto_parts(installed_root: Path, candidate_root: Path, sets: dict, flat: tuple[float, float],
+                  rule: ParetoRule) -> dict:
+    """:class:`ParetoRule`'s parts (figure, bar, holds, unit), given :func:`verdict`'s per-set figures and the flat
+    group's ratios (installed, candidate)."""
     names = [n for k in ("photo-like", "as rendered") for n in RULE_SETS[k]]
     pooled = pooled_change([Path(installed_root) / n for n in names], [Path(candidate_root) / n for n in names],
                            rule.level, rule.resamples, rule.seed)
     worst = max(names, key=lambda n: sets[n]["change_percent"])
-    flat_a, flat_b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
+    flat_a, flat_b = flat
     parts = {"product sets pooled, upper 95 %": (pooled["high"], rule.product_upper_max, "%"),
              f"worst product set ({worst})": (sets[worst]["change_percent"], rule.set_max, "%"),
              "primitives": (sets["primitives_eval"]["change_percent"], rule.primitives_max, "%"),
@@ -317,6 +319,8 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
     name, and ``flat/`` when ``rule.flat_no_worse``.  With ``pareto``, the second path too (:func:`_pareto_parts`,
     under ``"pareto"`` with its own ``"install"``): ``"install"`` is then true if either path's parts all hold, and
     ``"product_rule_install"`` keeps the first path's outcome."""
+    if pareto is not None and pareto.level != rule.level:
+        raise ValueError(f"the two paths read one level: ProductRule's {rule.level}, ParetoRule's {pareto.level}")
     sets = {name: rule_figures(Path(installed_root) / name, Path(candidate_root) / name, rule.level)
             for names in RULE_SETS.values() for name in names}
     photo, rendered = ([sets[n]["change_percent"] for n in RULE_SETS[k]] for k in ("photo-like", "as rendered"))
@@ -328,12 +332,14 @@ def verdict(installed_root: Path, candidate_root: Path, rule: ProductRule = Prod
     }
     out = {"rule": asdict(rule), "sets": sets, "product_mean": float(np.mean(photo + rendered)),
            "parts": {k: {"figure": v, "bar": bar, "holds": v <= bar, "unit": "%"} for k, (v, bar) in parts.items()}}
+    if rule.flat_no_worse or pareto is not None:
+        flat = tuple(flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
     if rule.flat_no_worse:
-        a, b = (flat_ratio(Path(root) / "flat", rule.level) for root in (installed_root, candidate_root))
+        a, b = flat
         out["parts"]["flat group depth ÷ width ratio"] = {"figure": b, "bar": a, "holds": b <= a, "unit": "×"}
     out["install"] = all(p["holds"] for p in out["parts"].values())
     if pareto is not None:
-        out["pareto"] = _pareto_parts(installed_root, candidate_root, sets, pareto)
+        out["pareto"] = _pareto_parts(installed_root, candidate_root, sets, flat, pareto)
         out["pareto"]["install"] = all(p["holds"] for p in out["pareto"]["parts"].values())
         out["product_rule_install"] = out["install"]
         out["install"] = out["install"] or out["pareto"]["install"]
