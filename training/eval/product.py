@@ -175,8 +175,9 @@ def _kind(entry: dict) -> str:
 
 def _change(a: dict[str, dict], b: dict[str, dict], keys: list[str]) -> dict:
     ma, mb = (float(np.mean([s[k]["cd"] for k in keys])) for s in (a, b))
+    floor = _mean(b[k].get("floor", math.nan) for k in keys)  # the same views' noise floor (nan where none is scored)
     return {"views": len(keys), "installed": ma, "candidate": mb, "change_percent": 100.0 * (mb / ma - 1.0),
-            "better": sum(b[k]["cd"] < a[k]["cd"] for k in keys)}
+            "better": sum(b[k]["cd"] < a[k]["cd"] for k in keys), "floor": floor}
 
 
 def rule_figures(installed_dir: Path, candidate_dir: Path, threshold: float | None = None, row: str = "GenRe",
@@ -561,7 +562,9 @@ def main(argv: list[str] | None = None) -> int:
                              manifest)
             for label, g in [(None, f), *f.get("by_kind", {}).items()]:
                 print(f"{'  ' + label + ': ' if label else ''}{g['views']} views: candidate {g['candidate']:.5f} against "
-                      f"installed {g['installed']:.5f} ({g['change_percent']:+.2f} %), lower on {g['better']}")
+                      f"installed {g['installed']:.5f} ({g['change_percent']:+.2f} %), lower on {g['better']}"
+                      + (f"; noise floor {g['floor']:.5f}, the candidate {g['candidate'] / g['floor']:.2f}× it"
+                         if math.isfinite(g["floor"]) and g["floor"] > 0 else ""))
         elif args.cmd == "verdict":
             if args.pareto and args.no_flat:
                 p.error("--pareto reads the flat group: it cannot go with --no-flat")

@@ -148,7 +148,10 @@ def test_rule_figures_are_per_view_means_over_the_shared_views(tmp_path, capsys)
     assert f["installed"] == pytest.approx(0.11) and f["candidate"] == pytest.approx(0.1225)
     assert f["change_percent"] == pytest.approx(100 * (0.1225 / 0.11 - 1))
     assert product.main(["rule", "--installed", str(a), "--candidate", str(b)]) == 0
-    assert capsys.readouterr().out.strip() == "4 views: candidate 0.12250 against installed 0.11000 (+11.36 %), lower on 1"
+    # the same views' noise floor (0.02 each) beside: 0.1225 / 0.02 = 6.125
+    assert f["floor"] == pytest.approx(0.02)
+    assert capsys.readouterr().out.strip() == ("4 views: candidate 0.12250 against installed 0.11000 (+11.36 %), lower on 1; "
+                                               "noise floor 0.02000, the candidate 6.12× it")
     assert product.rule_figures(a, b, threshold=0.50)["installed"] == pytest.approx(9.0)  # read at the level given
     # the candidate's own row named apart (a swept mesh option): read from the candidate only
     swept = [(k, sh, c, "GenRe [visible_fusion=on]", cd / 2) for k, sh, c, row, cd in b_rows if row == "GenRe"]
@@ -175,7 +178,8 @@ def test_rule_figures_by_kind_show_where_a_change_lands(tmp_path, capsys):
     manifest.write_text(json.dumps(MANIFEST))
     assert product.main(["rule", "--installed", str(a), "--candidate", str(b), "--by-kind", str(manifest)]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].startswith("5 views:") and "  cube: 1 views: candidate 0.06000 against installed 0.04000 (+50.00 %), lower on 0" in lines
+    assert lines[0].startswith("5 views:") and ("  cube: 1 views: candidate 0.06000 against installed 0.04000 (+50.00 %), lower on 0; "
+                                                "noise floor 0.02000, the candidate 3.00× it") in lines
 
 
 def _flat_dir(path, ratios):
