@@ -234,6 +234,14 @@ class GeometryConfig:
         0, kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", distance_only=True, metavar="K", label="Seal Pits",
         help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
              "surface around them (0: none)", chosen="genre eval --sweep on the product test split (results/decisions.md)")
+    # Dents in the back the camera cannot see (geometry.visible_front.seal_back): where the refiner's back is faint in
+    # its middle the mesh's back is a dish inside a rim; basins of the back seen from behind deeper than 2 voxels are
+    # filled to their rim, in reconstruction and evaluation, after the pits.  Turned on only by the rule in
+    # results/decisions.md.  Weights stored without the key: off.
+    back_sealing: bool = _setting(
+        False, kind="bool", distance_only=True, label="Seal Back",
+        help="fill the dents in the back the networks guess (the side the photo does not show) up to the rim around "
+             "them, so that a round thing is not hollowed out behind", chosen="results/decisions.md")
     # Regular shapes (geometry.primitives.snap): the mesh is replaced by the box, cylinder, cone, torus or
     # ellipsoid fitted to the mask's outline, the mesh and the depth when its disagreement (1 - the IoU of
     # its silhouette with the mask, or twice the mesh's mean distance to it over its diagonal, whichever

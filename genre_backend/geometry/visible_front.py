@@ -1,4 +1,4 @@
-"""The face the camera sees, made whole in a predicted distance grid before the mesh is made.
+"""The faces along the camera's rays, made whole in a predicted distance grid before the mesh is made.
 
 * :func:`depth_to_distance` is the distance target of the surface a depth map shows (its pixels triangulated, jumps
   dropped, :func:`.mesh_voxels.mesh_to_distance` of that open sheet).
@@ -6,6 +6,8 @@
   what the camera sees, so that the mesh's front is whole (``GeometryConfig.visible_fusion``).
 * :func:`seal_pits` fills the narrow wells in the grid's own visible front from the front around them
   (``GeometryConfig.pit_sealing``).
+* :func:`seal_back` fills the dents in the grid's back, the side the camera cannot see, up to the rim around them
+  (``GeometryConfig.back_sealing``).
 
 Grids as in :mod:`.mesh_voxels`; only for the ``distance`` target.
 """
@@ -18,7 +20,7 @@ import torch
 from ..validation import check_hole_closing, check_tensor, check_threshold
 from .mesh_voxels import mesh_to_distance
 
-__all__ = ["depth_to_distance", "fuse_visible_surface", "seal_pits", "PIT_MIN_DEPTH_VOXELS"]
+__all__ = ["depth_to_distance", "fuse_visible_surface", "seal_pits", "seal_back", "PIT_MIN_DEPTH_VOXELS"]
 
 def depth_to_distance(depth: torch.Tensor, camera, geometry, mask: torch.Tensor | None = None) -> torch.Tensor:
     """The distance target (N, N, N) float32 of the surface one depth map shows, in the view frame.
@@ -137,7 +139,6 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     ``geometry.target == "distance"``.
     """
     from scipy import ndimage
-    from skimage.morphology import reconstruction
 
     from .voxels import ray_first_hit
 
@@ -159,10 +160,7 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     far = float(camera.distance) + 1.0  # beyond the cube's far side: what a ray that meets nothing sees
     hit = ray_first_hit(prob, level, camera, size).numpy().astype(np.float64)
     front = np.where(obj & np.isfinite(hit), hit, far)
-    height = -front  # nearer is higher; outside the mask: the lowest, the sea every basin drains to
-    seed = np.full_like(height, height.max())
-    seed[0, :], seed[-1, :], seed[:, 0], seed[:, -1] = height[0, :], height[-1, :], height[:, 0], height[:, -1]
-    filled = -reconstruction(seed, height, method="erosion")  # each basin raised to its rim: nearer depths
+    filled = -_fill_basins(-front)  # nearer is higher; outside the mask the lowest, the sea every basin drains to
     rimmed = filled < far - h  # pixels with a nearer front to seal them with
     basins = obj & rimmed & (front - filled > PIT_MIN_DEPTH_VOXELS * h)
     if not basins.any():
@@ -178,4 +176,69 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     surface = filled + (1.0 - level) * geometry.distance_band * h  # the crossing lies this far in front of the surface
     region = torch.from_numpy(narrow)
     patch = depth_to_distance(torch.from_numpy(np.where(narrow, surface, 0.0)).float(), camera, geometry, region)
+    return torch.maximum(prob, patch)
+
+
+def _fill_basins(height: np.ndarray) -> np.ndarray:
+    """A height field (S, S) with every basin raised to its rim: morphological reconstruction by erosion from the
+    image's border (scikit-image), so that water drains only over the border; the rest is unchanged."""
+    from skimage.morphology import reconstruction
+
+    seed = np.full_like(height, height.max())
+    seed[0, :], seed[-1, :], seed[:, 0], seed[:, -1] = height[0, :], height[-1, :], height[:, 0], height[:, -1]
+    return reconstruction(seed, height, method="erosion")
+
+
+def seal_back(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: float, grow_px: int = 2) -> torch.Tensor:
+    """A distance-target grid (N, N, N) with the dents in its back, the side the camera cannot see, filled to their rim.
+
+    prob: (N, N, N) float in [0, 1] (the refiner's sigmoid, after the other steps); mask: (S, S) bool, the object's
+    pixels; ``level``: the iso-level the mesh is made at.
+
+    The depth at which each object pixel's ray last leaves the grid (:func:`..voxels.ray_last_hit`) is the back seen
+    from behind: a height field in which farther is higher.  Where the refiner's back is faint in its middle, its
+    crossing falls forward onto the inside of the front and the mesh's back is a dish inside a rim (a real orange's,
+    a hollow half as deep as the fruit).  A dent is a basin of that field: pixels from which every path to the outside
+    of the mask (or to a ray that meets nothing, a hole through the object) first climbs to a farther depth.  The
+    basins whose floor lies more than :data:`PIT_MIN_DEPTH_VOXELS` below their rim are filled to the depth of their
+    rim, margins and all, whatever their width, and,
+    over each basin grown by ``grow_px`` pixels, the filled field's surface (moved in front of the crossing to the
+    surface the tube stands for) is added as a distance target, ``max(prob, patch)`` (:func:`depth_to_distance`): a
+    lid that closes the dish, whose inside the mesh then fills.  A back that is convex seen from behind, and one
+    open to the outline or to a hole, are left alone; nothing is ever removed.  Returns ``prob`` (float32, on the
+    CPU) when nothing is sealed.  Only for ``geometry.target == "distance"``.
+    """
+    from scipy import ndimage
+
+    from .voxels import ray_last_hit
+
+    if geometry.target != "distance":
+        raise ValueError("seal_back: dents are sealed only in distance-target grids")
+    n = geometry.voxel_size
+    check_tensor("prob", prob, (n, n, n))
+    check_tensor("mask", mask, ("S", "S"), floating=False)
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask: expected a bool tensor, got {mask.dtype}")
+    level = check_threshold("level", level)
+    prob = prob.detach().cpu().float()
+    obj = mask.detach().cpu().numpy()
+    h = 1.0 / n
+    near = float(camera.distance) - 1.0  # before the cube's near side: what a ray that meets nothing counts as
+    hit = ray_last_hit(prob, level, camera, obj.shape[-1]).numpy().astype(np.float64)
+    held = obj & np.isfinite(hit)
+    back = np.where(held, hit, near)
+    filled = _fill_basins(back)  # farther is higher: each dent raised to its rim, away from the camera
+    raised = held & (filled > near + h) & (filled - back > 0.25 * h)  # a dent's whole floor, its shallow margin too
+    labels, count = ndimage.label(raised)
+    if count == 0:
+        return prob
+    deepest = ndimage.maximum(filled - back, labels, np.arange(1, count + 1))
+    basins = np.isin(labels, 1 + np.flatnonzero(np.asarray(deepest) > PIT_MIN_DEPTH_VOXELS * h))
+    if not basins.any():
+        return prob
+    if grow_px > 0:
+        basins = ndimage.binary_dilation(basins, np.ones((3, 3), bool), iterations=int(grow_px)) & held
+    surface = filled - (1.0 - level) * geometry.distance_band * h  # the back's crossing lies this far behind its surface
+    region = torch.from_numpy(basins)
+    patch = depth_to_distance(torch.from_numpy(np.where(basins, surface, 0.0)).float(), camera, geometry, region)
     return torch.maximum(prob, patch)

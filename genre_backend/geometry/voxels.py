@@ -22,7 +22,7 @@ import torch
 from ..validation import check_mask, check_positive_int, check_tensor
 
 __all__ = ["points_to_voxels", "points_to_voxels_reference", "silhouette_ramp", "silhouette_ramp_reference",
-           "voxel_centres", "mirror_voxels", "ray_first_hit",
+           "voxel_centres", "mirror_voxels", "ray_first_hit", "ray_last_hit",
            "ray_first_hit_reference", "ray_max", "ray_max_reference"]
 
 
@@ -263,6 +263,17 @@ def ray_first_hit(grid: torch.Tensor, level: float, camera, image_size: int, ste
     the result is the first sample above ``level`` (so within ``step`` voxels behind the crossing),
     and a region above ``level`` thicker than ``step`` voxels along the ray is never missed.
     """
+    return _ray_hit(grid, level, camera, image_size, step, last=False)
+
+
+def ray_last_hit(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.5) -> torch.Tensor:
+    """Where each pixel's ray last leaves the grid: (S, S) float32 planar depth of its farthest sample above ``level``
+    (the back the camera cannot see, within ``step`` voxels in front of the crossing), ``inf`` where it meets nothing;
+    as :func:`ray_first_hit` otherwise."""
+    return _ray_hit(grid, level, camera, image_size, step, last=True)
+
+
+def _ray_hit(grid: torch.Tensor, level: float, camera, image_size: int, step: float, last: bool) -> torch.Tensor:
     from ..validation import check_threshold
 
     check_tensor("grid", grid, ("N", "N", "N"))
@@ -271,16 +282,20 @@ def ray_first_hit(grid: torch.Tensor, level: float, camera, image_size: int, ste
     vals = torch.nn.functional.grid_sample(grid.detach().float().cpu()[None, None], coords[None], mode="bilinear",
                                            padding_mode="zeros", align_corners=False)[0, 0]  # (K, S, S)
     above = vals > level
-    first = above.float().argmax(dim=0)  # the first sample above the level (0 where none: masked below)
-    return torch.where(above.any(dim=0), depths[first], torch.tensor(float("inf")))
+    if last:  # the last sample above the level: the first one counted from the far end
+        index = above.shape[0] - 1 - above.flip(0).float().argmax(dim=0)
+    else:  # the first sample above the level (0 where none: masked below)
+        index = above.float().argmax(dim=0)
+    return torch.where(above.any(dim=0), depths[index], torch.tensor(float("inf")))
 
 
 def ray_first_hit_reference(grid: torch.Tensor, level: float, camera, image_size: int, step: float = 0.125,
-                            rows: int | None = None) -> np.ndarray:
+                            rows: int | None = None, last: bool = False) -> np.ndarray:
     """Plain-loop reference of :func:`ray_first_hit` (slow; tests): (S, S) float64 planar depth, ``inf`` where
     nothing is met; each pixel's ray marched in steps of ``step`` voxels along the ray itself, the trilinear
     interpolation written out.  ``rows``: only the first this many pixel rows are marched (the others stay
-    ``inf``; for timing)."""
+    ``inf``; for timing).  ``last``: marched from the far side toward the camera, the reference of
+    :func:`ray_last_hit`."""
     g = grid.detach().double().cpu().numpy()
     n = g.shape[0]
     f = camera.lens_mm / camera.sensor_mm * image_size
@@ -292,11 +307,11 @@ def ray_first_hit_reference(grid: torch.Tensor, level: float, camera, image_size
             dx, dy = (c + 0.5 - image_size / 2.0) / f, -(r + 0.5 - image_size / 2.0) / f
             norm = math.sqrt(dx * dx + dy * dy + 1.0)
             d = (dx / norm, dy / norm, -1.0 / norm)
-            t = camera.distance - 1.0
-            while t < camera.distance + 1.0:
+            t = camera.distance + (1.0 if last else -1.0)
+            while abs(t - camera.distance) <= 1.0:
                 x, y, z = d[0] * t, d[1] * t, camera.distance + d[2] * t
                 if max(abs(x), abs(y), abs(z)) < 0.5 and _trilinear_reference(g, (x, y, z)) > level:
                     out[r, c] = camera.distance - z  # planar depth
                     break
-                t += step / n
+                t += -step / n if last else step / n
     return out

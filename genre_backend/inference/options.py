@@ -156,11 +156,11 @@ class _Record:
 
         In order: capped by the mask's outline ramp (``silhouette_carve``) and by the full spherical map's hull
         (``sph_hull_carve``, where the view has a map), the holes in the visible face filled from
-        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*); the
-        last two at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`genre_backend.nets.outputs.View`).
+        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*), the dents of its back filled
+        (*Seal Back*); the last three at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`genre_backend.nets.outputs.View`).
         """
         from ..geometry.spherical import hull_ramp
-        from ..geometry.visible_front import fuse_visible_surface, seal_pits
+        from ..geometry.visible_front import fuse_visible_surface, seal_back, seal_pits
         from ..geometry.voxels import silhouette_ramp
 
         if self.silhouette_carve:
@@ -172,6 +172,8 @@ class _Record:
         pits = self.pit_sealing
         if pits:
             prob = seal_pits(prob, view.mask.cpu().bool(), view.camera, geometry, self.threshold, pits)
+        if self.back_sealing:
+            prob = seal_back(prob, view.mask.cpu().bool(), view.camera, geometry, self.threshold)
         return prob
 
     def mesh(self, prob: torch.Tensor, geometry, clean: bool = True):

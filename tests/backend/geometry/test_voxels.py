@@ -165,6 +165,38 @@ def test_first_hits_match_the_marched_reference_the_sphere_and_the_marching_cube
 
 
 
+def test_last_hits_match_the_reference_marched_from_behind_and_the_far_side_of_a_sphere():
+    import numpy as np
+
+    from genre_backend.config import get_preset
+    from genre_backend.geometry.voxels import ray_first_hit, ray_last_hit, ray_first_hit_reference
+
+    camera = get_preset("default").camera
+    g = torch.Generator().manual_seed(4)
+    n, size = 12, 20
+    grid = torch.maximum(_sphere_distance_grid(n, 0.3), _sphere_distance_grid(n, 0.15).roll(3, dims=0))
+    grid = (grid + 0.2 * torch.rand(n, n, n, generator=g)).clamp(0.0, 1.0)
+    fast = ray_last_hit(grid, 0.6, camera, size).numpy()
+    ref = ray_first_hit_reference(grid, 0.6, camera, size, last=True)
+    both = np.isfinite(fast) & np.isfinite(ref)
+    assert 0 < both.sum() < size * size and (np.isfinite(fast) != np.isfinite(ref)).sum() <= 2
+    with np.errstate(invalid="ignore"):
+        assert np.abs(np.where(both, fast - ref, 0.0)).max() <= 0.5 / n + 1e-6
+    front = ray_first_hit(grid, 0.6, camera, size).numpy()
+    assert (np.isfinite(front) == np.isfinite(fast)).all() and bool((fast[both] >= front[both]).all())  # never before the front
+    # a sphere's tube: the last hit is where the ray leaves the sphere (1 − t)·band voxels larger, on its far side
+    radius = 0.3 + 0.55 * 2.0 / 64
+    hit = ray_last_hit(_sphere_distance_grid(64, 0.3), 0.45, camera, 128).double()
+    f = camera.lens_mm / camera.sensor_mm * 128
+    c = (torch.arange(128, dtype=torch.float64) + 0.5 - 64.0) / f
+    q = c[None, :] ** 2 + c[:, None] ** 2 + 1.0  # planar depth p: |(p·dx, p·dy, D − p)|² = radius²
+    disc = camera.distance ** 2 - q * (camera.distance ** 2 - radius ** 2)
+    far = (camera.distance + disc.clamp(min=0).sqrt()) / q
+    inner = (disc > 0) & (torch.nn.functional.avg_pool2d((disc > 0).double()[None], 5, 1, 2)[0] == 1)  # off the rim
+    err = (hit - far)[inner]
+    assert int(inner.sum()) > 2000 and float(err.median()) < 0 and float(err.min()) > -0.6 / 64 and float(err.max()) < 0.1 / 64
+
+
 def test_ray_max_matches_its_reference_and_a_ball_s_disc_and_carries_gradient():
     import numpy as np
 
