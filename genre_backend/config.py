@@ -149,20 +149,17 @@ class GeometryConfig:
     sph_size: int = 64  # spherical maps are sph_size × sph_size (polar × azimuth)
     sph_pad: int = 16  # periodic padding on each side before the inpainting net (padded side: a multiple of 32)
     voxel_size: int = 64  # voxels over the cube [-0.5, 0.5]^3
-    # Spherical map → points: values ≥ sph_nohit_min count as "no hit"; the map is
-    # resampled sph_supersample times finer first so that the points leave no
-    # holes in the voxel grid (docs/lab/reconstruct-settings.md, "The network levels").
+    # Spherical map → points: values ≥ sph_nohit_min count as "no hit"; the map is resampled sph_supersample times
+    # finer first so that the points leave no holes in the grid (docs/lab/reconstruct-settings.md, "The network levels").
     sph_nohit_min: float = 0.9999
     sph_supersample: int = 2
-    # The inpainting net's "hit" head (network.inpaint_head): a ray of the full map hits the
-    # surface where the head's hit probability exceeds this.  A dropped part of the back costs
-    # Chamfer far more than a point near the true radius; at 0.2 nearly every ray hits
-    # (measured: docs/lab/reconstruct-settings.md, "The network levels").
+    # The inpainting net's "hit" head (network.inpaint_head): a ray of the full map hits the surface where the head's
+    # hit probability exceeds this.  A dropped part of the back costs Chamfer far more than a point near the true
+    # radius; at 0.2 nearly every ray hits (measured: docs/lab/reconstruct-settings.md, "The network levels").
     sph_hit_probability: float = 0.2
-    # Depth → surface triangulation: a triangle of neighbouring pixels is kept only
-    # if its longest 3D edge is at most this many times the pixel footprint at its
-    # depth (depth/focal); 10 keeps surfaces up to ~84° from facing the camera and
-    # drops the jumps between an object's parts or to the background.
+    # Depth → surface triangulation: a triangle of neighbouring pixels is kept only if its longest 3D edge is at most
+    # this many times the pixel footprint at its depth (depth/focal); 10 keeps surfaces up to ~84° from facing the
+    # camera and drops the jumps between an object's parts or to the background.
     depth_edge_max_ratio: float = 10.0
     # What the refiner predicts (genre_backend.geometry.mesh_voxels.mesh_to_target):
     # "shell" -- the paper's surface shell: surface voxels dilated shell_dilation times
@@ -234,10 +231,8 @@ class GeometryConfig:
         0, kind="int", lo=0, hi=MAX_HOLE_CLOSING, unit="voxels", distance_only=True, metavar="K", label="Seal Pits",
         help="fill narrow, deep wells in the side the photo shows, up to about twice this many voxels across, with the "
              "surface around them (0: none)", chosen="genre eval --sweep on the product test split (results/decisions.md)")
-    # Dents in the back the camera cannot see (geometry.visible_front.seal_back): where the refiner's back is faint in
-    # its middle the mesh's back is a dish inside a rim; basins of the back seen from behind deeper than 2 voxels are
-    # filled to their rim, in reconstruction and evaluation, after the pits.  Turned on only by the rule in
-    # results/decisions.md.  Weights stored without the key: off.
+    # Dents in the unseen back (geometry.visible_front.seal_back: a faint back leaves a dish inside a rim) filled to
+    # their rim, after the pits; on only by the rule in results/decisions.md.  Weights stored without the key: off.
     back_sealing: bool = _setting(
         False, kind="bool", distance_only=True, label="Seal Back",
         help="fill the dents in the back the networks guess (the side the photo does not show) up to the rim around "
@@ -273,17 +268,14 @@ class GeometryConfig:
     # (scripts/inpaint_errors.py, results/stage_errors/inpaint.md).  Turned on only by the rule in
     # results/decisions.md.  Weights stored without the key: off.
     sph_keep_seen: bool = False
-    # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept
-    # 0.30–0.70 (the ``paper`` preset keeps that); the default preset's seen-test choice sat at
-    # the top of that range for every learned row (first weights: 0.70; the shipped ones: 0.75),
-    # so its sweep goes on to 0.90.
+    # Isosurface thresholds swept in evaluation (inclusive range, step).  The paper swept 0.30–0.70 (the ``paper``
+    # preset keeps that); the default preset's seen-test choice sat at its top (0.70, 0.75), so it goes on to 0.90.
     threshold_min: float = 0.30
     threshold_max: float = 0.90
     threshold_step: float = 0.05
     chamfer_points: int = 1024
-    # Framing of photos (genre_backend.photo.preprocess): the square crop around the object
-    # is sized so that the mask's longest side spans this fraction of the image.
-    # Measured medians: 0.50 over 88 real default renders (aircraft), 0.66 over the
+    # Framing of photos (genre_backend.photo.preprocess): the square crop is sized so that the mask's longest side
+    # spans this fraction of the image.  Measured medians: 0.50 over 88 real default renders (aircraft), 0.66 over the
     # box/table test renders; canonical renders (diagonal 1 at distance 2.2) span 0.45-0.7.
     object_fraction: float = 0.5
 

@@ -1,4 +1,5 @@
-"""The face the camera sees made whole: the depth map's own distance grid, fused into holes; pits sealed."""
+"""The faces along the camera's rays made whole: the depth map's own distance grid, fused into holes; pits sealed; the back's
+dents filled."""
 
 import dataclasses
 import pytest
@@ -155,3 +156,42 @@ def test_sealing_pits_fills_a_narrow_well_in_the_front_with_the_front_around_it_
         dataclasses.replace(g, pit_sealing=9)
     with pytest.raises(ValueError, match="pit_sealing"):
         dataclasses.replace(g, pit_sealing=1, target="shell")
+
+
+@pytest.mark.slow
+def test_sealing_the_back_fills_a_dent_to_its_rim_and_leaves_a_convex_back_and_a_tunnel_alone(monkeypatch):
+    """(Without libigl, as in the slim runtime.)"""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "igl", None)
+    from genre_backend.geometry.visible_front import seal_back
+    from genre_backend.geometry.voxels import ray_last_hit
+
+    camera, g, depth, (x, y, z), whole = _sphere_seen_and_its_tube()
+    n, level, size = g.voxel_size, g.default_threshold, g.image_size
+    obj = depth > 0
+    assert torch.equal(seal_back(whole, obj, camera, g, level), whole)  # a ball's back is convex seen from behind
+    # the back cap missing over a disc of radius 0.15 around the view axis: those rays last leave the grid at the
+    # inside of the front, a dent about 0.5 deep inside a rim 0.26 behind the centre
+    dent = torch.where((z < 0) & (x * x + y * y < 0.15 ** 2), torch.zeros_like(whole), whole)
+    before = ray_last_hit(dent, level, camera, size)
+    dish = obj & (before < camera.distance)  # the rays that end on the front's inside
+    assert int(dish.sum()) > 100
+    sealed = seal_back(dent, obj, camera, g, level)
+    assert torch.equal(torch.maximum(sealed, dent), sealed)  # only ever adds
+    changed = sealed != dent
+    assert bool((z[changed] < -0.2).all()) and bool((x[changed] ** 2 + y[changed] ** 2 < 0.19 ** 2).all())  # a lid at the rim
+    after = ray_last_hit(sealed, level, camera, size)
+    rim = camera.distance + (0.3 ** 2 - 0.15 ** 2) ** 0.5 + 0.55 * g.distance_band / n  # the rim's crossing, on the axis
+    lid = after[dish]
+    assert bool(torch.isfinite(lid).all()) and float((lid - rim).abs().max()) < 2.0 / n  # flat at the rim, within 2 voxels
+    assert float((after - ray_last_hit(whole, level, camera, size))[dish].max()) <= 0.5 / n  # never past the whole back
+    # a tunnel through front and back along the view axis: its rays meet nothing, so the back drains into it
+    tunnel = torch.where(x * x + y * y < 0.1 ** 2, torch.zeros_like(whole), whole)
+    assert torch.equal(seal_back(tunnel, obj, camera, g, level), tunnel)
+    with pytest.raises(ValueError, match="distance"):
+        seal_back(dent, obj, camera, dataclasses.replace(g, target="shell"), level)
+    with pytest.raises(ValueError, match="bool"):
+        seal_back(dent, obj.float(), camera, g, level)
+    with pytest.raises(ValueError, match="back_sealing"):
+        dataclasses.replace(g, back_sealing=True, target="shell")

@@ -127,9 +127,10 @@ def test_request_options_are_parsed_from_the_record():
 
 
 def test_the_steps_run_in_their_one_order():
-    """Carves (the outline's, the map's hull), then fusion, then pit sealing: each step sees the grid the one before made."""
+    """Carves (the outline's, the map's hull), then fusion, pit sealing and back sealing: each step sees the grid the one
+    before made."""
     from genre_backend.config import CameraConfig
-    from genre_backend.geometry.visible_front import fuse_visible_surface, seal_pits
+    from genre_backend.geometry.visible_front import fuse_visible_surface, seal_back, seal_pits
     from genre_backend.geometry.spherical import sph_hull_ramp
     from genre_backend.geometry.voxels import silhouette_ramp
     from genre_backend.nets.outputs import View
@@ -142,19 +143,21 @@ def test_the_steps_run_in_their_one_order():
     mask[8:24, 10:22] = True
     depth = torch.where(mask, torch.full((32, 32), 2.1), torch.zeros(32, 32))
     sph = torch.full((16, 16), 0.75)  # a ball of radius 0.25
-    opts = MeshOptions(threshold=0.5, silhouette_carve=True, sph_hull_carve=True, visible_fusion=True, pit_sealing=2).resolved(g)
+    opts = MeshOptions(threshold=0.5, silhouette_carve=True, sph_hull_carve=True, visible_fusion=True, pit_sealing=2,
+                       back_sealing=True).resolved(g)
     want = torch.minimum(prob, silhouette_ramp(mask[None], cam, 16)[0, 0])
     hull = sph_hull_ramp(sph[None], 16, g.sph_nohit_min, g.sph_hull_spread)[0, 0]
     assert 0 < int((hull < 1).sum()) < hull.numel() - 100  # it trims the corners and keeps the ball
     with_hull = torch.minimum(want, hull)
-    want = seal_pits(fuse_visible_surface(with_hull, depth, cam, g, 0.5), mask, cam, g, 0.5, 2)
+    want = seal_back(seal_pits(fuse_visible_surface(with_hull, depth, cam, g, 0.5), mask, cam, g, 0.5, 2), mask, cam, g, 0.5)
     view = View(mask, depth, cam, sph)
     assert torch.equal(opts.shape_grid(prob, view, g), want)
     # a view without a map (a row that has none) is not trimmed to one
     assert torch.equal(opts.shape_grid(prob, View(mask, depth, cam), g),
-                       seal_pits(fuse_visible_surface(torch.minimum(prob, silhouette_ramp(mask[None], cam, 16)[0, 0]),
-                                                      depth, cam, g, 0.5), mask, cam, g, 0.5, 2))
-    off = MeshOptions(silhouette_carve=False, sph_hull_carve=False, visible_fusion=False, pit_sealing=0).resolved(g)
+                       seal_back(seal_pits(fuse_visible_surface(torch.minimum(prob, silhouette_ramp(mask[None], cam, 16)[0, 0]),
+                                                                depth, cam, g, 0.5), mask, cam, g, 0.5, 2), mask, cam, g, 0.5))
+    off = MeshOptions(silhouette_carve=False, sph_hull_carve=False, visible_fusion=False, pit_sealing=0,
+                      back_sealing=False).resolved(g)
     assert torch.equal(off.shape_grid(prob, view, g), prob)
     v, f, fit = off.snap_mesh("v", "f", view)  # snapping off: the mesh as it is, untouched
     assert (v, f, fit) == ("v", "f", None)
