@@ -121,7 +121,7 @@ def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float)
     """The visible face's holes and pits filled in a sphere's (V, V, V) distance grid: one ``add`` per op."""
     import dataclasses
 
-    from genre_backend.geometry.visible_front import depth_to_distance, fuse_visible_surface, seal_pits
+    from genre_backend.geometry.visible_front import depth_to_distance, fuse_visible_surface, seal_back, seal_pits
 
     # the holes in the visible face (geometry.visible_fusion): the depth map's own distance grid; the whole
     # fusion into a grid with a tunnel through the sphere's front
@@ -144,6 +144,13 @@ def _time_visible_face_ops(add: Callable, g, cam, depth: torch.Tensor, r: float)
         note="first hits + basin filling (scikit-image) + the lid's distance grid")
     add(f"seal pits {g.voxel_size}³ (no pit)", lambda: seal_pits(tube, obj, cam, dg, g.default_threshold, 2),
         note="first hits + basin filling")
+    # the dents in the back (Seal Back): the back cap missing over a wide disc
+    dent = (c[:, None, None] ** 2 + c[None, :, None] ** 2 < (r / 2) ** 2) & (c[None, None, :] < 0)
+    dented = torch.where(dent, torch.zeros_like(tube), tube)
+    add(f"seal back {g.voxel_size}³ (a dent)", lambda: seal_back(dented, obj, cam, dg, g.default_threshold),
+        note="last hits + basin filling (scikit-image) + the lid's distance grid")
+    add(f"seal back {g.voxel_size}³ (no dent)", lambda: seal_back(tube, obj, cam, dg, g.default_threshold),
+        note="last hits + basin filling")
 
 
 def _time_ground_truth_ops(add: Callable, g, r: float) -> None:
