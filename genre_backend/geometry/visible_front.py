@@ -142,14 +142,7 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
 
     from .voxels import ray_first_hit
 
-    if geometry.target != "distance":
-        raise ValueError("seal_pits: pits are sealed only in distance-target grids")
-    n = geometry.voxel_size
-    check_tensor("prob", prob, (n, n, n))
-    check_tensor("mask", mask, ("S", "S"), floating=False)
-    if mask.dtype != torch.bool:
-        raise ValueError(f"mask: expected a bool tensor, got {mask.dtype}")
-    level = check_threshold("level", level)
+    n, level = geometry.voxel_size, _checked_grid_and_mask("seal_pits: pits", prob, mask, geometry, level)
     width_voxels = check_hole_closing("width_voxels", width_voxels)  # (the same kind of width as hole_closing's)
     prob = prob.detach().cpu().float()
     if width_voxels == 0:
@@ -177,6 +170,19 @@ def seal_pits(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     region = torch.from_numpy(narrow)
     patch = depth_to_distance(torch.from_numpy(np.where(narrow, surface, 0.0)).float(), camera, geometry, region)
     return torch.maximum(prob, patch)
+
+
+def _checked_grid_and_mask(what: str, prob: torch.Tensor, mask: torch.Tensor, geometry, level: float) -> float:
+    """The checks :func:`seal_pits` and :func:`seal_back` share (a distance grid of the geometry's size, a bool mask);
+    returns the checked level."""
+    if geometry.target != "distance":
+        raise ValueError(f"{what} are sealed only in distance-target grids")
+    n = geometry.voxel_size
+    check_tensor("prob", prob, (n, n, n))
+    check_tensor("mask", mask, ("S", "S"), floating=False)
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask: expected a bool tensor, got {mask.dtype}")
+    return check_threshold("level", level)
 
 
 def _fill_basins(height: np.ndarray) -> np.ndarray:
@@ -212,14 +218,7 @@ def seal_back(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
 
     from .voxels import ray_last_hit
 
-    if geometry.target != "distance":
-        raise ValueError("seal_back: dents are sealed only in distance-target grids")
-    n = geometry.voxel_size
-    check_tensor("prob", prob, (n, n, n))
-    check_tensor("mask", mask, ("S", "S"), floating=False)
-    if mask.dtype != torch.bool:
-        raise ValueError(f"mask: expected a bool tensor, got {mask.dtype}")
-    level = check_threshold("level", level)
+    n, level = geometry.voxel_size, _checked_grid_and_mask("seal_back: dents", prob, mask, geometry, level)
     prob = prob.detach().cpu().float()
     obj = mask.detach().cpu().numpy()
     h = 1.0 / n
