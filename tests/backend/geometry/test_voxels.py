@@ -125,6 +125,14 @@ def _sphere_distance_grid(n: int, radius: float, band: float = 2.0) -> torch.Ten
     return (1.0 - (r - radius).abs() * n / band).clamp(0.0, 1.0).float()
 
 
+def _lumpy_grid(seed: int) -> tuple[int, int, torch.Tensor]:
+    """(N, image size, grid): two offset spheres' tubes and noise, on a small grid and image (the references are slow)."""
+    g = torch.Generator().manual_seed(seed)
+    n, size = 12, 20
+    grid = torch.maximum(_sphere_distance_grid(n, 0.3), _sphere_distance_grid(n, 0.15).roll(3, dims=0))
+    return n, size, (grid + 0.2 * torch.rand(n, n, n, generator=g)).clamp(0.0, 1.0)
+
+
 def test_first_hits_match_the_marched_reference_the_sphere_and_the_marching_cubes_surface():
     import numpy as np
 
@@ -135,11 +143,7 @@ def test_first_hits_match_the_marched_reference_the_sphere_and_the_marching_cube
     from genre_backend.output.colour import zbuffer
 
     camera = get_preset("default").camera
-    # a lumpy grid: two offset spheres' tubes and noise, on a small grid and image (the reference is slow)
-    g = torch.Generator().manual_seed(3)
-    n, size = 12, 20
-    grid = torch.maximum(_sphere_distance_grid(n, 0.3), _sphere_distance_grid(n, 0.15).roll(3, dims=0))
-    grid = (grid + 0.2 * torch.rand(n, n, n, generator=g)).clamp(0.0, 1.0)
+    n, size, grid = _lumpy_grid(3)
     fast = ray_first_hit(grid, 0.6, camera, size).numpy()
     ref = ray_first_hit_reference(grid, 0.6, camera, size)
     both = np.isfinite(fast) & np.isfinite(ref)
@@ -172,10 +176,7 @@ def test_last_hits_match_the_reference_marched_from_behind_and_the_far_side_of_a
     from genre_backend.geometry.voxels import ray_first_hit, ray_last_hit, ray_first_hit_reference
 
     camera = get_preset("default").camera
-    g = torch.Generator().manual_seed(4)
-    n, size = 12, 20
-    grid = torch.maximum(_sphere_distance_grid(n, 0.3), _sphere_distance_grid(n, 0.15).roll(3, dims=0))
-    grid = (grid + 0.2 * torch.rand(n, n, n, generator=g)).clamp(0.0, 1.0)
+    n, size, grid = _lumpy_grid(4)
     fast = ray_last_hit(grid, 0.6, camera, size).numpy()
     ref = ray_first_hit_reference(grid, 0.6, camera, size, last=True)
     both = np.isfinite(fast) & np.isfinite(ref)
