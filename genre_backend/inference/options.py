@@ -156,8 +156,9 @@ class _Record:
 
         In order: capped by the mask's outline ramp (``silhouette_carve``) and by the full spherical map's hull
         (``sph_hull_carve``, where the view has a map), the holes in the visible face filled from
-        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*), the dents of its back filled
-        (*Seal Back*); the last three at ``threshold``.  ``view``: the mask, masked depth and camera (:class:`genre_backend.nets.outputs.View`).
+        the masked depth (``visible_fusion``), the pits of the grid's own visible front sealed (*Seal Pits*), the
+        dents of its back filled (*Seal Back*); the last three at ``threshold``.  ``view``: the mask, masked depth and
+        camera (:class:`genre_backend.nets.outputs.View`).
         """
         from ..geometry.spherical import hull_ramp
         from ..geometry.visible_front import fuse_visible_surface, seal_back, seal_pits

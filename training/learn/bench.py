@@ -106,12 +106,10 @@ class StepTimer:
         self.stage, (self.channels_last, self.bf16, _) = stage, WAYS[way]
         speed = Speed.from_way(way)
         self.model = apply_speed(load_model(resolve_weights(weights)), speed)
-        self.opt = speed.optimiser([p for n in _trained(self.model, stage) for p in n.parameters()], lr=1e-5)
+        self.trained = [p for n in _trained(self.model, stage) for p in n.parameters()]
+        self.opt = speed.optimiser(self.trained, lr=1e-5)
         self.model.train()
         self.x = _inputs(self.model, batch, torch.Generator().manual_seed(seed))
-
-    def params(self) -> list[torch.nn.Parameter]:
-        return [p for n in _trained(self.model, self.stage) for p in n.parameters()]
 
     def seconds(self, steps: int, warmup: int = 0, sync: Callable[[list], None] | None = None) -> list[float]:
         """Seconds of each of ``steps`` training steps after ``warmup`` untimed ones; ``sync`` (the data-parallel
@@ -123,7 +121,7 @@ class StepTimer:
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
             if sync is not None:
-                sync(self.params())
+                sync(self.trained)
             self.opt.step()
             if k >= warmup:
                 times.append(time.perf_counter() - t)
@@ -185,7 +183,7 @@ class ParallelTimers:
         import torch.multiprocessing as mp
 
         ctx = mp.get_context("spawn")
-        self.keys, self.dir = keys, tempfile.TemporaryDirectory(prefix="genre-bench-")
+        self.dir = tempfile.TemporaryDirectory(prefix="genre-bench-")
         init = f"file://{os.path.join(self.dir.name, 'rendezvous')}"
         self.inboxes = [ctx.Queue() for _ in range(world)]
         self.outbox = ctx.Queue()
