@@ -219,7 +219,8 @@ class ViewDataset(torch.utils.data.Dataset):
 
     def __init__(self, refs: list[ViewRef], config: GenreConfig, augment: bool = False, targets: bool = True,
                  backgrounds=None, photo_fraction: float = 0.0, mirror: float = 0.0, stretch: float = 0.0,
-                 backdrop: float = 0.0, depth_only: str | Path | None = None, plain_backdrop: bool = False):
+                 backdrop: float = 0.0, depth_only: str | Path | None = None, plain_backdrop: bool = False,
+                 true_map: str | Path | None = None):
         if not refs:
             raise ValueError("no complete views (render + targets) to train on")
         if not 0.0 <= photo_fraction <= 1.0:
@@ -245,11 +246,17 @@ class ViewDataset(torch.utils.data.Dataset):
         self.backdrop = backdrop  # the share of seeded samples painted grey outside the mask
         # every sample painted so, seeded or not: the validation views of weights that paint their photos in use
         self.plain_backdrop = plain_backdrop
-        # the views under the folder ``depth_only`` (TrainConfig.depth_only): every sample says whether it is one of them
-        self.depth_only = None
-        if depth_only is not None:
-            root = Path(depth_only).resolve()
-            self.depth_only = {i for i, r in enumerate(self.refs) if r.shape_dir.parent.resolve() == root}
+        # the views under the folders ``depth_only`` and ``true_map`` (TrainConfig's): every sample says whether it is
+        # one of them
+        self.depth_only = self._under(depth_only)
+        self.true_map = self._under(true_map)
+
+    def _under(self, folder: str | Path | None) -> set[int] | None:
+        """The indices of the views under ``folder`` (None without one)."""
+        if folder is None:
+            return None
+        root = Path(folder).resolve()
+        return {i for i, r in enumerate(self.refs) if r.shape_dir.parent.resolve() == root}
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -307,6 +314,8 @@ class ViewDataset(torch.utils.data.Dataset):
             coin = torch.rand((), generator=torch.Generator().manual_seed((seed * 2654435761 + 97) % (1 << 63)))
             if float(coin) < self.mirror:
                 sample = mirror_sample(sample)
-        if self.depth_only is not None:
-            sample["depth_only"] = torch.tensor(index in self.depth_only)
+        for flag in ("depth_only", "true_map"):
+            members = getattr(self, flag)
+            if members is not None:
+                sample[flag] = torch.tensor(index in members)
         return sample

@@ -124,12 +124,14 @@ def _datasets(tcfg: TrainConfig, config: GenreConfig) -> tuple[ViewDataset, View
     train_set = ViewDataset(train_refs, config, augment=tcfg.augment and (tcfg.stage == "depth" or photo > 0),
                             targets=need_targets, backgrounds=bank, photo_fraction=photo,
                             mirror=tcfg.mirror if tcfg.augment else 0.0, stretch=tcfg.stretch if tcfg.augment else 0.0,
-                            backdrop=tcfg.backdrop if tcfg.augment else 0.0, depth_only=tcfg.depth_only)
+                            backdrop=tcfg.backdrop if tcfg.augment else 0.0, depth_only=tcfg.depth_only,
+                            true_map=tcfg.true_map)
     # validated on the picture the nets are shown in use (painted when the model paints: genre eval, reconstruct)
     val_set = ViewDataset(val_refs, config, targets=need_targets, depth_only=tcfg.depth_only,
-                          plain_backdrop=config.geometry.plain_backdrop) if val_refs else None
-    if tcfg.depth_only is not None and not train_set.depth_only:
-        raise ValueError(f"depth_only: no complete training views (render + targets) in {tcfg.depth_only}")
+                          plain_backdrop=config.geometry.plain_backdrop, true_map=tcfg.true_map) if val_refs else None
+    for name in ("depth_only", "true_map"):
+        if getattr(tcfg, name) is not None and not getattr(train_set, name):
+            raise ValueError(f"{name}: no complete training views (render + targets) in {getattr(tcfg, name)}")
     return train_set, val_set, photo
 
 

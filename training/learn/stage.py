@@ -169,6 +169,21 @@ class StageModule(nn.Module):
         """:func:`training.learn.losses.sph_loss` of the inpainting net's ``parts`` against ``batch["full_sph"]``."""
         return sph_loss(parts, batch["full_sph"], self.model.config.geometry, self.sph_loss_kind)
 
+    def map_loss(self, parts: dict[str, torch.Tensor], batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The joint stage's spherical loss: :meth:`sph_loss` over the samples whose refiner read the net's map, as a
+        mean over every sample in which the true-map samples (``batch["true_map"]``, TrainConfig.true_map) count 0;
+        its logged terms are those samples' own means (with none: zero, the nets still reached)."""
+        if "true_map" not in batch:
+            return self.sph_loss(parts, batch)
+        scored = ~batch["true_map"].bool()
+        if not bool(scored.any()):
+            loss, terms = self.sph_loss(parts, batch)
+            return 0.0 * loss, {k: 0.0 * v for k, v in terms.items()}
+        if bool(scored.all()):
+            return self.sph_loss(parts, batch)
+        loss, terms = self.sph_loss({k: v[scored] for k, v in parts.items()}, {"full_sph": batch["full_sph"][scored]})
+        return loss * scored.float().mean(), terms
+
     def voxel_loss(self, logits, batch):
         """:func:`training.learn.losses.voxel_loss` of the refiner's logits against ``batch["voxels"]``."""
         return voxel_loss(logits, batch["voxels"], self.surface_weight)
@@ -216,6 +231,8 @@ class StageModule(nn.Module):
             full = crop_sph(sph_parts["map"], pad)[:, 0]
             if self.training and "coin" in rest and self.sph_teacher > 0:
                 full = torch.where((rest["coin"][:, 0] < self.sph_teacher)[:, None, None], rest["full_sph"], full)
+            if self.stage == "joint" and "true_map" in rest:  # TrainConfig.true_map: the refiner reads the true map
+                full = torch.where(rest["true_map"].bool()[:, None, None], rest["full_sph"], full)
             vox_sph, vox_depth = m.sph_voxels(full), m.depth_voxels(depth)
         if self.training and "coin" in rest and self.depth_dropout > 0:
             keep = (rest["coin"][:, 1] >= self.depth_dropout).to(vox_depth.dtype)
@@ -228,7 +245,7 @@ class StageModule(nn.Module):
             terms["outline_bce"] = outline_loss(logits, rest["voxels"], m.config.camera)
             loss = loss + self.outline_weight * terms["outline_bce"]
         if self.stage == "joint":
-            l_sph, sph_terms = self.sph_loss(sph_parts, rest)
+            l_sph, sph_terms = self.map_loss(sph_parts, rest)
             terms.update(sph_terms)
             loss = rest_weight * (loss + l_sph)
             if self.depth_weight > 0:

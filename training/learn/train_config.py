@@ -59,6 +59,8 @@ class TrainConfig:
                                                 "the checkpoint wins)")
     depth_only: str | None = documented(None, "the joint stage: one of --data's folders whose samples train the depth net's "
                                               "own loss alone (the map's and the grid's losses leave them out)")
+    true_map: str | None = documented(None, "the joint stage: one of --data's folders whose samples feed the refiner "
+                                            "their true full map, the inpainting net's map unscored on them")
     backgrounds: str | None = documented(None, "a 'genre data backgrounds' folder (needed when photo_fraction > 0)")
     val_fraction: float = documented(0.05, "the share of shapes held out for validation")
     val_every: int = documented(200, "validate every this many steps")
@@ -90,7 +92,8 @@ class TrainConfig:
         for k in StageRecipe.keys():
             setattr(self, k, getattr(resolved, k))
         if self.sph_teacher > 0 and self.stage != "refine":
-            raise ValueError(f"sph_teacher: only the refine stage feeds the true map, not {self.stage!r}")
+            raise ValueError(f"sph_teacher: only the refine stage feeds the true map at random (the joint stage: "
+                             f"true_map), not {self.stage!r}")
         if self.depth_dropout > 0 and self.stage not in ("refine", "joint"):
             raise ValueError(f"depth_dropout: only the refine and joint stages have depth voxels to empty, not {self.stage!r}")
         if self.stretch > 0 and self.stage != "depth":
@@ -101,14 +104,20 @@ class TrainConfig:
             if not self.data:
                 raise ValueError("data: expected at least one views folder")
             self.data = [str(d) for d in self.data]
-        if self.depth_only is not None:
+        for name in ("depth_only", "true_map"):  # a folder of --data whose samples the joint stage treats apart
+            folder = getattr(self, name)
+            if folder is None:
+                continue
             if self.stage != "joint":
-                raise ValueError(f"depth_only: only the joint stage trains the depth net with the others, not {self.stage!r}")
+                raise ValueError(f"{name}: only the joint stage trains the nets together, not {self.stage!r}")
             folders = [self.data] if isinstance(self.data, str) else self.data
-            if os.path.normpath(self.depth_only) not in {os.path.normpath(d) for d in folders}:
-                raise ValueError(f"depth_only: {self.depth_only!r} is not one of the --data folders {folders}")
-            if self.depth_weight <= 0:
-                raise ValueError("depth_only: its samples train the depth net's own loss alone; set depth_weight > 0")
+            if os.path.normpath(folder) not in {os.path.normpath(d) for d in folders}:
+                raise ValueError(f"{name}: {folder!r} is not one of the --data folders {folders}")
+        if self.depth_only is not None and self.depth_weight <= 0:
+            raise ValueError("depth_only: its samples train the depth net's own loss alone; set depth_weight > 0")
+        if self.depth_only is not None and self.true_map is not None and \
+                os.path.normpath(self.depth_only) == os.path.normpath(self.true_map):
+            raise ValueError(f"true_map: {self.true_map!r} is the depth_only folder, whose samples feed no refiner")
         if self.target is None:
             self.target = recipe.target
         if self.target is not None and self.target not in TARGETS:

@@ -248,6 +248,69 @@ def test_depth_only_is_a_joint_stage_folder_of_data_with_a_depth_loss(tiny_views
                    depth_weight=1.0, steps=1), TINY)
 
 
+def test_true_map_samples_feed_the_refiner_their_true_map_and_leave_the_map_unscored(tiny_views, tmp_path):
+    """A joint batch with true-map samples: the refiner reads their true full map (the grid's loss of such a sample is
+    the one made here by hand from the model's parts), the spherical loss is the other samples' counted as a mean over
+    all, and a batch of true-map samples reaches the inpainting net with zero gradient, the refiner with some."""
+    import shutil
+
+    from training.data.dataset import ViewDataset
+    from training.data.views import gather_views
+
+    thin = tmp_path / "thin"
+    shutil.copytree(tiny_views, thin)
+    data = ViewDataset(gather_views([tiny_views, thin]), TINY, true_map=thin)
+    assert [bool(data[i]["true_map"]) for i in range(len(data))] == [False] * 4 + [True] * 4
+    assert "depth_only" not in data[0]
+    torch.manual_seed(0)
+    model = GenRe(TINY).eval()
+    module = StageModule(model, "joint", 0.0, "mse", 0.0).eval()  # (the surface term is no mean over samples)
+
+    def stack(idx, drop=()):
+        return {k: torch.stack([data[i][k] for i in idx]) for k in data[0].keys() if k not in drop}
+
+    with torch.no_grad():
+        one = stack([5])
+        depth = model.masked_depth(model.depth_net(one["rgb"])["depth"], one["mask"])
+        logits = model.refiner(torch.cat([model.sph_voxels(one["full_sph"]), model.depth_voxels(depth)], dim=1))
+        by_hand, _ = module.voxel_loss(logits, one)
+        alone, alone_terms = module(one)
+        mixed, terms = module(stack([0, 5, 2]))
+        plain, plain_terms = module(stack([0, 2], drop=("true_map",)))
+        unflagged, _ = module(stack([5], drop=("true_map",)))  # the same view, the net's own map
+    assert torch.allclose(alone, by_hand, rtol=1e-5, atol=1e-7)
+    assert not torch.allclose(unflagged, by_hand, rtol=1e-3)  # (the true map made a difference)
+    map_terms = set(alone_terms) - {"voxel_bce", "surface_bce"}
+    assert map_terms and all(float(alone_terms[k]) == 0.0 for k in map_terms)
+    assert torch.allclose(3 * mixed, 2 * plain + by_hand, rtol=1e-5, atol=1e-6)
+    for name in set(terms) - {"voxel_bce", "surface_bce"}:  # the map's terms: the flagged sample left out
+        assert torch.allclose(terms[name], plain_terms[name], rtol=1e-5, atol=1e-7), name
+    loss, _ = StageModule(model, "joint", 0.1, "mse", 0.0).eval()(stack([4, 6]))
+    loss.backward()
+    grads = [p.grad for p in model.inpaint_net.parameters()]
+    assert all(g is not None for g in grads) and all(float(g.abs().max()) == 0.0 for g in grads)
+    assert sum(float(p.grad.abs().sum()) for p in model.refiner.parameters() if p.grad is not None) > 0
+
+
+def test_true_map_is_a_joint_stage_folder_of_data_apart_from_the_depth_only_one(tiny_views, tmp_path):
+    import shutil
+
+    thin, other = tmp_path / "thin", tmp_path / "other"
+    shutil.copytree(tiny_views, thin)
+    shutil.copytree(tiny_views, other)
+    folders = [str(tiny_views), str(thin), str(other)]
+    with pytest.raises(ValueError, match="only the joint stage"):
+        _cfg("refine", tiny_views, tmp_path / "run", data=folders, true_map=str(thin))
+    with pytest.raises(ValueError, match="not one of the --data folders"):
+        _cfg("joint", tiny_views, tmp_path / "run", true_map=str(thin))
+    with pytest.raises(ValueError, match="is the depth_only folder"):
+        _cfg("joint", tiny_views, tmp_path / "run", data=folders, true_map=str(thin), depth_only=str(thin),
+             depth_weight=1.0)
+    s = train(_cfg("joint", tiny_views, tmp_path / "run", data=folders, true_map=str(thin), depth_only=str(other),
+                   depth_weight=1.0, steps=2), TINY)
+    assert s["train_views"] == 12 and s["last_loss"] > 0
+
+
 def test_weights_that_trim_to_the_map_s_hull_are_trained_trimmed(tiny_views):
     """With ``geometry.sph_hull_carve`` the refine and joint stages score the refiner's logits capped by the hull of
     the map it read (as inference caps its probabilities), and the voxel loss reaches the inpainting net through it."""
