@@ -211,8 +211,8 @@ def seal_back(prob: torch.Tensor, mask: torch.Tensor, camera, geometry, level: f
     surface (moved in front of the crossing to the surface the tube stands for) is added as a distance target,
     ``max(prob, patch)`` (:func:`depth_to_distance`): a lid that closes the dish, whose inside the mesh then fills.
     A back that is convex seen from behind, and one open to the outline or to a hole, are left alone; nothing is ever
-    removed.  Returns ``prob`` (float32, on the
-    CPU) when nothing is sealed.  Only for ``geometry.target == "distance"``.
+    removed.  Returns ``prob`` (float32, on the CPU) when nothing is sealed.  Only for ``geometry.target ==
+    "distance"``.
     """
     from scipy import ndimage
 
