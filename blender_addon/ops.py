@@ -17,7 +17,7 @@ from . import installer, schema
 from .backend import BackendError, BackendManager, Request, build_command, weights_argument
 from .installer import Installer, InstallError
 from .jobs import MASK_IMAGE, Job, JobLimits, UserError, prepare_job, require_photo, work_root
-from .props import ADDON_PACKAGE, get_preferences
+from .props import ADDON_PACKAGE, addon_user_folder, backend_env, get_preferences
 
 TICK_SECONDS = 0.1
 
@@ -253,21 +253,6 @@ def _redraw(context) -> None:
         for area in window.screen.areas:
             if area.type in ("VIEW_3D", "PREFERENCES"):
                 area.tag_redraw()
-
-
-_user_folder: dict = {}
-
-
-def addon_user_folder() -> str:
-    """The add-on's own writable folder (the extension's user folder on 4.2+, else the config folder's ``genre``)."""
-    if "path" not in _user_folder:
-        _user_folder["path"] = installer.user_folder(ADDON_PACKAGE, tuple(bpy.app.version),
-                                                     getattr(bpy.utils, "extension_path_user", None), bpy.utils.user_resource)
-    return _user_folder["path"]
-
-
-def backend_env() -> str:
-    return installer.env_folder(addon_user_folder())
 
 
 def start_install(prefs, status, *, addon_dir: str = os.path.dirname(os.path.abspath(__file__))) -> Installer:

@@ -8,11 +8,27 @@ import os
 import bpy
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from . import installer
 from .backend import MODELS
 from .schema import QUALITIES
 
 # The add-on's module name: "genre" as a legacy add-on, "bl_ext.<repo>.genre" as an extension.
 ADDON_PACKAGE = __package__
+
+_user_folder: dict = {}
+
+
+def addon_user_folder() -> str:
+    """The add-on's own writable folder (the extension's user folder on 4.2+, else the config folder's ``genre``)."""
+    if "path" not in _user_folder:
+        _user_folder["path"] = installer.user_folder(ADDON_PACKAGE, tuple(bpy.app.version),
+                                                     getattr(bpy.utils, "extension_path_user", None), bpy.utils.user_resource)
+    return _user_folder["path"]
+
+
+def backend_env() -> str:
+    """The backend's private Python environment (Install Backend makes it) inside :func:`addon_user_folder`."""
+    return installer.env_folder(addon_user_folder())
 
 
 def _clamp(self, context):
@@ -209,8 +225,6 @@ class GENRE_AP_preferences(bpy.types.AddonPreferences):
 
     def draw_install(self, box, status):
         """Install Backend: the buttons, the Python and the wheel folder, the progress and the outcome."""
-        from . import installer, ops  # (ops imports this module)
-
         box.label(text="Backend: PyTorch (CPU) and GenRe in a private environment, about 1.2 GB", icon="PACKAGE")
         if status.installing:
             draw_progress(box, status.install_progress, status.install_stage or "Installing")
@@ -220,7 +234,7 @@ class GENRE_AP_preferences(bpy.types.AddonPreferences):
             row.operator("genre.cancel_install", icon="CANCEL")
             row.operator("genre.show_install_log", icon="TEXT")
             return
-        env = ops.backend_env()
+        env = backend_env()
         row = box.row()
         row.operator("genre.install_backend", icon="IMPORT",
                      text="Reinstall Backend" if installer.installed(env) else "Install Backend")
@@ -232,7 +246,7 @@ class GENRE_AP_preferences(bpy.types.AddonPreferences):
         if status.install_message:
             row = box.row()
             row.label(text=status.install_message, icon="CHECKMARK" if status.install_ok else "ERROR")
-            if os.path.isfile(os.path.join(ops.addon_user_folder(), installer.LOG_NAME)):
+            if os.path.isfile(os.path.join(addon_user_folder(), installer.LOG_NAME)):
                 row.operator("genre.show_install_log", icon="TEXT")
         elif installer.installed(env):
             box.label(text=f"Installed in {env}", icon="CHECKMARK")
