@@ -189,6 +189,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     sub.add_parser("targets", add_help=False, help="ground-truth targets of rendered views (training/data/targets.py)")
     sub.add_parser("show", add_help=False, help="contact sheet PNG of a few samples (training/data/show.py)")
     sub.add_parser("pack", add_help=False, help="the training shapes' meshes for a GPU burst (training/data/pack.py)")
+    sub.add_parser("photo-frame", add_help=False, help="rendered views framed as a photo is (training/data/photo_framing.py)")
     return parser
 
 
@@ -202,6 +203,12 @@ def _show_main():
     from . import show
 
     return show.main
+
+
+def _photo_frame_main():
+    from . import photo_framing
+
+    return photo_framing.main
 
 
 def _pack_main():
@@ -367,7 +374,7 @@ def main(argv: list[str] | None = None, prog: str = "genre data", delegated: dic
     the data layer does not import the renderer.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    loaders = {"targets": _targets_main, "show": _show_main, "pack": _pack_main, **(delegated or {})}
+    loaders = {"targets": _targets_main, "show": _show_main, "pack": _pack_main, "photo-frame": _photo_frame_main, **(delegated or {})}
     if argv and argv[0] in loaders:
         return int(loaders[argv[0]]()(argv[1:], prog=f"{prog} {argv[0]}") or 0)
     args = _parser(prog).parse_args(argv)

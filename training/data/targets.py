@@ -35,6 +35,7 @@ from genre_backend.geometry.metrics import sample_surface
 from genre_backend.geometry.spherical import depth_to_sph, mesh_to_sph
 from genre_backend.atomic import atomic_savez, atomic_write_text
 
+from .photo_framing import Framing, framed_points, framing_of
 from .views import TARGETS_FAILURES_FILE, load_view_meta, recorded_preset, surface_points_path, targets_path, view_indices, view_paths
 
 __all__ = ["ShapeTargets", "targets_path", "load_targets", "has_target", "build_targets", "main"]
@@ -100,28 +101,37 @@ class ShapeTargets:
         # the lattice is rotation-invariant in spacing, so sample once in the object frame
         self.lattice = surface_lattice(self.vertices, self.faces, config.geometry.voxel_size)
 
-    def voxel_target(self, rotation: torch.Tensor, kind: str) -> np.ndarray:
+    def posed(self, rotation: torch.Tensor, framing: Framing | None = None) -> torch.Tensor:
+        """The mesh's vertices in a view's frame (and mapped to its photo framing, when the view has one)."""
+        verts = frame.object_to_view(self.vertices[None], rotation.to(torch.float64)[None])[0]
+        return verts if framing is None else framed_points(verts, framing)
+
+    def voxel_target(self, rotation: torch.Tensor, kind: str, framing: Framing | None = None) -> np.ndarray:
         """The ``kind`` voxel target of the posed mesh, encoded for the targets file."""
-        from genre_backend.geometry.mesh_voxels import dilate, mesh_to_distance, points_to_occupancy
+        from genre_backend.geometry.mesh_voxels import dilate, mesh_to_distance, mesh_to_surface_voxels, points_to_occupancy
 
         g = self.config.geometry
         rot = rotation.to(torch.float64)[None]
-        surface = points_to_occupancy(frame.object_to_view(self.lattice[None], rot)[0], g.voxel_size)
+        verts = self.posed(rotation, framing)
+        if framing is None:
+            surface = points_to_occupancy(frame.object_to_view(self.lattice[None], rot)[0], g.voxel_size)
+        else:  # the lattice is half a voxel apart before the framing's magnification, not after
+            surface = mesh_to_surface_voxels(verts, self.faces, g.voxel_size)
         if kind == "shell":
             return _encode(kind, dilate(surface, g.shell_dilation).float())
-        verts = frame.object_to_view(self.vertices[None], rot)[0]
         return _encode(kind, mesh_to_distance(verts, self.faces, g.voxel_size, g.distance_band, surface=surface))
 
-    def view_targets(self, rotation: torch.Tensor, depth: torch.Tensor, kind: str) -> dict[str, np.ndarray]:
+    def view_targets(self, rotation: torch.Tensor, depth: torch.Tensor, kind: str, framing: Framing | None = None
+                     ) -> dict[str, np.ndarray]:
+        """A view's targets; ``framing``: the view is a render framed as a photo (:mod:`.photo_framing`)."""
         g, cam = self.config.geometry, self.config.camera
-        rot = rotation.to(torch.float64)[None]
-        verts = frame.object_to_view(self.vertices[None], rot)[0]
+        verts = self.posed(rotation, framing)
         full = mesh_to_sph(verts.float(), self.faces, g.sph_size)  # float32: 2× faster, error ~1e-7
         partial = depth_to_sph(depth[None].float(), cam, g.sph_size, g.depth_edge_max_ratio)[0]
         return {
             "full_sph": full.numpy().astype(np.float32),
             "partial_sph": partial.numpy().astype(np.float32),
-            kind: self.voxel_target(rotation, kind),
+            kind: self.voxel_target(rotation, kind, framing),
             "voxel_size": np.int64(g.voxel_size),
             "sph_size": np.int64(g.sph_size),
         }
@@ -167,10 +177,10 @@ def build_targets(views_root: Path, config: GenreConfig, *, progress: bool = Tru
                         old = None
                 if old is not None and int(old.get("voxel_size", -1)) == config.geometry.voxel_size \
                         and int(old.get("sph_size", -1)) == config.geometry.sph_size:
-                    atomic_savez(path, **old, **{kind: shape.voxel_target(rot, kind)})  # the maps are kept
+                    atomic_savez(path, **old, **{kind: shape.voxel_target(rot, kind, framing_of(meta))})  # the maps are kept
                     counts["added_target"] += 1
                 else:
-                    atomic_savez(path, **shape.view_targets(rot, depth, kind))
+                    atomic_savez(path, **shape.view_targets(rot, depth, kind, framing_of(meta)))
                     counts["written"] += 1
         except Exception as exc:  # one bad shape must not stop the build
             counts["failed_shapes"] += 1
