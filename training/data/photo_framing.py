@@ -57,25 +57,39 @@ class Framing:
     box: tuple[float, float, float, float]
     scale: float
     offset: tuple[float, float]
+    part: str = "both"
 
     def to_meta(self) -> dict:
-        return {"fraction": self.fraction, "box": list(self.box), "scale": self.scale, "offset": list(self.offset)}
+        return {"fraction": self.fraction, "box": list(self.box), "scale": self.scale, "offset": list(self.offset),
+                "part": self.part}
 
 
-def photo_framing(mask: np.ndarray, fraction: float, camera: CameraConfig) -> Framing:
+PARTS = ("both", "centre", "size")  # what of the photo's framing a view gets (the rest stays the render's)
+
+
+def photo_framing(mask: np.ndarray, fraction: float, camera: CameraConfig, part: str = "both") -> Framing:
     """The framing :func:`genre_backend.photo.preprocess.preprocess` gives a photo whose mask is ``mask`` (S, S) (True
-    or > 0.5 on the object) when ``object_fraction`` is ``fraction``."""
+    or > 0.5 on the object) when ``object_fraction`` is ``fraction``. ``part``: ``"both"``, that framing;
+    ``"centre"``, its centre at the render's own size; ``"size"``, its size about the render's own centre (the two
+    halves of what a photo's framing changes, to measure each)."""
+    if part not in PARTS:
+        raise ValueError(f"part: expected one of {PARTS}, got {part!r}")
     size = mask.shape[-1]
     bbox = mask_bbox(np.asarray(mask) > 0.5)
     if bbox is None:
         raise ValueError("the view's mask is empty: nothing to frame")
     box = square_crop_box(bbox, fraction)
+    if part == "centre":  # the photo's centre, the render's size
+        box = square_crop_box(bbox, max(bbox[2] - bbox[0], bbox[3] - bbox[1]) / size)
+    elif part == "size":  # the render's centre, the photo's size
+        half = (box[2] - box[0]) / 2.0
+        box = (size / 2.0 - half, size / 2.0 - half, size / 2.0 + half, size / 2.0 + half)
     side = box[2] - box[0]
     k = size / side
     f = camera.focal_px(size)
     cx, cy = (box[0] + box[2]) / 2.0, (box[1] + box[3]) / 2.0
     b = ((cx - size / 2.0) * camera.distance / f, -(cy - size / 2.0) * camera.distance / f)
-    return Framing(float(fraction), tuple(float(v) for v in box), float(k), (float(b[0]), float(b[1])))
+    return Framing(float(fraction), tuple(float(v) for v in box), float(k), (float(b[0]), float(b[1])), part)
 
 
 def framing_of(meta: dict) -> Framing | None:
@@ -84,7 +98,7 @@ def framing_of(meta: dict) -> Framing | None:
     if m is None:
         return None
     return Framing(float(m["fraction"]), tuple(float(v) for v in m["box"]), float(m["scale"]),
-                   (float(m["offset"][0]), float(m["offset"][1])))
+                   (float(m["offset"][0]), float(m["offset"][1])), str(m.get("part", "both")))
 
 
 def framed_points(points: torch.Tensor, framing: Framing) -> torch.Tensor:
@@ -128,7 +142,8 @@ def fits_grid(points: torch.Tensor, margin: float = GRID_MARGIN) -> bool:
     return bool((points.abs() <= 0.5 - margin).all())
 
 
-def frame_folder(src: Path, out: Path, fraction: float, camera: CameraConfig, progress: bool = True) -> dict[str, int]:
+def frame_folder(src: Path, out: Path, fraction: float, camera: CameraConfig, progress: bool = True, part: str = "both"
+                 ) -> dict[str, int]:
     """Write every complete view of ``src`` framed into ``out`` (a views folder); views already there are kept.
     Returns counts: views framed, kept, left out (the framed object would leave the grid)."""
     from tqdm import tqdm
@@ -150,7 +165,7 @@ def frame_folder(src: Path, out: Path, fraction: float, camera: CameraConfig, pr
                 continue
             view = load_view(shape_dir, k)
             meta = view["camera"]
-            framing = photo_framing(view["mask"], fraction, camera)
+            framing = photo_framing(view["mask"], fraction, camera, part)
             if points is None:
                 with np.load(surface_points_path(shape_dir)) as z:
                     points = torch.from_numpy(z["points"].astype(np.float64))
@@ -179,6 +194,9 @@ def main(argv: list[str] | None = None, prog: str = "genre data photo-frame") ->
     add_out(parser, type=Path, required=True, help="the framed views folder")
     parser.add_argument("--fraction", type=float, default=None,
                         help="the share of the image the mask's longest side spans (default: the preset's object_fraction)")
+    parser.add_argument("--part", choices=PARTS, default="both",
+                        help="both (default): the photo's framing; centre: its centre at the render's own size; size: its "
+                        "size about the render's centre (to measure each half of what the framing costs)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if not args.views.is_dir():
@@ -193,7 +211,7 @@ def main(argv: list[str] | None = None, prog: str = "genre data photo-frame") ->
     if not 0.05 <= fraction <= 1.0:
         parser.error(f"--fraction: expected a value in [0.05, 1], got {fraction}")
     start = time.perf_counter()
-    counts = frame_folder(args.views, args.out, fraction, config.camera, progress=not args.no_progress)
+    counts = frame_folder(args.views, args.out, fraction, config.camera, progress=not args.no_progress, part=args.part)
     counts["seconds"] = round(time.perf_counter() - start, 1)
     print(json.dumps(counts))
     return 0

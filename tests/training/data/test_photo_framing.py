@@ -92,3 +92,16 @@ def test_framing_magnifies_about_the_box_centre():
     assert np.allclose(framing.offset, ((44 - 32) * TINY.camera.distance / f, -(18 - 32) * TINY.camera.distance / f))
     p = torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64)
     assert torch.allclose(framed_points(p, framing), 2.0 * (p - torch.tensor([[*framing.offset, 0.0]], dtype=torch.float64)))
+
+
+def test_each_half_of_the_framing_alone():
+    """``centre``: the photo's centre at the render's size; ``size``: the photo's size about the render's centre."""
+    size = 64
+    alpha = np.zeros((size, size), np.float32)
+    alpha[10:26, 40:48] = 1.0
+    both = photo_framing(alpha, 0.5, TINY.camera)
+    centre = photo_framing(alpha, 0.5, TINY.camera, "centre")
+    assert centre.box == (12.0, -14.0, 76.0, 50.0) and centre.scale == 1.0 and centre.offset == both.offset
+    sized = photo_framing(alpha, 0.5, TINY.camera, "size")
+    assert sized.box == (16.0, 16.0, 48.0, 48.0) and sized.scale == both.scale and sized.offset == (0.0, 0.0)
+    assert framing_of({"photo_framing": sized.to_meta()}) == sized
