@@ -212,6 +212,16 @@ def _targets(name: str, views: Path, preset: str | None = None) -> Step:
     return _genre(name, *args, reads=(views,), writes=(views,))
 
 
+def _photo_framed(views: Path) -> list[Step]:
+    """``views`` framed as ``genre reconstruct`` frames a photo (``genre data photo-frame``) into the folder of the same
+    name with ``_pf`` added, with their targets: the sets the rules read since 2026-12-06 23:08
+    (results/photo_framing.md)."""
+    out = views.with_name(views.name + "_pf")
+    return [_genre(f"photo_frame_{views.name}", "data", "photo-frame", "--views", views, "--out", out, "--no-progress",
+                   reads=(views,), writes=(out,)),
+            _targets(f"targets_{views.name}_pf", out)]
+
+
 def _train(name: str, action: Train) -> Step:
     reads = (*action.data, *((action.init,) if action.init else ()), *((action.backgrounds,) if action.backgrounds else ()))
     stage_dir = action.out / action.stage
@@ -403,7 +413,8 @@ class EvalViewsChain:
     """What scoring a candidate against the installed file needs on a fresh machine, and nothing else: the corpus,
     the product test split's and its primitives' views as ``product`` renders them, the product test split's shapes
     once more from 45-88 degrees (``views/product_up``: the product rule scores every angle), and the flat-from-above group
-    (``genre data flat-test``, 2 views a shape from 60-88 degrees: docs/evaluation.md).  A CPU session's candidates are
+    (``genre data flat-test``, 2 views a shape from 60-88 degrees: docs/evaluation.md), then each of them framed as a photo
+    is (``VIEWS_pf``, :func:`_photo_framed`).  A CPU session's candidates are
     then scored with ``genre eval --data VIEWS --weights W --levels 0.45`` on each (docs/training.md)."""
 
     flat_views: int = 2
@@ -422,7 +433,9 @@ class EvalViewsChain:
                 _render("render_flat_eval", home, "flat-from-above", flat_views, self.flat_views, seed=5,
                         manifest=flat_manifest, elevation=self.flat_elevation),
                 _targets("targets_flat_eval", flat_views)]
-        return Chain(name, (*_corpus(home), *test, *primitives_test, *flat))
+        framed = [step for views in (paths.eval_views, up_views, paths.prim_eval_views, flat_views)
+                  for step in _photo_framed(views)]
+        return Chain(name, (*_corpus(home), *test, *primitives_test, *flat, *framed))
 
 
 @dataclass(frozen=True)
@@ -430,7 +443,8 @@ class TrainViewsChain:
     """The training views every product run since 2026-12-04 learns from, made again on a fresh machine: every
     product-train shape twice (``views/fresh88``), its primitives four times more (``views/fresh_prim``) and the
     thin shapes lying on the ground twice (``genre data thin``, ``views/thin74``), all from -10 to 88 degrees with
-    their targets; the seeds are the ones the runs' documented commands used (docs/training.md)."""
+    their targets, then each framed as a photo is (``VIEWS_pf``); the seeds are the ones the runs' documented commands
+    used (docs/training.md)."""
 
     elevation: tuple[int, int] = (-10, 88)
 
@@ -449,7 +463,8 @@ class TrainViewsChain:
                 _targets("targets_thin74", thin74)]
 
     def build(self, name: str, home: Path) -> Chain:
-        return Chain(name, tuple(self.steps(home)))
+        framed = [step for views in _train_views(home) for step in _photo_framed(views)]
+        return Chain(name, (*self.steps(home), *framed))
 
 
 def _train_views(home: Path) -> tuple[Path, Path, Path]:

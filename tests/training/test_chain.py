@@ -25,6 +25,10 @@ def _round(n: int) -> list[str]:
     return [f"joint_{n}", f"keep_{n}", f"eval_joint_{n}", f"eval_primitives_joint_{n}", f"curve_joint_{n}"]
 
 
+def _framed(*views: str) -> list[str]:
+    return [step for v in views for step in (f"photo_frame_{v}", f"targets_{v}_pf")]
+
+
 EXPECTED = {
     "protocol": [*_DATA, "render", "targets", "depth", *_PROTOCOL_TAIL],
     "protocol-photo": [*_DATA, "render", "targets", "backgrounds", "depth", *_PROTOCOL_TAIL],
@@ -36,8 +40,9 @@ EXPECTED = {
                      "compare", "compare_primitives"],
     "eval-views": [*_DATA, "render_eval", "targets_eval", "render_eval_up", "targets_eval_up", "render_primitives_eval",
                    "targets_primitives_eval", "flat_test",
-                   "render_flat_eval", "targets_flat_eval"],
-    "train-views": [*_DATA, *_TRAIN_VIEWS],
+                   "render_flat_eval", "targets_flat_eval",
+                   *_framed("product_eval", "product_up", "primitives_eval", "flat_eval")],
+    "train-views": [*_DATA, *_TRAIN_VIEWS, *_framed("fresh88", "fresh_prim", "thin74")],
     "product-cycle": [*_DATA, *_TRAIN_VIEWS, "depth", "graft", "refine", "joint"],
 }
 
