@@ -167,6 +167,9 @@ def frame_folder(src: Path, out: Path, fraction: float, camera: CameraConfig, pr
             meta = view["camera"]
             framing = photo_framing(view["mask"], fraction, camera, part)
             if points is None:
+                if not surface_points_path(shape_dir).is_file():
+                    raise FileNotFoundError(f"{shape_dir}: no surface_points.npz: run 'genre data targets --views "
+                                            f"{src}' first")
                 with np.load(surface_points_path(shape_dir)) as z:
                     points = torch.from_numpy(z["points"].astype(np.float64))
             from genre_backend import frame
@@ -211,7 +214,11 @@ def main(argv: list[str] | None = None, prog: str = "genre data photo-frame") ->
     if not 0.05 <= fraction <= 1.0:
         parser.error(f"--fraction: expected a value in [0.05, 1], got {fraction}")
     start = time.perf_counter()
-    counts = frame_folder(args.views, args.out, fraction, config.camera, progress=not args.no_progress, part=args.part)
+    try:
+        counts = frame_folder(args.views, args.out, fraction, config.camera, progress=not args.no_progress, part=args.part)
+    except (OSError, ValueError) as exc:  # the views written so far are complete; the same command resumes
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 1
     counts["seconds"] = round(time.perf_counter() - start, 1)
     print(json.dumps(counts))
     return 0

@@ -105,3 +105,16 @@ def test_each_half_of_the_framing_alone():
     sized = photo_framing(alpha, 0.5, TINY.camera, "size")
     assert sized.box == (16.0, 16.0, 48.0, 48.0) and sized.scale == both.scale and sized.offset == (0.0, 0.0)
     assert framing_of({"photo_framing": sized.to_meta()}) == sized
+
+
+def test_a_folder_without_targets_is_refused_with_a_clear_error(tiny_views, tmp_path, capsys):
+    import shutil
+
+    from training.data.photo_framing import main
+
+    src = tmp_path / "views"
+    shutil.copytree(tiny_views, src)
+    for points in src.glob("*/surface_points.npz"):
+        points.unlink()
+    assert main(["--views", str(src), "--out", str(tmp_path / "framed"), "--no-progress"]) == 1
+    assert "no surface_points.npz: run 'genre data targets" in capsys.readouterr().err
