@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from genre_backend import frame
 from genre_backend.arguments import add_out
 from genre_backend.config import CameraConfig, get_preset
 from genre_backend.photo.preprocess import NEUTRAL_BACKGROUND, crop_resize, mask_bbox, square_crop_box
@@ -172,8 +173,6 @@ def frame_folder(src: Path, out: Path, fraction: float, camera: CameraConfig, pr
                                             f"{src}' first")
                 with np.load(surface_points_path(shape_dir)) as z:
                     points = torch.from_numpy(z["points"].astype(np.float64))
-            from genre_backend import frame
-
             rot = torch.tensor(meta["rotation_cam_to_obj"], dtype=torch.float64)
             posed = framed_points(frame.object_to_view(points[None], rot[None])[0], framing)
             if not fits_grid(posed):
